@@ -1,0 +1,77 @@
+"""The `Descriptor` contract shared by every per-vertex feature."""
+
+from __future__ import annotations
+
+import inspect
+import json
+from typing import Any, ClassVar
+
+import numpy as np
+
+from geofeat.errors import DescriptorError
+from geofeat.mesh import Mesh
+
+
+class Descriptor:
+    """Base class of per-vertex descriptors.
+
+    A subclass declares its parameters as explicit keyword arguments of ``__init__`` with
+    defaults, stores each under the same attribute name and does no I/O there (the
+    scikit-learn estimator rule). ``compute`` does the work; calling the descriptor checks
+    and returns a C-contiguous float32 array of shape (V, dim).
+
+    Class attributes
+    ----------------
+    name : str
+        Registry name.
+    version : str
+        Code version; bump it whenever the output for the same parameters changes, so that
+        old cache entries are not reused.
+    """
+
+    name: ClassVar[str] = ""
+    version: ClassVar[str] = "1"
+
+    @classmethod
+    def param_names(cls) -> list[str]:
+        """Names of the keyword parameters of ``__init__``."""
+        signature = inspect.signature(cls.__init__)
+        return [p.name for p in signature.parameters.values() if p.name != "self" and p.kind is p.KEYWORD_ONLY]
+
+    @classmethod
+    def param_defaults(cls) -> dict[str, Any]:
+        """Default value of every parameter."""
+        signature = inspect.signature(cls.__init__)
+        return {name: signature.parameters[name].default for name in cls.param_names()}
+
+    def get_params(self) -> dict[str, Any]:
+        """Parameters as given (JSON-serialisable); they are part of the cache key."""
+        return {name: getattr(self, name) for name in self.param_names()}
+
+    def params_json(self) -> str:
+        """Canonical JSON of the parameters (sorted keys, no spaces)."""
+        try:
+            return json.dumps(self.get_params(), sort_keys=True, separators=(",", ":"), allow_nan=False)
+        except (TypeError, ValueError) as err:
+            raise DescriptorError(f"parameters of {self.name!r} must be JSON-serialisable: {err}") from err
+
+    def weights_digest(self) -> str | None:
+        """Digest of the model weights the descriptor uses, or None when it uses none."""
+        return None
+
+    def compute(self, mesh: Mesh) -> np.ndarray:
+        """Return features of shape (V, dim); subclasses implement this."""
+        raise NotImplementedError
+
+    def __call__(self, mesh: Mesh) -> np.ndarray:
+        """Compute features, shape (V, dim), C-contiguous float32."""
+        features = np.ascontiguousarray(self.compute(mesh), dtype=np.float32)
+        if features.ndim != 2 or features.shape[0] != mesh.n_vertices:
+            raise DescriptorError(
+                f"descriptor {self.name!r} returned shape {features.shape}; expected ({mesh.n_vertices}, dim)."
+            )
+        return features
+
+    def __repr__(self) -> str:
+        args = ", ".join(f"{k}={v!r}" for k, v in self.get_params().items())
+        return f"{type(self).__name__}({args})"

@@ -1,0 +1,27 @@
+"""Exception types. Every error geofeat raises for bad input derives from `GeofeatError`."""
+
+from __future__ import annotations
+
+
+class GeofeatError(Exception):
+    """Base class of every error geofeat raises on purpose."""
+
+
+class MeshError(GeofeatError, ValueError):
+    """A mesh (arrays or file) is malformed: wrong shape, dtype, values or format."""
+
+
+class SpectralError(GeofeatError, RuntimeError):
+    """The Laplace-Beltrami eigenproblem could not be solved, even after every fallback."""
+
+
+class DescriptorError(GeofeatError, ValueError):
+    """An unknown descriptor name or a bad descriptor parameter."""
+
+
+class MissingDependencyError(GeofeatError, ImportError):
+    """An optional dependency is not installed; the message names the extra to install."""
+
+
+class CacheError(GeofeatError, OSError):
+    """The feature cache cannot be used (bad location, unwritable directory)."""

@@ -1,0 +1,327 @@
+"""Triangle meshes and point clouds: the `Mesh` record, validation, loading and normalisation.
+
+Loading never merges, drops or reorders vertices: ground-truth correspondence files index
+them by position in the file.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.sparse.csgraph import connected_components
+
+from geofeat.errors import MeshError
+
+log = logging.getLogger(__name__)
+
+MESH_SUFFIXES = (".off", ".obj", ".ply")
+
+
+@dataclass(frozen=True, eq=False)
+class Mesh:
+    """A triangle mesh, or a point cloud when ``faces`` is None.
+
+    Parameters
+    ----------
+    verts : array_like, shape (V, 3)
+        Vertex coordinates, any real dtype; stored as float64.
+    faces : array_like of int, shape (F, 3), optional
+        0-based vertex indices of triangles; stored as int64. None for a point cloud.
+    name : str
+        A label (file stem when loaded); not part of the content hash.
+
+    Notes
+    -----
+    The arrays are validated and made read-only, so the content hash stays true.
+    Problems that can be handled (degenerate faces, unreferenced vertices, non-manifold
+    edges, several components) are logged as warnings; see `Mesh.report`.
+    """
+
+    verts: np.ndarray
+    faces: np.ndarray | None = None
+    name: str = ""
+    _hash: str = field(init=False, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        verts = _validated_verts(self.verts)
+        faces = None if self.faces is None else _validated_faces(self.faces, len(verts))
+        verts.flags.writeable = False
+        if faces is not None:
+            faces.flags.writeable = False
+        object.__setattr__(self, "verts", verts)
+        object.__setattr__(self, "faces", faces)
+        object.__setattr__(self, "name", str(self.name))
+        object.__setattr__(self, "_hash", _content_hash(verts, faces))
+        for problem in self.report():
+            log.warning("mesh %r: %s", self.name or "<unnamed>", problem)
+
+    @property
+    def n_vertices(self) -> int:
+        """Number of vertices V."""
+        return int(self.verts.shape[0])
+
+    @property
+    def is_point_cloud(self) -> bool:
+        """True when the mesh has no faces."""
+        return self.faces is None
+
+    @property
+    def hash(self) -> str:
+        """SHA-256 hex digest of exactly the vertex and face arrays (not the name)."""
+        return self._hash
+
+    def face_areas(self) -> np.ndarray:
+        """Triangle areas, shape (F,) float64."""
+        if self.faces is None:
+            raise MeshError(f"mesh {self.name!r} is a point cloud: it has no faces, so no face areas")
+        tri = self.verts[self.faces]
+        return 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+
+    def area(self) -> float:
+        """Total surface area of the triangles."""
+        return float(self.face_areas().sum())
+
+    def report(self) -> list[str]:
+        """Problems that geofeat handles but a user should know about.
+
+        Returns
+        -------
+        list of str
+            One sentence per kind of problem: degenerate faces, unreferenced vertices,
+            non-manifold edges, several connected components. Empty for a clean mesh.
+        """
+        if self.faces is None:
+            return []
+        problems = []
+        faces = self.faces
+        n_degenerate = int(np.count_nonzero(self.face_areas() <= 1e-14 * max(self.bbox_diagonal(), 1e-300) ** 2))
+        if n_degenerate:
+            problems.append(f"{n_degenerate} degenerate face(s) (zero area or repeated vertex)")
+        n_unref = self.n_vertices - int(np.unique(faces).size)
+        if n_unref:
+            problems.append(f"{n_unref} unreferenced vertex(es): their features are copied from the nearest referenced vertex")
+        edges = np.sort(faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
+        _, counts = np.unique(edges, axis=0, return_counts=True)
+        n_nonmanifold = int(np.count_nonzero(counts > 2))
+        if n_nonmanifold:
+            problems.append(f"{n_nonmanifold} non-manifold edge(s) (shared by more than two faces)")
+        n_components = self.n_components()
+        if n_components > 1:
+            problems.append(f"{n_components} connected components")
+        return problems
+
+    def n_components(self) -> int:
+        """Number of connected components of the face graph (unreferenced vertices not counted)."""
+        if self.faces is None:
+            return 1
+        used = np.unique(self.faces)
+        rows = self.faces[:, [0, 1, 2]].ravel()
+        cols = self.faces[:, [1, 2, 0]].ravel()
+        graph = sp.coo_matrix((np.ones(rows.size), (rows, cols)), shape=(self.n_vertices,) * 2)
+        _, labels = connected_components(graph, directed=False)
+        return int(np.unique(labels[used]).size)
+
+    def bbox_diagonal(self) -> float:
+        """Length of the bounding-box diagonal."""
+        return float(np.linalg.norm(self.verts.max(axis=0) - self.verts.min(axis=0)))
+
+    def __repr__(self) -> str:
+        kind = "point cloud" if self.faces is None else f"{len(self.faces)} faces"
+        return f"Mesh(name={self.name!r}, {self.n_vertices} vertices, {kind}, hash={self.hash[:12]})"
+
+
+def _validated_verts(verts) -> np.ndarray:
+    arr = np.asarray(verts)
+    if arr.dtype.kind not in "fiu" or arr.dtype == np.float16:
+        raise MeshError(
+            f"verts must be a real numeric array of shape (V, 3); found dtype {arr.dtype}. "
+            "Convert with np.asarray(verts, dtype=np.float64)."
+        )
+    if arr.ndim != 2 or arr.shape[1] != 3:
+        raise MeshError(f"verts must have shape (V, 3); found shape {arr.shape}.")
+    if arr.shape[0] == 0:
+        raise MeshError("the mesh is empty: verts has shape (0, 3); expected at least one vertex.")
+    arr = np.array(arr, dtype=np.float64, order="C", copy=True)
+    bad = ~np.isfinite(arr).all(axis=1)
+    if bad.any():
+        idx = np.flatnonzero(bad)
+        raise MeshError(
+            f"verts contain NaN or infinite coordinates at {idx.size} vertex(es), "
+            f"first at index {idx[:5].tolist()}; clean or remove them before building a Mesh."
+        )
+    return arr
+
+
+def _validated_faces(faces, n_vertices: int) -> np.ndarray:
+    arr = np.asarray(faces)
+    if arr.dtype == object:
+        raise MeshError("faces have different numbers of corners; only triangles (F, 3) are supported. Triangulate first.")
+    if arr.ndim != 2:
+        raise MeshError(f"faces must have shape (F, 3); found shape {arr.shape}.")
+    if arr.shape[1] != 3:
+        raise MeshError(
+            f"faces must be triangles, shape (F, 3); found {arr.shape[1]}-sided faces, shape {arr.shape}. "
+            "Triangulate first (for example trimesh.Trimesh(...).triangles)."
+        )
+    if arr.shape[0] == 0:
+        raise MeshError("faces has shape (0, 3): a mesh needs at least one face; pass faces=None for a point cloud.")
+    if arr.dtype.kind not in "iu":
+        raise MeshError(f"faces must be an integer array; found dtype {arr.dtype}. Convert with faces.astype(np.int64).")
+    arr = np.array(arr, dtype=np.int64, order="C", copy=True)
+    lo, hi = int(arr.min()), int(arr.max())
+    if lo < 0 or hi >= n_vertices:
+        raise MeshError(
+            f"face indices must lie in [0, {n_vertices - 1}] (0-based, {n_vertices} vertices); "
+            f"found range [{lo}, {hi}]. 1-based indices? Subtract 1."
+        )
+    return arr
+
+
+def _content_hash(verts: np.ndarray, faces: np.ndarray | None) -> str:
+    digest = hashlib.sha256()
+    digest.update(f"verts{verts.shape}<f8".encode())
+    digest.update(verts.astype("<f8", copy=False).tobytes())
+    if faces is None:
+        digest.update(b"faces:none")
+    else:
+        digest.update(f"faces{faces.shape}<i8".encode())
+        digest.update(faces.astype("<i8", copy=False).tobytes())
+    return digest.hexdigest()
+
+
+def normalize(mesh: Mesh, center: bool = True) -> Mesh:
+    """Scale a mesh to unit surface area, optionally centring it at its area-weighted centroid.
+
+    Parameters
+    ----------
+    mesh : Mesh
+        Input triangle mesh (a point cloud has no surface area and is refused).
+    center : bool
+        Translate the centroid to the origin.
+
+    Returns
+    -------
+    Mesh
+        A new mesh with the same faces and vertex order.
+    """
+    area = mesh.area()
+    if not area > 0:
+        raise MeshError(f"mesh {mesh.name!r} has zero surface area; it cannot be normalised to unit area.")
+    verts = mesh.verts
+    if center:
+        face_centers = verts[mesh.faces].mean(axis=1)
+        weights = mesh.face_areas()
+        centroid = (face_centers * weights[:, None]).sum(axis=0) / weights.sum()
+        verts = verts - centroid
+    return Mesh(verts / np.sqrt(area), mesh.faces, name=mesh.name)
+
+
+def load_mesh(path: str | os.PathLike) -> Mesh:
+    """Read a mesh from ``.off``, ``.obj`` or ``.ply`` keeping the file's vertex order exactly.
+
+    Parameters
+    ----------
+    path : str or PathLike
+        Mesh file. A file without faces gives a point cloud.
+
+    Returns
+    -------
+    Mesh
+        ``verts`` (V, 3) float64 and ``faces`` (F, 3) int64 or None, named after the file stem.
+    """
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if suffix not in MESH_SUFFIXES:
+        raise MeshError(f"cannot read {path}: unsupported suffix {path.suffix!r}; expected one of {', '.join(MESH_SUFFIXES)}.")
+    if not path.is_file():
+        raise MeshError(f"cannot read {path}: no such file.")
+    reader = {".off": _read_off, ".obj": _read_obj, ".ply": _read_ply}[suffix]
+    try:
+        verts, faces = reader(path)
+    except MeshError as err:
+        raise MeshError(f"{path}: {err}") from None
+    except (ValueError, IndexError, UnicodeDecodeError) as err:
+        raise MeshError(f"{path}: malformed {suffix[1:].upper()} file ({err}).") from err
+    return Mesh(verts, faces, name=path.stem)
+
+
+def _polygon_faces(polygons: list[list[int]]) -> np.ndarray | None:
+    if not polygons:
+        return None
+    sizes = {len(p) for p in polygons}
+    if sizes != {3}:
+        raise MeshError(
+            f"faces with {sorted(sizes)} corners found; only triangles are supported. Triangulate the file first."
+        )
+    return np.asarray(polygons, dtype=np.int64)
+
+
+def _read_off(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
+    lines = []
+    with open(path, encoding="ascii", errors="strict") as fh:
+        for line in fh:
+            line = line.split("#", 1)[0].strip()
+            if line:
+                lines.append(line)
+    if not lines:
+        raise MeshError("empty OFF file")
+    header = lines[0].split()
+    if not header[0].endswith("OFF"):
+        raise MeshError(f"not an OFF file: first line is {lines[0]!r}, expected 'OFF'")
+    if header[0] != "OFF":
+        raise MeshError(f"OFF variant {header[0]!r} is not supported; expected plain 'OFF'")
+    counts = header[1:] if len(header) > 1 else lines.pop(1).split()
+    n_verts, n_faces = int(counts[0]), int(counts[1])
+    body = lines[1 : 1 + n_verts + n_faces]
+    if len(body) < n_verts + n_faces:
+        raise MeshError(f"header announces {n_verts} vertices and {n_faces} faces, file ends after {len(body)} rows")
+    verts = np.array([row.split()[:3] for row in body[:n_verts]], dtype=np.float64).reshape(n_verts, 3)
+    polygons = []
+    for row in body[n_verts:]:
+        values = row.split()
+        n = int(values[0])
+        polygons.append([int(v) for v in values[1 : 1 + n]])
+    return verts, _polygon_faces(polygons)
+
+
+def _read_obj(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
+    verts, polygons = [], []
+    with open(path, encoding="utf-8", errors="replace") as fh:
+        for line in fh:
+            parts = line.split()
+            if not parts:
+                continue
+            if parts[0] == "v":
+                verts.append([float(x) for x in parts[1:4]])
+            elif parts[0] == "f":
+                corners = []
+                for token in parts[1:]:
+                    index = int(token.split("/")[0])
+                    corners.append(index - 1 if index > 0 else len(verts) + index)
+                polygons.append(corners)
+    return np.asarray(verts, dtype=np.float64).reshape(-1, 3), _polygon_faces(polygons)
+
+
+def _read_ply(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
+    from trimesh.exchange.ply import load_ply
+
+    with open(path, "rb") as fh:
+        data = load_ply(fh, fix_texture=False)
+    raw_faces = data.get("metadata", {}).get("_ply_raw", {}).get("face", {}).get("data", {})
+    indices = raw_faces.get("vertex_indices", raw_faces.get("vertex_index")) if raw_faces else None
+    if indices is not None and len(indices):
+        if np.asarray(indices).dtype == object:
+            sizes = sorted({len(f) for f in indices})
+        else:
+            sizes = [np.asarray(indices).shape[1]]
+        if sizes != [3]:
+            raise MeshError(f"faces with {sizes} corners found; only triangles are supported. Triangulate the file first.")
+    faces = data.get("faces")
+    faces = None if faces is None or len(faces) == 0 else np.asarray(faces, dtype=np.int64)
+    return np.asarray(data["vertices"], dtype=np.float64), faces
