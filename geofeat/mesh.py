@@ -244,11 +244,11 @@ def load_mesh(path: str | os.PathLike) -> Mesh:
     reader = {".off": _read_off, ".obj": _read_obj, ".ply": _read_ply}[suffix]
     try:
         verts, faces = reader(path)
+        return Mesh(verts, faces, name=path.stem)
     except MeshError as err:
         raise MeshError(f"{path}: {err}") from None
     except (ValueError, IndexError, UnicodeDecodeError) as err:
         raise MeshError(f"{path}: malformed {suffix[1:].upper()} file ({err}).") from err
-    return Mesh(verts, faces, name=path.stem)
 
 
 def _polygon_faces(polygons: list[list[int]]) -> np.ndarray | None:
@@ -313,15 +313,30 @@ def _read_ply(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
 
     with open(path, "rb") as fh:
         data = load_ply(fh, fix_texture=False)
-    raw_faces = data.get("metadata", {}).get("_ply_raw", {}).get("face", {}).get("data", {})
-    indices = raw_faces.get("vertex_indices", raw_faces.get("vertex_index")) if raw_faces else None
-    if indices is not None and len(indices):
-        if np.asarray(indices).dtype == object:
-            sizes = sorted({len(f) for f in indices})
-        else:
-            sizes = [np.asarray(indices).shape[1]]
-        if sizes != [3]:
-            raise MeshError(f"faces with {sizes} corners found; only triangles are supported. Triangulate the file first.")
+    sizes = _ply_polygon_sizes(data)
+    if sizes and sizes != [3]:
+        raise MeshError(f"faces with {sizes} corners found; only triangles are supported. Triangulate the file first.")
     faces = data.get("faces")
     faces = None if faces is None or len(faces) == 0 else np.asarray(faces, dtype=np.int64)
     return np.asarray(data["vertices"], dtype=np.float64), faces
+
+
+def _ply_polygon_sizes(data: dict) -> list[int]:
+    """Sorted distinct corner counts of the faces as the PLY file holds them (trimesh triangulates polygons)."""
+    element = data.get("metadata", {}).get("_ply_raw", {}).get("face")
+    if element is None:
+        return []
+    for key in ("vertex_indices", "vertex_index"):
+        try:
+            indices = element["data"][key]
+        except (KeyError, ValueError, IndexError):
+            continue
+        indices = np.asarray(indices)
+        if len(indices) == 0:
+            return []
+        if indices.dtype.names:  # binary: (count, fixed-size index array) records
+            return sorted({int(c) for c in np.unique(indices[indices.dtype.names[0]])})
+        if indices.dtype == object:  # ragged polygon lists
+            return sorted({len(f) for f in indices})
+        return [int(indices.shape[1])]
+    return []

@@ -92,6 +92,11 @@ def spectral_basis(mesh: Mesh, k: int = 128, laplacian_kind: str = "robust", cac
                 return _basis_cache[key]
     lap = laplacian(mesh, kind=laplacian_kind)
     active = lap.mass > 0
+    if mesh.faces is not None:
+        referenced = np.zeros(mesh.n_vertices, dtype=bool)
+        referenced[mesh.faces.ravel()] = True
+        active &= referenced
+    mass = np.where(active, lap.mass, 0.0)
     n_active = int(active.sum())
     if k >= n_active:
         raise SpectralError(
@@ -101,10 +106,10 @@ def spectral_basis(mesh: Mesh, k: int = 128, laplacian_kind: str = "robust", cac
     stiffness = lap.stiffness
     if n_active < mesh.n_vertices:
         stiffness = stiffness[active][:, active]
-    evals, evecs = solve_eigenpairs(stiffness, lap.mass[active], int(k), name=mesh.name)
+    evals, evecs = solve_eigenpairs(stiffness, mass[active], int(k), name=mesh.name)
     if n_active < mesh.n_vertices:
         evecs = _fill_inactive(mesh.verts, active, evecs)
-    basis = SpectralBasis(evals, np.ascontiguousarray(evecs), lap.mass)
+    basis = SpectralBasis(evals, np.ascontiguousarray(evecs), mass)
     if cache:
         with _basis_lock:
             _basis_cache[key] = basis

@@ -1,0 +1,25 @@
+#!/usr/bin/env bash
+# One-command set-up on Debian/Ubuntu: system packages, a virtual environment in .venv,
+# the CPU build of PyTorch, then geofeat with all its extras. Run from the repository root:
+#   bash scripts/install.sh
+# Set GEOFEAT_TORCH to choose another torch requirement (for example a CUDA build).
+set -euo pipefail
+cd "$(dirname "$0")/.."
+
+SUDO=""
+if [ "$(id -u)" -ne 0 ]; then SUDO="sudo"; fi
+if command -v apt-get >/dev/null 2>&1; then
+    $SUDO apt-get update -qq
+    # python3-venv for the environment; EGL/OSMesa for the optional pyrender backend ([gl] extra).
+    $SUDO env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends \
+        python3-venv libegl1 libgl1 libosmesa6 >/dev/null
+fi
+
+PYTHON="${PYTHON:-python3}"
+"$PYTHON" -m venv .venv
+.venv/bin/python -m pip install -q --upgrade pip
+# torch first, then keep it pinned: an unpinned torch elsewhere would pull CUDA packages.
+.venv/bin/python -m pip install -q "${GEOFEAT_TORCH:-torch==2.13.0}"
+.venv/bin/python -m pip freeze | grep -i '^torch==' > .venv/constraints.txt
+.venv/bin/python -m pip install -q -c .venv/constraints.txt -e ".[dino,gl,bench,test]"
+.venv/bin/python -c "import geofeat; print('geofeat', geofeat.__version__, 'installed in .venv')"

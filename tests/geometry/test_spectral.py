@@ -1,0 +1,132 @@
+import logging
+
+import numpy as np
+import pytest
+import scipy.sparse.linalg as sla
+from conftest import bumpy, sphere
+
+from geofeat import Mesh, SpectralError
+from geofeat.geometry import laplacian, spectral, spectral_basis
+
+
+def test_unit_sphere_spectrum_is_l_l_plus_1():
+    """Eigenvalues of the unit sphere are l(l+1) with multiplicity 2l+1: 0, 2 (x3), 6 (x5)."""
+    basis = spectral_basis(sphere(4), k=9, laplacian_kind="cotan", cache=False)
+    expected = np.array([0, 2, 2, 2, 6, 6, 6, 6, 6], dtype=float)
+    np.testing.assert_allclose(basis.evals, expected, atol=0.02)
+
+
+@pytest.mark.parametrize("kind", ["robust", "cotan"])
+def test_basis_is_mass_orthonormal_and_solves_the_problem(kind):
+    mesh = bumpy(0, 3)
+    basis = spectral_basis(mesh, k=30, laplacian_kind=kind, cache=False)
+    lap = laplacian(mesh, kind)
+    gram = basis.evecs.T @ (basis.mass[:, None] * basis.evecs)
+    np.testing.assert_allclose(gram, np.eye(30), atol=1e-9)
+    residual = lap.stiffness @ basis.evecs - basis.mass[:, None] * basis.evecs * basis.evals
+    assert np.abs(residual).max() < 1e-8 * basis.evals.max()
+    assert np.all(np.diff(basis.evals) >= 0) and abs(basis.evals[0]) < 1e-8
+
+
+def test_cotan_spectrum_matches_pyfm_on_faust(faust_mesh):
+    from pyFM.mesh import TriMesh
+
+    reference = TriMesh(faust_mesh.verts, faust_mesh.faces).process(k=50)
+    basis = spectral_basis(faust_mesh, k=50, laplacian_kind="cotan", cache=False)
+    np.testing.assert_allclose(basis.evals[1:], reference.eigenvalues[1:], rtol=1e-8)
+
+
+def test_robust_and_cotan_agree_on_a_clean_mesh(faust_mesh):
+    robust = spectral_basis(faust_mesh, k=20, laplacian_kind="robust", cache=False)
+    cotan = spectral_basis(faust_mesh, k=20, laplacian_kind="cotan", cache=False)
+    np.testing.assert_allclose(robust.evals[1:], cotan.evals[1:], rtol=1e-3)
+
+
+def test_results_are_reproducible_to_the_bit():
+    mesh = bumpy(2, 4)
+    a = spectral_basis(mesh, k=40, cache=False)
+    b = spectral_basis(mesh, k=40, cache=False)
+    assert np.array_equal(a.evals, b.evals) and np.array_equal(a.evecs, b.evecs)
+
+
+def test_in_memory_cache_by_content():
+    mesh = bumpy(3, 3)
+    first = spectral_basis(mesh, k=10)
+    same_content = Mesh(mesh.verts.copy(), mesh.faces.copy(), name="copy")
+    assert spectral_basis(same_content, k=10) is first
+    assert spectral_basis(mesh, k=11) is not first
+    spectral.clear_basis_cache()
+    assert spectral_basis(mesh, k=10) is not first
+
+
+def test_fallback_chain_retries_then_uses_dense_solver(monkeypatch, caplog):
+    mesh = bumpy(4, 3)
+    reference = spectral_basis(mesh, k=12, cache=False)
+    calls = []
+
+    def failing_eigsh(*args, **kwargs):
+        calls.append(kwargs["sigma"])
+        raise sla.ArpackNoConvergence("no convergence (simulated)", np.zeros(0), np.zeros((0, 0)))
+
+    monkeypatch.setattr(spectral.sla, "eigsh", failing_eigsh)
+    with caplog.at_level(logging.WARNING, logger="geofeat"):
+        basis = spectral_basis(mesh, k=12, cache=False)
+    assert len(calls) == 2 and calls[1] < calls[0] < 0  # second try: a larger shift
+    assert "retrying" in caplog.text and "dense solver" in caplog.text
+    np.testing.assert_allclose(basis.evals, reference.evals, atol=1e-8 * reference.evals.max())
+
+
+def test_second_attempt_success_is_reported(monkeypatch, caplog):
+    mesh = bumpy(5, 3)
+    real = spectral.sla.eigsh
+    state = {"n": 0}
+
+    def flaky(*args, **kwargs):
+        state["n"] += 1
+        if state["n"] == 1:
+            raise RuntimeError("Factor is exactly singular (simulated)")
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(spectral.sla, "eigsh", flaky)
+    with caplog.at_level(logging.WARNING, logger="geofeat"):
+        spectral_basis(mesh, k=8, cache=False)
+    assert "succeeded with shift-invert, larger shift" in caplog.text
+
+
+def test_large_mesh_without_dense_fallback_raises(monkeypatch):
+    mesh = bumpy(6, 3)
+
+    def failing_eigsh(*args, **kwargs):
+        raise RuntimeError("simulated failure")
+
+    monkeypatch.setattr(spectral.sla, "eigsh", failing_eigsh)
+    monkeypatch.setattr(spectral, "DENSE_MAX_VERTICES", 100)
+    with pytest.raises(SpectralError, match="simulated failure"):
+        spectral_basis(mesh, k=8, cache=False)
+
+
+def test_bad_k():
+    mesh = sphere(1)
+    with pytest.raises(SpectralError, match="smaller than"):
+        spectral_basis(mesh, k=mesh.n_vertices)
+    with pytest.raises(SpectralError, match="positive integer"):
+        spectral_basis(mesh, k=0)
+
+
+def test_point_cloud_basis():
+    cloud = Mesh(sphere(3).verts)
+    basis = spectral_basis(cloud, k=9)
+    assert basis.evecs.shape == (cloud.n_vertices, 9)
+    ratios = basis.evals[1:] / basis.evals[1]
+    np.testing.assert_allclose(ratios[:3], 1.0, atol=0.05)  # the 3-fold first eigenspace of a sphere
+    with pytest.raises(Exception, match="point cloud"):
+        laplacian(cloud, "cotan")
+
+
+def test_unreferenced_vertex_gets_nearest_values():
+    base = bumpy(7, 2)
+    verts = np.vstack([base.verts, base.verts[:1] * 1.01])
+    mesh = Mesh(verts, base.faces)
+    basis = spectral_basis(mesh, k=10, cache=False)
+    assert basis.mass[-1] == 0
+    np.testing.assert_array_equal(basis.evecs[-1], basis.evecs[0])
