@@ -15,7 +15,7 @@ except PackageNotFoundError:  # running from a source tree that is not installed
 
 from geofeat.cache import FeatureCache
 from geofeat.config import cache_dir, set_cache_dir
-from geofeat.descriptors import Descriptor, compute, descriptors
+from geofeat.descriptors import Descriptor, compute, compute_many, descriptors
 from geofeat.errors import CacheError, DescriptorError, GeofeatError, MeshError, MissingDependencyError, SpectralError
 from geofeat.mesh import Mesh, load_mesh, normalize
 
@@ -32,6 +32,7 @@ __all__ = [
     "__version__",
     "cache_dir",
     "compute",
+    "compute_many",
     "descriptors",
     "load_mesh",
     "normalize",

@@ -1,7 +1,7 @@
 """HDF5 feature cache: one small HDF5 file per entry, written atomically.
 
 Layout: ``<root>/<key[:2]>/<key>.h5`` holding the dataset ``features`` and attributes
-(the parts of the key, a SHA-256 checksum of the array, versions, creation time).
+(the parts of the key, a CRC-32 checksum of the array, versions, creation time).
 
 Why one file per entry rather than one big HDF5 file: HDF5 is not crash-safe while a file
 is open for writing, and it cannot be written by several processes at once. A per-entry
@@ -9,7 +9,7 @@ file is written under a temporary name in the same directory, flushed to disk, t
 renamed over its final name (``os.replace``, atomic on POSIX and Windows). Readers see
 the whole entry or none; a killed writer leaves at most a temporary file, which
 `FeatureCache.verify` and `FeatureCache.clear` sweep away; entries written before are
-never touched. A damaged entry (bad checksum, unreadable file) is detected on read,
+never touched. A damaged entry (bad CRC-32 checksum, unreadable file) is detected on read,
 deleted and reported as a miss, so it is recomputed, never returned.
 """
 
@@ -21,6 +21,7 @@ import logging
 import os
 import time
 import uuid
+import zlib
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -44,9 +45,9 @@ def cache_key(mesh_hash: str, descriptor: str, params_json: str, version: str, w
 
 
 def _checksum(array: np.ndarray) -> str:
-    digest = hashlib.sha256(f"{array.dtype.str}{array.shape}".encode())
-    digest.update(np.ascontiguousarray(array).tobytes())
-    return digest.hexdigest()
+    """CRC-32 of the array's dtype, shape and bytes: catches truncation, bit rot and garbage, and is fast."""
+    header = f"{array.dtype.str}{array.shape}".encode()
+    return f"crc32:{zlib.crc32(np.ascontiguousarray(array).data, zlib.crc32(header)):08x}"
 
 
 @dataclass(frozen=True)

@@ -103,11 +103,13 @@ class Mesh:
         n_degenerate = int(np.count_nonzero(self.face_areas() <= 1e-14 * max(self.bbox_diagonal(), 1e-300) ** 2))
         if n_degenerate:
             problems.append(f"{n_degenerate} degenerate face(s) (zero area or repeated vertex)")
-        n_unref = self.n_vertices - int(np.unique(faces).size)
+        n_unref = int(np.count_nonzero(np.bincount(faces.ravel(), minlength=self.n_vertices) == 0))
         if n_unref:
             problems.append(f"{n_unref} unreferenced vertex(es): their features are copied from the nearest referenced vertex")
         edges = np.sort(faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
-        _, counts = np.unique(edges, axis=0, return_counts=True)
+        edge_ids = np.sort(edges[:, 0] * self.n_vertices + edges[:, 1])
+        run_starts = np.flatnonzero(np.diff(edge_ids, prepend=-1))
+        counts = np.diff(np.append(run_starts, edge_ids.size))
         n_nonmanifold = int(np.count_nonzero(counts > 2))
         if n_nonmanifold:
             problems.append(f"{n_nonmanifold} non-manifold edge(s) (shared by more than two faces)")
@@ -120,7 +122,7 @@ class Mesh:
         """Number of connected components of the face graph (unreferenced vertices not counted)."""
         if self.faces is None:
             return 1
-        used = np.unique(self.faces)
+        used = np.bincount(self.faces.ravel(), minlength=self.n_vertices) > 0
         rows = self.faces[:, [0, 1, 2]].ravel()
         cols = self.faces[:, [1, 2, 0]].ravel()
         graph = sp.coo_matrix((np.ones(rows.size), (rows, cols)), shape=(self.n_vertices,) * 2)

@@ -41,17 +41,17 @@ def mass_normalize(features: np.ndarray, mass: np.ndarray) -> np.ndarray:
     numpy.ndarray, shape (V, C)
         ``features[:, c] / sqrt(sum_i mass_i features[i, c]^2)``.
     """
-    norms = np.sqrt(np.einsum("v,vc->c", mass, features * features))
+    norms = np.sqrt(mass @ np.square(features))
     return features / np.where(norms > 0, norms, 1.0)
 
 
 def nonzero_spectrum(basis: SpectralBasis) -> tuple[np.ndarray, np.ndarray]:
     """Eigenpairs whose eigenvalue is not numerically zero, shapes (K',) and (V, K')."""
     evals = np.abs(basis.evals)
-    keep = evals > ZERO_EIGENVALUE_RTOL * evals.max()
-    if keep.sum() < 2:
-        raise DescriptorError(f"only {int(keep.sum())} non-zero eigenvalue(s) among {basis.k}: raise n_eig.")
-    return evals[keep], basis.evecs[:, keep]
+    n_zero = int(np.count_nonzero(evals <= ZERO_EIGENVALUE_RTOL * evals.max()))  # a prefix: evals ascend
+    if basis.k - n_zero < 2:
+        raise DescriptorError(f"only {basis.k - n_zero} non-zero eigenvalue(s) among {basis.k}: raise n_eig.")
+    return evals[n_zero:], basis.evecs[:, n_zero:]
 
 
 def wave_kernel_signature(basis: SpectralBasis, n_descr: int) -> np.ndarray:
