@@ -133,8 +133,11 @@ def main(argv=None) -> int:
             w_ours, h_ours = run_geofeat(verts, faces, args.k, args.n_wks, args.n_hks, "cotan", normalize=False)
             errors_wks.append(relative_error(w_ours, w_ref))
             errors_hks.append(relative_error(h_ours, h_ref))
-            print(f"{mesh.name}: pyFM {per['pyfm'][0]:.3f}s, geofeat cotan {per['geofeat_cotan'][0]:.3f}s, "
-                  f"robust {per['geofeat_robust'][0]:.3f}s, cache hit {per['cache_hit'][0] * 1e3:.2f}ms", flush=True)
+            print(
+                f"{mesh.name}: pyFM {per['pyfm'][0]:.3f}s, geofeat cotan {per['geofeat_cotan'][0]:.3f}s, "
+                f"robust {per['geofeat_robust'][0]:.3f}s, cache hit {per['cache_hit'][0] * 1e3:.2f}ms",
+                flush=True,
+            )
 
     # A whole collection, WKS only: pyFM in a loop against compute_many in two worker processes.
     arrays = [(np.array(m.verts), np.array(m.faces)) for m in shapes]

@@ -117,7 +117,9 @@ class FeatureCache:
         try:
             path.parent.mkdir(parents=True, exist_ok=True)
         except OSError as err:
-            raise CacheError(f"cannot create cache directory {path.parent}: {err}. Set GEOFEAT_CACHE_DIR to a writable place.") from err
+            raise CacheError(
+                f"cannot create cache directory {path.parent}: {err}. Set GEOFEAT_CACHE_DIR to a writable place."
+            ) from err
         tmp = path.parent / f"{TMP_PREFIX}{os.getpid()}-{uuid.uuid4().hex}.h5"
         try:
             with h5py.File(tmp, "w", locking=False) as fh:

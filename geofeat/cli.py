@@ -53,7 +53,9 @@ def _demo_command(args: argparse.Namespace) -> int:
     _out("Nearest-neighbour matching of a coarse blob (2,562 vertices) to a finer rotated copy (10,242 vertices)")
     _out(f"{'descriptor':>10} {'dim':>4} {'compute (2 shapes)':>19} {'cache hit':>10} {'mean error x100':>16}")
     for row in rows:
-        _out(f"{row.descriptor:>10} {row.dim:>4} {row.seconds:>18.3f}s {row.cache_hit_seconds * 1e3:>8.2f}ms {row.mean_error_x100:>16.2f}")
+        _out(
+            f"{row.descriptor:>10} {row.dim:>4} {row.seconds:>18.3f}s {row.cache_hit_seconds * 1e3:>8.2f}ms {row.mean_error_x100:>16.2f}"
+        )
     return 0
 
 

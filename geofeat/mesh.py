@@ -258,9 +258,7 @@ def _polygon_faces(polygons: list[list[int]]) -> np.ndarray | None:
         return None
     sizes = {len(p) for p in polygons}
     if sizes != {3}:
-        raise MeshError(
-            f"faces with {sorted(sizes)} corners found; only triangles are supported. Triangulate the file first."
-        )
+        raise MeshError(f"faces with {sorted(sizes)} corners found; only triangles are supported. Triangulate the file first.")
     return np.asarray(polygons, dtype=np.int64)
 
 

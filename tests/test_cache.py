@@ -198,5 +198,7 @@ def test_cli_info_verify_clear(tmp_path, capsys):
 
 def test_cli_uses_environment_cache(isolated_cache, capsys):
     geofeat.compute(bumpy(0), "hks")
-    result = subprocess.run([sys.executable, "-m", "geofeat.cli", "cache", "info"], capture_output=True, text=True, env=os.environ)
+    result = subprocess.run(
+        [sys.executable, "-m", "geofeat.cli", "cache", "info"], capture_output=True, text=True, env=os.environ
+    )
     assert result.returncode == 0 and f"cache: {isolated_cache / 'features'}" in result.stdout and "entries: 1" in result.stdout

@@ -21,5 +21,7 @@ def test_descriptors_listing_and_console_script(capsys):
 
 
 def test_errors_are_reported_without_traceback(tmp_path):
-    result = subprocess.run([sys.executable, "-m", "geofeat.cli", "cache", "info", "--dir", str(tmp_path)], capture_output=True, text=True)
+    result = subprocess.run(
+        [sys.executable, "-m", "geofeat.cli", "cache", "info", "--dir", str(tmp_path)], capture_output=True, text=True
+    )
     assert result.returncode == 0

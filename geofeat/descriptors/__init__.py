@@ -4,4 +4,14 @@ from geofeat.descriptors.base import Descriptor
 from geofeat.descriptors.compute import compute, compute_many
 from geofeat.descriptors.registry import DescriptorInfo, RegistryEntry, descriptor_class, descriptors, make_descriptor, register
 
-__all__ = ["Descriptor", "DescriptorInfo", "RegistryEntry", "compute", "compute_many", "descriptor_class", "descriptors", "make_descriptor", "register"]
+__all__ = [
+    "Descriptor",
+    "DescriptorInfo",
+    "RegistryEntry",
+    "compute",
+    "compute_many",
+    "descriptor_class",
+    "descriptors",
+    "make_descriptor",
+    "register",
+]

@@ -67,9 +67,7 @@ class Descriptor:
         """Compute features, shape (V, dim), C-contiguous float32."""
         features = np.ascontiguousarray(self.compute(mesh), dtype=np.float32)
         if features.ndim != 2 or features.shape[0] != mesh.n_vertices:
-            raise DescriptorError(
-                f"descriptor {self.name!r} returned shape {features.shape}; expected ({mesh.n_vertices}, dim)."
-            )
+            raise DescriptorError(f"descriptor {self.name!r} returned shape {features.shape}; expected ({mesh.n_vertices}, dim).")
         return features
 
     def __repr__(self) -> str:

@@ -124,7 +124,10 @@ def compute_many(
                 bar.update()
         else:
             context = multiprocessing.get_context("spawn")
-            with _one_thread_per_worker(), ProcessPoolExecutor(max_workers=min(n_jobs, len(items)) or 1, mp_context=context) as pool:
+            with (
+                _one_thread_per_worker(),
+                ProcessPoolExecutor(max_workers=min(n_jobs, len(items)) or 1, mp_context=context) as pool,
+            ):
                 futures = {pool.submit(compute, item, name, cache, **params): i for i, item in enumerate(items)}
                 for future in as_completed(futures):
                     results[futures[future]] = future.result()

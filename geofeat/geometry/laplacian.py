@@ -57,7 +57,9 @@ def laplacian(mesh: Mesh, kind: str = "robust", mollify_factor: float = 1e-5, n_
             raise MeshError(f"{mesh.name!r} is a point cloud: only kind='robust' works without faces (got {kind!r}).")
         import robust_laplacian
 
-        stiffness, mass = robust_laplacian.point_cloud_laplacian(mesh.verts, mollify_factor=mollify_factor, n_neighbors=n_neighbors)
+        stiffness, mass = robust_laplacian.point_cloud_laplacian(
+            mesh.verts, mollify_factor=mollify_factor, n_neighbors=n_neighbors
+        )
     elif kind == "robust":
         import robust_laplacian
 

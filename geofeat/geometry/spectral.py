@@ -170,7 +170,12 @@ def _sparse_with_fallbacks(standard: sp.csc_matrix, k: int, name: str) -> tuple[
     scale = float(np.abs(standard.diagonal()).mean())
     attempts = [
         ("shift-invert, sigma=-1e-6*scale", -1e-6 * scale, min(n - 1, max(k + 32, int(1.6 * k) + 1)), None),
-        ("shift-invert, larger shift sigma=-1e-3*scale and more iterations", -1e-3 * scale, min(n - 1, max(3 * k, k + 64)), 50 * n),
+        (
+            "shift-invert, larger shift sigma=-1e-3*scale and more iterations",
+            -1e-3 * scale,
+            min(n - 1, max(3 * k, k + 64)),
+            50 * n,
+        ),
     ]
     failures = []
     for label, sigma, ncv, maxiter in attempts:
@@ -190,7 +195,8 @@ def _sparse_with_fallbacks(standard: sp.csc_matrix, k: int, name: str) -> tuple[
         log.warning("eigensolver on %r: sparse solves failed, using the dense solver on %d vertices (slow)", name, n)
         return _dense(standard, k)
     raise SpectralError(
-        f"Laplacian eigenproblem of {name!r} ({n} vertices, k={k}) failed: " + "; ".join(failures)
+        f"Laplacian eigenproblem of {name!r} ({n} vertices, k={k}) failed: "
+        + "; ".join(failures)
         + f". The mesh is too large for the dense fallback (> {DENSE_MAX_VERTICES} vertices). "
         "Check it for duplicated or isolated parts, try laplacian='robust', or lower k."
     )
