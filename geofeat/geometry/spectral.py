@@ -23,7 +23,7 @@ log = logging.getLogger(__name__)
 DENSE_MAX_VERTICES = 8000
 #: Below this many vertices the dense solver is used directly (cheaper than ARPACK).
 DENSE_DIRECT_VERTICES = 400
-_CACHE_SIZE = 32
+_CACHE_SIZE = 8
 
 
 @dataclass(frozen=True, eq=False)
@@ -109,7 +109,10 @@ def spectral_basis(mesh: Mesh, k: int = 128, laplacian_kind: str = "robust", cac
     evals, evecs = solve_eigenpairs(stiffness, mass[active], int(k), name=mesh.name)
     if n_active < mesh.n_vertices:
         evecs = _fill_inactive(mesh.verts, active, evecs)
-    basis = SpectralBasis(evals, np.ascontiguousarray(evecs), mass)
+    evecs = np.ascontiguousarray(evecs)
+    for array in (evals, evecs, mass):
+        array.flags.writeable = False  # shared through the cache: nobody may change it in place
+    basis = SpectralBasis(evals, evecs, mass)
     if cache:
         with _basis_lock:
             _basis_cache[key] = basis

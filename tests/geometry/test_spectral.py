@@ -57,6 +57,8 @@ def test_in_memory_cache_by_content():
     assert spectral_basis(mesh, k=11) is not first
     spectral.clear_basis_cache()
     assert spectral_basis(mesh, k=10) is not first
+    with pytest.raises(ValueError):
+        first.evecs[0, 0] = 1.0  # cached arrays are read-only
 
 
 def test_fallback_chain_retries_then_uses_dense_solver(monkeypatch, caplog):

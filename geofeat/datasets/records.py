@@ -1,0 +1,47 @@
+"""The pair record every dataset loader returns."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from geofeat.mesh import Mesh
+
+PROTOCOLS = ("p2f", "p2p", "f2f")
+
+
+@dataclass(frozen=True, eq=False)
+class ShapePair:
+    """One evaluation pair, matched from ``y`` to ``x``.
+
+    Attributes
+    ----------
+    x : Mesh
+        The target shape (the full shape in partial-to-full protocols), V_x vertices.
+    y : Mesh
+        The source shape (the partial one in P2F), V_y vertices.
+    map_yx : numpy.ndarray, shape (V_y,), int64
+        Ground truth: for each vertex of ``y`` its counterpart in ``x`` (0-based), ``-1``
+        where it has none.
+    overlap_x, overlap_y : numpy.ndarray of bool, shapes (V_x,) and (V_y,), or None
+        Ground-truth overlap masks, where the dataset defines them.
+    map_yx_sym : numpy.ndarray, shape (V_y,), int64, or None
+        Chirality ground truth: for each vertex of ``y`` the left-right mirror image of its
+        counterpart in ``x`` (``-1`` where undefined), where the data has it.
+    protocol : {"p2f", "p2p", "f2f"}
+        Which evaluation protocol applies.
+    """
+
+    x: Mesh
+    y: Mesh
+    map_yx: np.ndarray
+    overlap_x: np.ndarray | None = None
+    overlap_y: np.ndarray | None = None
+    map_yx_sym: np.ndarray | None = None
+    protocol: str = "p2f"
+
+    @property
+    def name(self) -> str:
+        """``"<y name>-><x name>"``."""
+        return f"{self.y.name}->{self.x.name}"
