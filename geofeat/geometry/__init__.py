@@ -1,6 +1,7 @@
-"""Geometry on meshes: Laplacians and spectral bases."""
+"""Geometry on meshes: Laplacians, spectral bases, geodesic distances and partial shapes."""
 
 from geofeat.geometry.laplacian import Laplacian, laplacian
+from geofeat.geometry.partial import PartialShape, make_partial
 from geofeat.geometry.spectral import SpectralBasis, spectral_basis
 
-__all__ = ["Laplacian", "SpectralBasis", "laplacian", "spectral_basis"]
+__all__ = ["Laplacian", "PartialShape", "SpectralBasis", "laplacian", "make_partial", "spectral_basis"]

@@ -1,0 +1,176 @@
+"""Partial benchmarks derived from any full collection with correspondences to a template.
+
+A partial shape made from full shape A (with its subset map to A) is matched to full shape B
+(partial-to-full, P2F) or to a partial shape made from B (partial-to-partial, P2P). The
+ground truth goes through the common template: vertex ``a`` of A is template point ``t``
+when ``template_map(A)[t] == a``, and template point ``t`` is vertex
+``template_map(B)[t]`` of B. Everything is reproducible from one seed.
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from geofeat.datasets.records import ShapePair
+from geofeat.geometry.partial import make_partial
+from geofeat.mesh import Mesh
+
+PARTIAL_KINDS = ("cuts", "holes", "ray")
+
+
+class TemplateCollection(ABC):
+    """Full shapes, each with a map from common template points to its vertices."""
+
+    @property
+    @abstractmethod
+    def names(self) -> list[str]:
+        """Shape names, in index order."""
+
+    @abstractmethod
+    def mesh(self, index: int) -> Mesh:
+        """Full shape ``index``."""
+
+    @abstractmethod
+    def template_map(self, index: int) -> np.ndarray:
+        """Shape (T,) int64: the vertex of shape ``index`` at each template point (0-based)."""
+
+    @abstractmethod
+    def template_map_sym(self, index: int) -> np.ndarray | None:
+        """Shape (T,) int64: the vertex at the mirror image of each template point, or None."""
+
+    def __len__(self) -> int:
+        return len(self.names)
+
+
+def template_inverse(template_map: np.ndarray, n_vertices: int) -> np.ndarray:
+    """For each vertex the first template point that lands on it, or -1; shape (V,) int64."""
+    inverse = np.full(n_vertices, -1, dtype=np.int64)
+    points = np.arange(template_map.size, dtype=np.int64)
+    inverse[template_map[::-1]] = points[::-1]  # later writes win: reversed, so the first point wins
+    return inverse
+
+
+def _compose(first: np.ndarray, second: np.ndarray) -> np.ndarray:
+    """``second[first]`` where ``first >= 0``, else -1."""
+    out = np.full(first.shape, -1, dtype=np.int64)
+    valid = first >= 0
+    out[valid] = second[first[valid]]
+    return out
+
+
+def _subset_inverse(vertex_map: np.ndarray, n_vertices: int) -> np.ndarray:
+    """Inverse of a partial shape's subset map: for each source vertex its partial vertex or -1."""
+    inverse = np.full(n_vertices, -1, dtype=np.int64)
+    inverse[vertex_map] = np.arange(vertex_map.size)
+    return inverse
+
+
+@dataclass
+class DerivedPartialBenchmark:
+    """P2F or P2P pairs made from a `TemplateCollection`.
+
+    Parameters
+    ----------
+    collection : TemplateCollection
+    indices : sequence of int
+        Shapes of the collection to use (a split).
+    kind : {"cuts", "holes", "ray"}
+        Partial-shape generator.
+    protocol : {"p2f", "p2p"}
+    seed : int
+        Seeds the pair order and every partial shape.
+    name : str
+        Benchmark name (for reports).
+    partial_options : dict
+        Extra keyword arguments of the partial generator.
+
+    Notes
+    -----
+    The pairs are all ordered pairs (A, B), A != B, of ``indices``, in a seeded random
+    order (take the first N for a smaller run). Pair ``i`` makes its partial shapes with
+    seeds derived from ``(seed, i)``, so a pair does not change when others are skipped.
+    """
+
+    collection: TemplateCollection
+    indices: list[int]
+    kind: str
+    protocol: str = "p2f"
+    seed: int = 0
+    name: str = ""
+    partial_options: dict = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        if self.kind not in PARTIAL_KINDS:
+            raise ValueError(f"kind must be one of {PARTIAL_KINDS}; found {self.kind!r}")
+        if self.protocol not in ("p2f", "p2p"):
+            raise ValueError(f"protocol must be 'p2f' or 'p2p'; found {self.protocol!r}")
+        pairs = [(a, b) for a in self.indices for b in self.indices if a != b]
+        order = np.random.default_rng(self.seed).permutation(len(pairs))
+        self.pairs = [pairs[i] for i in order]
+        self._meshes: dict[int, Mesh] = {}
+
+    def __len__(self) -> int:
+        return len(self.pairs)
+
+    @property
+    def pair_names(self) -> list[str]:
+        """``"<partial of A>-><B>"`` for every pair."""
+        names = self.collection.names
+        return [f"{names[a]}_{self.kind}->{names[b]}" for a, b in self.pairs]
+
+    def _full(self, index: int) -> Mesh:
+        if index not in self._meshes:
+            self._meshes[index] = self.collection.mesh(index)
+        return self._meshes[index]
+
+    def __getitem__(self, i: int) -> ShapePair:
+        a, b = self.pairs[i]
+        mesh_a, mesh_b = self._full(a), self._full(b)
+        seeds = np.random.SeedSequence([self.seed, i]).generate_state(2)
+        partial_y = make_partial(mesh_a, self.kind, seed=int(seeds[0]), **self.partial_options)
+        names = self.collection.names
+        y = Mesh(partial_y.mesh.verts, partial_y.mesh.faces, name=f"{names[a]}_{self.kind}{i}")
+        template_of_a = template_inverse(self.collection.template_map(a), mesh_a.n_vertices)
+        template_of_y = template_of_a[partial_y.vertex_map]  # (V_y,) template point or -1
+        in_b = _compose(template_of_y, self.collection.template_map(b))
+        sym_map = self.collection.template_map_sym(b)
+        in_b_sym = None if sym_map is None else _compose(template_of_y, sym_map)
+        if self.protocol == "p2f":
+            return ShapePair(x=mesh_b, y=y, map_yx=in_b, map_yx_sym=in_b_sym, protocol="p2f")
+        partial_x = make_partial(mesh_b, self.kind, seed=int(seeds[1]), **self.partial_options)
+        x = Mesh(partial_x.mesh.verts, partial_x.mesh.faces, name=f"{names[b]}_{self.kind}{i}")
+        x_of_b = _subset_inverse(partial_x.vertex_map, mesh_b.n_vertices)
+        map_yx = _compose(in_b, x_of_b)
+        map_yx_sym = None if in_b_sym is None else _compose(in_b_sym, x_of_b)
+        # A vertex of X overlaps when its counterpart in A survived in Y.
+        template_of_b = template_inverse(self.collection.template_map(b), mesh_b.n_vertices)
+        in_a = _compose(template_of_b[partial_x.vertex_map], self.collection.template_map(a))
+        overlap_x = _compose(in_a, _subset_inverse(partial_y.vertex_map, mesh_a.n_vertices)) >= 0
+        return ShapePair(
+            x=x, y=y, map_yx=map_yx, overlap_x=overlap_x, overlap_y=map_yx >= 0, map_yx_sym=map_yx_sym, protocol="p2p"
+        )
+
+
+class SyntheticCollection(TemplateCollection):
+    """`SyntheticHumans` as a template collection (identity correspondences, mirror map)."""
+
+    def __init__(self, humans=None):
+        from geofeat.datasets.synthetic import SyntheticHumans
+
+        self.humans = humans if humans is not None else SyntheticHumans()
+
+    @property
+    def names(self) -> list[str]:
+        return self.humans.names
+
+    def mesh(self, index: int) -> Mesh:
+        return self.humans.shape(index)
+
+    def template_map(self, index: int) -> np.ndarray:
+        return np.arange(self.humans.mirror.size, dtype=np.int64)
+
+    def template_map_sym(self, index: int) -> np.ndarray:
+        return self.humans.mirror
