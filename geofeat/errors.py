@@ -25,3 +25,7 @@ class MissingDependencyError(GeofeatError, ImportError):
 
 class CacheError(GeofeatError, OSError):
     """The feature cache cannot be used (bad location, unwritable directory)."""
+
+
+class DatasetError(GeofeatError, ValueError):
+    """A benchmark dataset cannot be used: folder layout, file contents or loader options are wrong."""

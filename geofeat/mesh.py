@@ -76,6 +76,14 @@ class Mesh:
         """SHA-256 hex digest of exactly the vertex and face arrays (not the name)."""
         return self._hash
 
+    def renamed(self, name: str) -> Mesh:
+        """The same (already validated, read-only) arrays and hash under another name."""
+        clone = object.__new__(Mesh)
+        for attribute in ("verts", "faces", "_hash"):
+            object.__setattr__(clone, attribute, getattr(self, attribute))
+        object.__setattr__(clone, "name", str(name))
+        return clone
+
     def face_areas(self) -> np.ndarray:
         """Triangle areas, shape (F,) float64."""
         if self.faces is None:

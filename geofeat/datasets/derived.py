@@ -15,6 +15,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from geofeat.datasets.records import ShapePair
+from geofeat.errors import DatasetError
 from geofeat.geometry.partial import make_partial
 from geofeat.mesh import Mesh
 
@@ -104,9 +105,9 @@ class DerivedPartialBenchmark:
 
     def __post_init__(self) -> None:
         if self.kind not in PARTIAL_KINDS:
-            raise ValueError(f"kind must be one of {PARTIAL_KINDS}; found {self.kind!r}")
+            raise DatasetError(f"kind must be one of {PARTIAL_KINDS}; found {self.kind!r}")
         if self.protocol not in ("p2f", "p2p"):
-            raise ValueError(f"protocol must be 'p2f' or 'p2p'; found {self.protocol!r}")
+            raise DatasetError(f"protocol must be 'p2f' or 'p2p'; found {self.protocol!r}")
         pairs = [(a, b) for a in self.indices for b in self.indices if a != b]
         order = np.random.default_rng(self.seed).permutation(len(pairs))
         self.pairs = [pairs[i] for i in order]
@@ -132,7 +133,7 @@ class DerivedPartialBenchmark:
         seeds = np.random.SeedSequence([self.seed, i]).generate_state(2)
         partial_y = make_partial(mesh_a, self.kind, seed=int(seeds[0]), **self.partial_options)
         names = self.collection.names
-        y = Mesh(partial_y.mesh.verts, partial_y.mesh.faces, name=f"{names[a]}_{self.kind}{i}")
+        y = partial_y.mesh.renamed(f"{names[a]}_{self.kind}{i}")
         template_of_a = template_inverse(self.collection.template_map(a), mesh_a.n_vertices)
         template_of_y = template_of_a[partial_y.vertex_map]  # (V_y,) template point or -1
         in_b = _compose(template_of_y, self.collection.template_map(b))
@@ -141,7 +142,7 @@ class DerivedPartialBenchmark:
         if self.protocol == "p2f":
             return ShapePair(x=mesh_b, y=y, map_yx=in_b, map_yx_sym=in_b_sym, protocol="p2f")
         partial_x = make_partial(mesh_b, self.kind, seed=int(seeds[1]), **self.partial_options)
-        x = Mesh(partial_x.mesh.verts, partial_x.mesh.faces, name=f"{names[b]}_{self.kind}{i}")
+        x = partial_x.mesh.renamed(f"{names[b]}_{self.kind}{i}")
         x_of_b = _subset_inverse(partial_x.vertex_map, mesh_b.n_vertices)
         map_yx = _compose(in_b, x_of_b)
         map_yx_sym = None if in_b_sym is None else _compose(in_b_sym, x_of_b)
@@ -174,3 +175,50 @@ class SyntheticCollection(TemplateCollection):
 
     def template_map_sym(self, index: int) -> np.ndarray:
         return self.humans.mirror
+
+
+class RemeshedCollection(TemplateCollection):
+    """The shapes of a FAUST_r/SCAPE_r split as a template collection."""
+
+    def __init__(self, dataset):
+        self.dataset = dataset
+
+    @property
+    def names(self) -> list[str]:
+        return list(self.dataset.shape_names)
+
+    def mesh(self, index: int) -> Mesh:
+        return self.dataset.mesh(self.names[index])
+
+    def template_map(self, index: int) -> np.ndarray:
+        return self.dataset.template_map(self.names[index])
+
+    def template_map_sym(self, index: int) -> np.ndarray | None:
+        return self.dataset.template_map_sym(self.names[index])
+
+
+#: Shapes of the built-in synthetic collection: 6 individuals x 5 poses; the last 2 individuals are the test split.
+SYNTHETIC_INDIVIDUALS, SYNTHETIC_POSES, SYNTHETIC_TEST_INDIVIDUALS = 6, 5, 2
+
+
+def synthetic_partial_benchmark(root, split: str, *, kind: str, protocol: str, seed: int = 0, **partial_options):
+    """A derived benchmark on the built-in synthetic humans (``root`` is ignored: nothing is read).
+
+    Splits: ``"train"`` the first 4 individuals (20 shapes), ``"test"`` the last 2 (10 shapes,
+    90 ordered pairs), ``"all"`` every shape.
+    """
+    from geofeat.datasets.synthetic import SyntheticHumans
+
+    collection = SyntheticCollection(SyntheticHumans(SYNTHETIC_INDIVIDUALS, SYNTHETIC_POSES, seed=0))
+    n_train = (SYNTHETIC_INDIVIDUALS - SYNTHETIC_TEST_INDIVIDUALS) * SYNTHETIC_POSES
+    indices = {"train": range(n_train), "test": range(n_train, len(collection)), "all": range(len(collection))}
+    if split not in indices:
+        raise DatasetError(f"synthetic benchmarks have splits 'train', 'test' and 'all'; found {split!r}.")
+    name = f"synthetic_{kind if protocol == 'p2f' else 'p2p'}"
+    return DerivedPartialBenchmark(collection, list(indices[split]), kind, protocol, seed, name, dict(partial_options))
+
+
+def remeshed_partial_benchmark(root, split: str, *, loader, kind: str, protocol: str, seed: int = 0, **partial_options):
+    """A derived benchmark on a FAUST_r/SCAPE_r split (``loader`` is the dataset class)."""
+    collection = RemeshedCollection(loader(root, split))
+    return DerivedPartialBenchmark(collection, list(range(len(collection))), kind, protocol, seed, "", dict(partial_options))

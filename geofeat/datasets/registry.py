@@ -1,0 +1,197 @@
+"""Benchmark datasets by name: `load_dataset`, `dataset_names`, `register_dataset`.
+
+>>> from geofeat.datasets import load_dataset
+>>> pairs = load_dataset("faust_r", "../shared/data", split="test")   # folder holding FAUST_r/
+>>> len(pairs), pairs.pair_names[0]
+(380, 'tr_reg_080->tr_reg_081')
+>>> pair = pairs[0]                                # ShapePair, meshes read now
+
+Names are case-insensitive and ``-`` equals ``_``. Each name is a loader plus preset options
+(``shrec16_cuts`` is the SHREC'16 loader with ``partiality="cuts"``).
+"""
+
+from __future__ import annotations
+
+import difflib
+import inspect
+import logging
+import os
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+from geofeat.datasets.base import PairDataset
+from geofeat.datasets.becos import BeCoS
+from geofeat.datasets.cp2p24 import CP2P24
+from geofeat.datasets.derived import remeshed_partial_benchmark, synthetic_partial_benchmark
+from geofeat.datasets.faust import FaustRemeshed, ScapeRemeshed
+from geofeat.datasets.pfaust import PFaust
+from geofeat.datasets.psmal import PartialSmal
+from geofeat.datasets.shrec16 import Shrec16Partial
+from geofeat.errors import DatasetError
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class _Registered:
+    factory: Callable[..., PairDataset]
+    preset: dict = field(default_factory=dict)
+    description: str = ""
+
+
+_REGISTRY: dict[str, _Registered] = {}
+
+
+def _canonical(name: str) -> str:
+    return str(name).strip().lower().replace("-", "_")
+
+
+def register_dataset(
+    name: str, factory: Callable[..., PairDataset], *, description: str = "", overwrite: bool = False, **preset
+) -> None:
+    """Make ``factory`` available as ``load_dataset(name, ...)``.
+
+    Parameters
+    ----------
+    name : str
+        Dataset name (case-insensitive; ``-`` and ``_`` are equivalent).
+    factory : callable
+        Called as ``factory(root, split, **preset, **options)``; returns a `PairDataset` (or
+        any sequence of `ShapePair` with ``pair_names``).
+    description : str
+        One line for listings.
+    overwrite : bool
+        Replace an existing entry instead of raising.
+    **preset
+        Options fixed by this name; a caller passing a different value gets an error.
+    """
+    key = _canonical(name)
+    if key in _REGISTRY and not overwrite:
+        raise DatasetError(f"a dataset named {key!r} is already registered; pass overwrite=True to replace it.")
+    _REGISTRY[key] = _Registered(factory, dict(preset), description)
+
+
+def dataset_names() -> list[str]:
+    """Names accepted by `load_dataset`, sorted."""
+    return sorted(_REGISTRY)
+
+
+def dataset_description(name: str) -> str:
+    """The one-line description of a registered dataset."""
+    return _lookup(name).description
+
+
+def load_dataset(name: str, root: str | os.PathLike | None = None, split: str = "test", **options) -> PairDataset:
+    """Open a benchmark dataset by name.
+
+    Parameters
+    ----------
+    name : str
+        One of `dataset_names` (for example ``"faust_r"``, ``"shrec16_cuts"``, ``"becos_p2p"``).
+    root : path-like or None
+        The dataset's folder, or a folder that contains it under its usual name (so one data
+        folder can serve every dataset). None: ``$GEOFEAT_DATA``.
+    split : str
+        ``"test"`` by default; the loaders document their splits.
+    **options
+        Loader options (see each loader). ``seed`` is accepted by every name and ignored by
+        the file-based datasets, whose pairs are fixed.
+
+    Returns
+    -------
+    PairDataset
+        A lazy sequence of `ShapePair`; files are read when a pair is requested.
+
+    Raises
+    ------
+    DatasetError
+        Unknown name, an option the loader does not take or that contradicts the name, or a
+        missing or malformed dataset.
+    """
+    entry = _lookup(name)
+    for key, value in entry.preset.items():
+        if key in options and options[key] != value:
+            raise DatasetError(f"dataset {_canonical(name)!r} fixes {key}={value!r}; found {key}={options[key]!r}.")
+    options = {**options, **entry.preset}
+    accepted = _accepted_options(entry.factory)
+    if accepted is not None:
+        if "seed" in options and "seed" not in accepted:
+            log.debug("dataset %r has fixed pairs; seed=%r ignored", name, options.pop("seed"))
+        unknown = sorted(set(options) - accepted)
+        if unknown:
+            raise DatasetError(
+                f"dataset {_canonical(name)!r} does not take option(s) {', '.join(unknown)}; "
+                f"it takes: {', '.join(sorted(accepted - set(entry.preset))) or 'none'}."
+            )
+    return entry.factory(root, split, **options)
+
+
+def _lookup(name: str) -> _Registered:
+    key = _canonical(name)
+    if key not in _REGISTRY:
+        close = difflib.get_close_matches(key, _REGISTRY, n=3)
+        hint = f" Did you mean {', '.join(map(repr, close))}?" if close else ""
+        raise DatasetError(f"unknown dataset {name!r}.{hint} Known datasets: {', '.join(dataset_names())}.")
+    return _REGISTRY[key]
+
+
+def _accepted_options(factory: Callable) -> set[str] | None:
+    """Keyword options ``factory`` takes besides root and split; None when it takes ``**kwargs``."""
+    try:
+        parameters = inspect.signature(factory).parameters.values()
+    except (TypeError, ValueError):
+        return None
+    if any(p.kind is inspect.Parameter.VAR_KEYWORD for p in parameters):
+        return None
+    return {p.name for p in parameters if p.kind is not inspect.Parameter.VAR_POSITIONAL} - {"root", "split", "self"}
+
+
+def _register_builtins() -> None:
+    register_dataset("faust_r", FaustRemeshed, description="FAUST_r full-to-full (ULRSSM split 80/20)")
+    register_dataset("scape_r", ScapeRemeshed, description="SCAPE_r full-to-full (ULRSSM split 51/20)")
+    for kind in ("cuts", "holes"):
+        register_dataset(f"shrec16_{kind}", Shrec16Partial, partiality=kind, description=f"SHREC'16 Partial {kind.upper()}, P2F")
+    for short, difficulty in (("m", "medium"), ("h", "hard")):
+        register_dataset(
+            f"pfaust_{short}", PFaust, difficulty=difficulty, description=f"PFAUST-{short.upper()} ({difficulty}), P2F"
+        )
+    for protocol, setting in (("f2f", "full_full"), ("p2f", "partial_full"), ("p2p", "partial_partial")):
+        register_dataset(f"becos_{protocol}", BeCoS, setting=setting, description=f"BeCoS {setting}, {protocol.upper()}")
+    register_dataset("psmal", PartialSmal, description="PARTIALSMAL, P2P")
+    register_dataset("cp2p24", CP2P24, description="CP2P24, P2P")
+    for kind in ("cuts", "holes", "ray"):
+        register_dataset(
+            f"synthetic_{kind}",
+            synthetic_partial_benchmark,
+            kind=kind,
+            protocol="p2f",
+            description=f"built-in synthetic humans, {kind.upper()} partial to full (no data needed)",
+        )
+        for prefix, loader in (("faust_r", FaustRemeshed), ("scape_r", ScapeRemeshed)):
+            register_dataset(
+                f"{prefix}_{kind}",
+                remeshed_partial_benchmark,
+                loader=loader,
+                kind=kind,
+                protocol="p2f",
+                description=f"{loader.title} {kind.upper()} partial shapes matched to full shapes (seeded)",
+            )
+    register_dataset(
+        "synthetic_p2p",
+        synthetic_partial_benchmark,
+        kind="cuts",
+        protocol="p2p",
+        description="built-in synthetic humans, two CUTS partial shapes (no data needed)",
+    )
+    for prefix, loader in (("faust_r", FaustRemeshed), ("scape_r", ScapeRemeshed)):
+        register_dataset(
+            f"{prefix}_p2p",
+            remeshed_partial_benchmark,
+            loader=loader,
+            kind="cuts",
+            protocol="p2p",
+            description=f"{loader.title} two CUTS partial shapes of different shapes (seeded)",
+        )
+
+
+_register_builtins()
