@@ -16,7 +16,15 @@ except PackageNotFoundError:  # running from a source tree that is not installed
 from geofeat.cache import FeatureCache
 from geofeat.config import cache_dir, set_cache_dir
 from geofeat.descriptors import Descriptor, compute, compute_many, descriptors
-from geofeat.errors import CacheError, DatasetError, DescriptorError, GeofeatError, MeshError, MissingDependencyError, SpectralError
+from geofeat.errors import (
+    CacheError,
+    DatasetError,
+    DescriptorError,
+    GeofeatError,
+    MeshError,
+    MissingDependencyError,
+    SpectralError,
+)
 from geofeat.mesh import Mesh, load_mesh, normalize
 
 __all__ = [

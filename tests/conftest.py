@@ -1,23 +1,13 @@
-"""Shared fixtures: the real FAUST_r shapes (required, never skipped) and seeded synthetic meshes."""
+"""Shared fixtures: the real FAUST_r shapes (required, never skipped) and an isolated cache."""
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
-import numpy as np
 import pytest
-import trimesh
+from shapes import DATA_ENV, data_root
 
 import geofeat
-
-REPO = Path(__file__).resolve().parents[1]
-DATA_ENV = "GEOFEAT_DATA"
-
-
-def data_root() -> Path:
-    """``$GEOFEAT_DATA``, else ``../shared/data`` beside the repository."""
-    return Path(os.environ.get(DATA_ENV, REPO.parent / "shared" / "data"))
 
 
 @pytest.fixture(scope="session")
@@ -44,15 +34,3 @@ def isolated_cache(tmp_path, monkeypatch):
     geofeat.set_cache_dir(None)
     yield tmp_path / "cache"
     geofeat.set_cache_dir(None)
-
-
-def sphere(subdivisions: int = 3, radius: float = 1.0) -> geofeat.Mesh:
-    s = trimesh.creation.icosphere(subdivisions=subdivisions, radius=radius)
-    return geofeat.Mesh(np.asarray(s.vertices), np.asarray(s.faces), name=f"sphere{subdivisions}")
-
-
-def bumpy(seed: int = 0, subdivisions: int = 3) -> geofeat.Mesh:
-    """A seeded smooth asymmetric closed surface."""
-    from geofeat.demo import blob
-
-    return blob(subdivisions, seed, f"bumpy{seed}")

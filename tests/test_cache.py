@@ -10,7 +10,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 import pytest
-from conftest import REPO, bumpy
+from shapes import REPO, bumpy
 
 import geofeat
 from geofeat import FeatureCache

@@ -2,7 +2,7 @@ import logging
 
 import numpy as np
 import pytest
-from conftest import bumpy, sphere
+from shapes import bumpy, sphere
 
 import geofeat
 from geofeat import Mesh, MeshError

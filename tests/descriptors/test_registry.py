@@ -1,6 +1,6 @@
 import numpy as np
 import pytest
-from conftest import bumpy
+from shapes import bumpy
 
 import geofeat
 from geofeat import DescriptorError, MissingDependencyError

@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
-from conftest import bumpy, sphere
 from scipy.spatial.transform import Rotation
+from shapes import bumpy, sphere
 
 import geofeat
 from geofeat import DescriptorError, Mesh

@@ -3,7 +3,7 @@ import time
 import numpy as np
 import pytest
 import trimesh
-from conftest import sphere
+from shapes import sphere
 
 import geofeat
 from geofeat import Mesh, MeshError

@@ -3,7 +3,7 @@ import logging
 import numpy as np
 import pytest
 import scipy.sparse.linalg as sla
-from conftest import bumpy, sphere
+from shapes import bumpy, sphere
 
 from geofeat import Mesh, SpectralError
 from geofeat.geometry import laplacian, spectral, spectral_basis

@@ -1,0 +1,31 @@
+"""Shared test helpers: the repository root, the data folder and seeded synthetic meshes."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+import trimesh
+
+import geofeat
+
+REPO = Path(__file__).resolve().parents[1]
+DATA_ENV = "GEOFEAT_DATA"
+
+
+def data_root() -> Path:
+    """``$GEOFEAT_DATA``, else ``../shared/data`` beside the repository."""
+    return Path(os.environ.get(DATA_ENV, REPO.parent / "shared" / "data"))
+
+
+def sphere(subdivisions: int = 3, radius: float = 1.0) -> geofeat.Mesh:
+    s = trimesh.creation.icosphere(subdivisions=subdivisions, radius=radius)
+    return geofeat.Mesh(np.asarray(s.vertices), np.asarray(s.faces), name=f"sphere{subdivisions}")
+
+
+def bumpy(seed: int = 0, subdivisions: int = 3) -> geofeat.Mesh:
+    """A seeded smooth asymmetric closed surface."""
+    from geofeat.demo import blob
+
+    return blob(subdivisions, seed, f"bumpy{seed}")
