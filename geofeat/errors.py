@@ -29,3 +29,11 @@ class CacheError(GeofeatError, OSError):
 
 class DatasetError(GeofeatError, ValueError):
     """A benchmark dataset cannot be used: folder layout, file contents or loader options are wrong."""
+
+
+class MetricError(GeofeatError, ValueError):
+    """Inputs to a metric have the wrong shape, dtype or values."""
+
+
+class FunctionalMapError(GeofeatError, ValueError):
+    """Bad input to a functional-map routine (shapes, sizes, indices)."""

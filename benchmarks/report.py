@@ -1,0 +1,109 @@
+"""Reports of a benchmark run: Markdown table, PCK plot and correspondence pictures."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+from mpl_toolkits.mplot3d.art3d import Poly3DCollection  # noqa: E402
+
+from geofeat.mesh import Mesh  # noqa: E402
+
+NO_MATCH_COLOR = np.array([0.55, 0.55, 0.55])
+
+
+def markdown_table(rows: list[dict], columns: list[tuple[str, str, str]]) -> str:
+    """A Markdown table.
+
+    Parameters
+    ----------
+    rows : list of dict
+    columns : list of (key, header, format)
+        ``format`` is a format spec such as ``".2f"``; missing values print as a dash.
+    """
+    lines = ["| " + " | ".join(header for _, header, _ in columns) + " |", "|" + "---|" * len(columns)]
+    for row in rows:
+        cells = []
+        for key, _, fmt in columns:
+            value = row.get(key)
+            cells.append("-" if value is None else format(value, fmt))
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def plot_pck(curves: dict[str, tuple[np.ndarray, np.ndarray]], path: Path, title: str) -> None:
+    """Save PCK curves, one per label: fraction of matches within a geodesic error threshold."""
+    fig, ax = plt.subplots(figsize=(5, 4))
+    for label, (thresholds, fractions) in curves.items():
+        ax.plot(thresholds, fractions, label=label)
+    ax.set_xlabel("geodesic error threshold (fraction of sqrt(area))")
+    ax.set_ylabel("fraction of correspondences")
+    ax.set_ylim(0, 1)
+    ax.set_xlim(0, max(t.max() for t, _ in curves.values()))
+    ax.grid(alpha=0.3)
+    ax.legend()
+    ax.set_title(title, fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def position_colors(mesh: Mesh) -> np.ndarray:
+    """Per-vertex RGB from the bounding-box position, shape (V, 3) in [0, 1]."""
+    lo, hi = mesh.verts.min(axis=0), mesh.verts.max(axis=0)
+    return (mesh.verts - lo) / np.where(hi > lo, hi - lo, 1.0)
+
+
+def transferred_colors(colors_x: np.ndarray, map_yx: np.ndarray) -> np.ndarray:
+    """Colours of X pulled back to Y through a map (gray where ``map_yx == -1``), shape (V_y, 3)."""
+    out = np.tile(NO_MATCH_COLOR, (map_yx.size, 1))
+    valid = map_yx >= 0
+    out[valid] = colors_x[map_yx[valid]]
+    return out
+
+
+def _draw(ax, mesh: Mesh, colors: np.ndarray, title: str) -> None:
+    verts = mesh.verts[:, [0, 2, 1]]  # show y up
+    face_colors = colors[mesh.faces].mean(axis=1)
+    normals = np.cross(verts[mesh.faces[:, 1]] - verts[mesh.faces[:, 0]], verts[mesh.faces[:, 2]] - verts[mesh.faces[:, 0]])
+    normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
+    shade = 0.55 + 0.45 * np.abs(normals @ np.array([0.0, -1.0, 0.3]) / np.linalg.norm([0.0, -1.0, 0.3]))
+    collection = Poly3DCollection(verts[mesh.faces], facecolors=np.clip(face_colors * shade[:, None], 0, 1), linewidths=0)
+    ax.add_collection3d(collection)
+    lo, hi = verts.min(axis=0), verts.max(axis=0)
+    center, half = (lo + hi) / 2, (hi - lo).max() / 2
+    ax.set_xlim(center[0] - half, center[0] + half)
+    ax.set_ylim(center[1] - half, center[1] + half)
+    ax.set_zlim(center[2] - half, center[2] + half)
+    ax.view_init(elev=10, azim=-90)
+    ax.set_axis_off()
+    ax.set_title(title, fontsize=8)
+
+
+def plot_pairs(pairs: list[tuple], path: Path) -> None:
+    """Pictures of pairs: X in position colours, Y coloured through the predicted map, and through the truth.
+
+    Parameters
+    ----------
+    pairs : list of (ShapePair, predicted map_yx (V_y,), label)
+    path : Path
+        PNG to write.
+    """
+    fig = plt.figure(figsize=(9, 3.2 * len(pairs)))
+    for row, (pair, predicted, label) in enumerate(pairs):
+        colors_x = position_colors(pair.x)
+        panels = [
+            (pair.x, colors_x, f"X: {pair.x.name}"),
+            (pair.y, transferred_colors(colors_x, predicted), f"Y via prediction ({label})"),
+            (pair.y, transferred_colors(colors_x, pair.map_yx), "Y via ground truth"),
+        ]
+        for col, (mesh, colors, title) in enumerate(panels):
+            ax = fig.add_subplot(len(pairs), 3, 3 * row + col + 1, projection="3d")
+            _draw(ax, mesh, colors, title)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)

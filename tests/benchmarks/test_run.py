@@ -1,0 +1,40 @@
+import json
+import subprocess
+import sys
+
+from shapes import REPO
+
+RUN = REPO / "benchmarks" / "run.py"
+
+
+def run(*args):
+    return subprocess.run([sys.executable, str(RUN), "--no-progress", *args], capture_output=True, text=True, cwd=REPO)
+
+
+def test_default_run_on_the_builtin_collection_writes_every_report(tmp_path):
+    result = run("--limit", "2", "--out", str(tmp_path))
+    assert result.returncode == 0, result.stderr
+    report = json.loads((tmp_path / "results.json").read_text())
+    for key in ("pipeline", "dataset", "descriptor", "n_pairs", "geodesic_error", "pck_auc", "chirality_accuracy"):
+        assert key in report
+    assert (report["pipeline"], report["dataset"], report["descriptor"], report["n_pairs"]) == ("nn", "synthetic_cuts", "wks", 2)
+    assert 0 < report["geodesic_error"] < 200 and 0 <= report["pck_auc"] <= 1
+    assert "| nn | wks | synthetic_cuts | 2 |" in (tmp_path / "results.md").read_text()
+    for picture in ("pck.png", "pairs.png"):
+        assert (tmp_path / picture).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_p2p_run_reports_miou(tmp_path):
+    result = run("--dataset", "synthetic_p2p", "--pipeline", "fmap", "--descriptor", "hks", "--limit", "1", "--out", str(tmp_path))
+    assert result.returncode == 0, result.stderr
+    report = json.loads((tmp_path / "results.json").read_text())
+    assert 0 < report["miou"] <= 1 and report["pairs"][0]["iou"] == report["miou"]
+
+
+def test_clear_errors_for_bad_names_and_missing_data(tmp_path):
+    result = run("--dataset", "faust_r_cutz", "--out", str(tmp_path))
+    assert result.returncode == 2 and "Did you mean 'faust_r_cuts'" in result.stderr
+    result = run("--descriptor", "dinov9", "--out", str(tmp_path))
+    assert result.returncode == 2 and "unknown descriptor 'dinov9'" in result.stderr
+    result = run("--dataset", "faust_r_cuts", "--data-root", str(tmp_path / "nowhere"), "--out", str(tmp_path))
+    assert result.returncode == 2 and "off/" in result.stderr and "corres/" in result.stderr
