@@ -29,14 +29,12 @@ import argparse
 import datetime
 import json
 import os
-import platform
 import statistics
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
-import scipy
 import scipy.sparse as sp
 from scipy.sparse.csgraph import dijkstra
 
@@ -44,6 +42,10 @@ import geofeat
 from geofeat.geometry.geodesic import edge_graph, geodesic_matrix
 
 HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE))
+
+from common import DEFAULT_DATA, faust_test_shapes, machine  # noqa: E402
+
 METHODS = ("baseline", "scipy_all_sources", "geofeat_dijkstra", "geofeat_heat")
 LABELS = {
     "baseline": "GeoLoRA `geodesic_dist_echo` (k-NN k=500 masked to edges + scipy `shortest_path`)",
@@ -52,21 +54,6 @@ LABELS = {
     "geofeat_dijkstra": "geofeat `geodesic_matrix(method='dijkstra')`",
     "geofeat_heat": "geofeat `geodesic_matrix(method='heat')`",
 }
-
-
-def machine() -> str:
-    cpu = platform.processor() or "unknown CPU"
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    return (
-        f"{cpu}, {os.cpu_count()} cores, {platform.system()} {platform.machine()}, "
-        f"Python {platform.python_version()}, numpy {np.__version__}, scipy {scipy.__version__}"
-    )
 
 
 def baseline_geodesic_dist_echo(verts: np.ndarray, faces: np.ndarray, n_neighbors: int = 500) -> tuple[np.ndarray, dict]:
@@ -153,7 +140,7 @@ def errors(rows: np.ndarray, reference: np.ndarray) -> dict:
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--data", default=os.environ.get("GEOFEAT_DATA", str(HERE.parent.parent / "shared" / "data")))
+    parser.add_argument("--data", default=DEFAULT_DATA)
     parser.add_argument("--shapes", type=int, default=5, help="number of FAUST_r shapes (from tr_reg_080)")
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--sources", type=int, default=20, help="source vertices per shape for the exact reference")
@@ -161,12 +148,7 @@ def main(argv=None) -> int:
     parser.add_argument("--out", default=str(HERE / "results" / "speed_geodesic"), help="writes OUT.json and OUT.md")
     args = parser.parse_args(argv)
 
-    folder = Path(args.data) / "FAUST_r" / "off"
-    paths = [folder / f"tr_reg_{i:03d}.off" for i in range(80, 80 + args.shapes)]
-    missing = [p for p in paths if not p.is_file()]
-    if missing:
-        sys.exit(f"FAUST_r shapes not found (first missing: {missing[0]}); pass --data or set GEOFEAT_DATA")
-    shapes = [geofeat.load_mesh(p) for p in paths]
+    shapes = faust_test_shapes(args.data, args.shapes)
     rng = np.random.default_rng(args.seed)
     load_before = os.getloadavg()
 

@@ -24,8 +24,6 @@ from __future__ import annotations
 import argparse
 import datetime
 import json
-import os
-import platform
 import statistics
 import sys
 import tempfile
@@ -33,27 +31,14 @@ import time
 from pathlib import Path
 
 import numpy as np
-import scipy
 
 import geofeat
 from geofeat.geometry.spectral import clear_basis_cache
 
 HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE))
 
-
-def machine() -> str:
-    cpu = "unknown CPU"
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        cpu = platform.processor() or cpu
-    return (
-        f"{cpu}, {os.cpu_count()} cores, {platform.system()} {platform.machine()}, "
-        f"Python {platform.python_version()}, numpy {np.__version__}, scipy {scipy.__version__}"
-    )
+from common import DEFAULT_DATA, faust_test_shapes, machine  # noqa: E402
 
 
 def run_pyfm(verts, faces, k, n_wks, n_hks):
@@ -92,7 +77,7 @@ def relative_error(ours: np.ndarray, ref: np.ndarray) -> float:
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--data", default=os.environ.get("GEOFEAT_DATA", str(HERE.parent.parent / "shared" / "data")))
+    parser.add_argument("--data", default=DEFAULT_DATA)
     parser.add_argument("--shapes", type=int, default=10, help="number of FAUST_r shapes (from tr_reg_080)")
     parser.add_argument("--k", type=int, default=128, help="eigenpairs, the same for both libraries")
     parser.add_argument("--n-wks", type=int, default=128)
@@ -101,12 +86,7 @@ def main(argv=None) -> int:
     parser.add_argument("--out", default=str(HERE / "results" / "speed_spectral"), help="writes OUT.json and OUT.md")
     args = parser.parse_args(argv)
 
-    folder = Path(args.data) / "FAUST_r" / "off"
-    paths = [folder / f"tr_reg_{i:03d}.off" for i in range(80, 80 + args.shapes)]
-    missing = [p for p in paths if not p.is_file()]
-    if missing:
-        sys.exit(f"FAUST_r shapes not found (first missing: {missing[0]}); pass --data or set GEOFEAT_DATA")
-    shapes = [geofeat.load_mesh(p) for p in paths]
+    shapes = faust_test_shapes(args.data, args.shapes)
 
     times = {"pyfm": [], "geofeat_cotan": [], "geofeat_robust": [], "cache_hit": [], "compute_wks": []}
     errors_wks, errors_hks = [], []

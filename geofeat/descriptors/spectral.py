@@ -106,7 +106,30 @@ def heat_kernel_signature(basis: SpectralBasis, n_descr: int) -> np.ndarray:
     return (np.square(basis.evecs) @ coefs.T) / coefs.sum(axis=1)[None, :]
 
 
-class WKS(Descriptor):
+class SpectralSignature(Descriptor):
+    """Shared body of HKS and WKS: a signature of the Laplace-Beltrami eigenpairs.
+
+    Subclasses set ``signature`` (a function ``(basis, n_descr) -> (V, n_descr)``) and
+    declare their keyword parameters ``n_eig``, ``n_descr``, ``laplacian``, ``normalize``.
+    """
+
+    signature = None
+
+    def _store(self, n_eig: int, n_descr: int, laplacian: str, normalize: bool) -> None:
+        _check_spectral_params(self.name, n_eig, n_descr, laplacian)
+        self.n_eig = n_eig
+        self.n_descr = n_descr
+        self.laplacian = laplacian
+        self.normalize = normalize
+
+    def compute(self, mesh: Mesh) -> np.ndarray:
+        """Signature of shape (V, n_descr), channels mass-normalised when ``normalize``."""
+        basis = spectral_basis(mesh, self.n_eig, self.laplacian)
+        features = type(self).signature(basis, self.n_descr)
+        return mass_normalize(features, basis.mass) if self.normalize else features
+
+
+class WKS(SpectralSignature):
     """Wave Kernel Signature, as ULRSSM and pyFM compute it.
 
     Parameters
@@ -134,22 +157,13 @@ class WKS(Descriptor):
 
     name = "wks"
     version = "1"
+    signature = staticmethod(wave_kernel_signature)
 
     def __init__(self, *, n_eig: int = 128, n_descr: int = 128, laplacian: str = "robust", normalize: bool = True):
-        _check_spectral_params("wks", n_eig, n_descr, laplacian)
-        self.n_eig = n_eig
-        self.n_descr = n_descr
-        self.laplacian = laplacian
-        self.normalize = normalize
-
-    def compute(self, mesh: Mesh) -> np.ndarray:
-        """WKS of shape (V, n_descr)."""
-        basis = spectral_basis(mesh, self.n_eig, self.laplacian)
-        features = wave_kernel_signature(basis, self.n_descr)
-        return mass_normalize(features, basis.mass) if self.normalize else features
+        self._store(n_eig, n_descr, laplacian, normalize)
 
 
-class HKS(Descriptor):
+class HKS(SpectralSignature):
     """Heat Kernel Signature with log-spaced times.
 
     Parameters
@@ -174,16 +188,7 @@ class HKS(Descriptor):
 
     name = "hks"
     version = "1"
+    signature = staticmethod(heat_kernel_signature)
 
     def __init__(self, *, n_eig: int = 128, n_descr: int = 16, laplacian: str = "robust", normalize: bool = True):
-        _check_spectral_params("hks", n_eig, n_descr, laplacian)
-        self.n_eig = n_eig
-        self.n_descr = n_descr
-        self.laplacian = laplacian
-        self.normalize = normalize
-
-    def compute(self, mesh: Mesh) -> np.ndarray:
-        """HKS of shape (V, n_descr)."""
-        basis = spectral_basis(mesh, self.n_eig, self.laplacian)
-        features = heat_kernel_signature(basis, self.n_descr)
-        return mass_normalize(features, basis.mass) if self.normalize else features
+        self._store(n_eig, n_descr, laplacian, normalize)

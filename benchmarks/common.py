@@ -1,0 +1,41 @@
+"""Helpers shared by the benchmark scripts: the machine description and the FAUST_r shapes."""
+
+from __future__ import annotations
+
+import os
+import platform
+from pathlib import Path
+
+import numpy as np
+import scipy
+
+import geofeat
+
+HERE = Path(__file__).resolve().parent
+DEFAULT_DATA = os.environ.get("GEOFEAT_DATA", str(HERE.parent.parent / "shared" / "data"))
+
+
+def machine() -> str:
+    """CPU model, core count, OS and the numerical library versions, in one line."""
+    cpu = platform.processor() or "unknown CPU"
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    return (
+        f"{cpu}, {os.cpu_count()} cores, {platform.system()} {platform.machine()}, "
+        f"Python {platform.python_version()}, numpy {np.__version__}, scipy {scipy.__version__}"
+    )
+
+
+def faust_test_shapes(data: str | os.PathLike, n_shapes: int) -> list[geofeat.Mesh]:
+    """The first ``n_shapes`` FAUST_r test shapes (tr_reg_080 on); exits with a clear message when missing."""
+    folder = Path(data) / "FAUST_r" / "off"
+    paths = [folder / f"tr_reg_{i:03d}.off" for i in range(80, 80 + n_shapes)]
+    missing = [p for p in paths if not p.is_file()]
+    if missing:
+        raise SystemExit(f"FAUST_r shapes not found (first missing: {missing[0]}); pass --data or set GEOFEAT_DATA")
+    return [geofeat.load_mesh(p) for p in paths]

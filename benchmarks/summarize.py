@@ -1,0 +1,55 @@
+"""Gather the results.json files of several `run.py` runs into one table and one PCK plot.
+
+Usage::
+
+    python benchmarks/summarize.py benchmarks/results/*/results.json --out benchmarks/results/summary
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from report import markdown_table, plot_pck  # noqa: E402
+
+COLUMNS = [
+    ("dataset", "dataset", "s"),
+    ("descriptor", "descriptor", "s"),
+    ("pipeline", "matcher", "s"),
+    ("n_pairs", "pairs", "d"),
+    ("geodesic_error", "geodesic error x100", ".2f"),
+    ("pck_auc", "PCK AUC", ".3f"),
+    ("miou", "mIoU", ".3f"),
+    ("chirality_accuracy", "chirality acc.", ".3f"),
+    ("seconds", "time (s)", ".0f"),
+]
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("results", nargs="+", type=Path, help="results.json files")
+    parser.add_argument("--out", type=Path, required=True, help="writes OUT.md and OUT_pck_<dataset>.png")
+    args = parser.parse_args(argv)
+    rows = [json.loads(path.read_text()) for path in args.results]
+    rows.sort(key=lambda r: (r["dataset"], r["descriptor"], r["pipeline"]))
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    dates = sorted({r["date"] for r in rows})
+    text = markdown_table(rows, COLUMNS) + f"\n\nRuns of {', '.join(dates)}; per-run settings in each results.json.\n"
+    args.out.with_suffix(".md").write_text(text)
+    for dataset in sorted({r["dataset"] for r in rows}):
+        curves = {
+            f"{r['descriptor']} + {r['pipeline']}": (np.array(r["pck_thresholds"]), np.array(r["pck"])) for r in rows if r["dataset"] == dataset
+        }
+        plot_pck(curves, args.out.parent / f"{args.out.name}_pck_{dataset}.png", dataset)
+    print(text)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
