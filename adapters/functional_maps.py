@@ -117,7 +117,9 @@ def _check_k(basis: SpectralBasis, k: int, name: str) -> int:
     if not isinstance(k, (int, np.integer)) or isinstance(k, bool) or k < 1:
         raise FunctionalMapError(f"{name} must be a positive integer number of basis functions; found {k!r}.")
     if k > basis.k:
-        raise FunctionalMapError(f"{name}={k} basis functions requested, but the basis has only {basis.k}; compute a larger basis.")
+        raise FunctionalMapError(
+            f"{name}={k} basis functions requested, but the basis has only {basis.k}; compute a larger basis."
+        )
     return int(k)
 
 
@@ -134,7 +136,9 @@ def _check_pointmap(map_yx, basis_x: SpectralBasis, basis_y: SpectralBasis) -> n
     arr = np.asarray(map_yx)
     n_x, n_y = basis_x.evecs.shape[0], basis_y.evecs.shape[0]
     if arr.shape != (n_y,) or arr.dtype.kind not in "iu":
-        raise FunctionalMapError(f"map_yx must be an integer array of shape ({n_y},) (one target vertex per source vertex); found {arr.dtype} {arr.shape}.")
+        raise FunctionalMapError(
+            f"map_yx must be an integer array of shape ({n_y},) (one target vertex per source vertex); found {arr.dtype} {arr.shape}."
+        )
     if arr.min() < 0 or arr.max() >= n_x:
         raise FunctionalMapError(
             f"map_yx must hold target indices in [0, {n_x - 1}] for every source vertex; found range [{arr.min()}, {arr.max()}]. "
@@ -272,7 +276,9 @@ def fmap_from_descriptors(
     dx = _check_descriptors(desc_x, basis_x, "desc_x")
     dy = _check_descriptors(desc_y, basis_y, "desc_y")
     if dx.shape[1] != dy.shape[1]:
-        raise FunctionalMapError(f"desc_x and desc_y must have the same number of channels; found {dx.shape[1]} and {dy.shape[1]}.")
+        raise FunctionalMapError(
+            f"desc_x and desc_y must have the same number of channels; found {dx.shape[1]} and {dy.shape[1]}."
+        )
     if not (descr_weight > 0 and lap_weight >= 0):
         raise FunctionalMapError(f"descr_weight must be > 0 and lap_weight >= 0; found {descr_weight!r} and {lap_weight!r}.")
     if normalize_descriptors:
@@ -348,7 +354,9 @@ def fmap_from_pointmap(map_yx, basis_x: SpectralBasis, basis_y: SpectralBasis, k
     return project(basis_y, basis_x.evecs[pmap, :k_x], k_y)
 
 
-def zoomout_refine(fmap, basis_x: SpectralBasis, basis_y: SpectralBasis, n_iter: int, step: int = 1, device: str | torch.device = "cpu") -> np.ndarray:
+def zoomout_refine(
+    fmap, basis_x: SpectralBasis, basis_y: SpectralBasis, n_iter: int, step: int = 1, device: str | torch.device = "cpu"
+) -> np.ndarray:
     """ZoomOut (Melzi et al. 2019): grow a functional map by alternating point-map conversions.
 
     Each iteration converts the map to a point map and back into a functional map with
@@ -382,7 +390,15 @@ def zoomout_refine(fmap, basis_x: SpectralBasis, basis_y: SpectralBasis, n_iter:
     return c
 
 
-def zoomout(map_yx, basis_x: SpectralBasis, basis_y: SpectralBasis, k_start: int = 30, k_end: int = 100, step: int = 1, device: str | torch.device = "cpu") -> np.ndarray:
+def zoomout(
+    map_yx,
+    basis_x: SpectralBasis,
+    basis_y: SpectralBasis,
+    k_start: int = 30,
+    k_end: int = 100,
+    step: int = 1,
+    device: str | torch.device = "cpu",
+) -> np.ndarray:
     """Refine a point map y -> x with ZoomOut from ``k_start`` to ``k_end`` basis functions.
 
     Parameters

@@ -47,7 +47,9 @@ def nn_match(feat_x, feat_y, device: str | torch.device = "cpu") -> np.ndarray:
     fx = _check_features(feat_x, None, "feat_x")
     fy = _check_features(feat_y, None, "feat_y")
     if fx.shape[1] != fy.shape[1]:
-        raise FunctionalMapError(f"feat_x and feat_y must have the same number of channels; found {fx.shape[1]} and {fy.shape[1]}.")
+        raise FunctionalMapError(
+            f"feat_x and feat_y must have the same number of channels; found {fx.shape[1]} and {fy.shape[1]}."
+        )
     return fm.nearest_neighbors(fx, fy, device=device)
 
 
@@ -105,7 +107,9 @@ def fmap_match(
     fx = _check_features(feat_x, mesh_x, "feat_x")
     fy = _check_features(feat_y, mesh_y, "feat_y")
     if zoomout and (k_final < k or zoomout_step < 1 or (k_final - k) % zoomout_step):
-        raise FunctionalMapError(f"need k <= k_final with k_final - k a multiple of zoomout_step >= 1; found k={k}, k_final={k_final}, step={zoomout_step}.")
+        raise FunctionalMapError(
+            f"need k <= k_final with k_final - k a multiple of zoomout_step >= 1; found k={k}, k_final={k_final}, step={zoomout_step}."
+        )
     n_eig = max(n_eig, k, k_final) if zoomout else max(n_eig, k)
     basis_x = spectral_basis(mesh_x, n_eig, laplacian_kind)
     basis_y = spectral_basis(mesh_y, n_eig, laplacian_kind)

@@ -37,16 +37,28 @@ from geofeat.geometry.geodesic import geodesic_matrix  # noqa: E402
 
 log = logging.getLogger("benchmarks.run")
 
-PIPELINES = ("nn", "fmap", "fmap_zoomout")
+REFERENCE_PIPELINES = ("random", "mirrored_truth")
+PIPELINES = ("nn", "fmap", "fmap_zoomout", *REFERENCE_PIPELINES)
 N_PICTURES = 3
 
 
-def match(pipeline: str, pair, feat_x: np.ndarray, feat_y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def match(
+    pipeline: str, pair, feat_x: np.ndarray | None, feat_y: np.ndarray | None, seed: int = 0
+) -> tuple[np.ndarray, np.ndarray]:
     """Predicted map Y -> X (V_y,) and predicted overlap on Y (V_y,) bool.
 
     The training-free matchers predict no overlap: every vertex of Y counts as overlapping.
+    Two reference pipelines ignore the features: ``random`` (a uniformly random vertex of X,
+    seeded) and ``mirrored_truth`` (the left-right mirrored ground truth: the cost of a
+    perfect but flipped map; needs a dataset with chirality ground truth).
     """
-    if pipeline == "nn":
+    if pipeline == "random":
+        predicted = np.random.default_rng(seed).integers(0, pair.x.n_vertices, pair.y.n_vertices)
+    elif pipeline == "mirrored_truth":
+        if pair.map_yx_sym is None:
+            raise geofeat.DatasetError("pipeline 'mirrored_truth' needs a dataset with a mirrored ground truth")
+        predicted = np.where(pair.map_yx_sym >= 0, pair.map_yx_sym, -1)
+    elif pipeline == "nn":
         predicted = matchers.nn_match(feat_x, feat_y)
     elif pipeline in ("fmap", "fmap_zoomout"):
         predicted = matchers.fmap_match(pair.x, pair.y, feat_x, feat_y, zoomout=pipeline == "fmap_zoomout")
@@ -109,7 +121,10 @@ def main(argv=None) -> int:
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     try:
         dataset = load_dataset(args.dataset, root=args.data_root, split=args.split, seed=args.seed)
-        descriptor_class(args.descriptor)  # unknown names and missing extras fail before any work
+        if args.pipeline in REFERENCE_PIPELINES:
+            args.descriptor = "none"  # reference pipelines use no features
+        else:
+            descriptor_class(args.descriptor)  # unknown names and missing extras fail before any work
     except geofeat.GeofeatError as err:
         sys.stderr.write(f"run.py: error: {err}\n")
         return 2
@@ -121,9 +136,12 @@ def main(argv=None) -> int:
     records, pictures = [], []
     for i in tqdm(range(n_pairs), desc=f"{args.pipeline} on {args.dataset}", unit="pair", disable=args.no_progress):
         pair = dataset[i]
-        feat_x = geofeat.compute(pair.x, args.descriptor)
-        feat_y = geofeat.compute(pair.y, args.descriptor)
-        predicted, overlap_pred = match(args.pipeline, pair, feat_x, feat_y)
+        if args.pipeline in REFERENCE_PIPELINES:  # they ignore features
+            feat_x = feat_y = None
+        else:
+            feat_x = geofeat.compute(pair.x, args.descriptor)
+            feat_y = geofeat.compute(pair.y, args.descriptor)
+        predicted, overlap_pred = match(args.pipeline, pair, feat_x, feat_y, seed=args.seed * 100003 + i)
         records.append(evaluate_pair(pair, predicted, overlap_pred))
         if len(pictures) < N_PICTURES:
             pictures.append((pair, predicted, f"{args.descriptor} + {args.pipeline}"))
@@ -139,7 +157,9 @@ def main(argv=None) -> int:
         "date": datetime.date.today().isoformat(),
         "seconds": seconds,
         **summary,
-        "pairs": [{k: v for k, v in r.items() if k != "errors"} | {"geodesic_error": 100 * float(r["errors"].mean())} for r in records],
+        "pairs": [
+            {k: v for k, v in r.items() if k != "errors"} | {"geodesic_error": 100 * float(r["errors"].mean())} for r in records
+        ],
     }
     (out / "results.json").write_text(json.dumps(result, indent=1) + "\n")
     columns = [
@@ -154,7 +174,11 @@ def main(argv=None) -> int:
     ]
     table = markdown_table([result], columns)
     (out / "results.md").write_text(table + "\n")
-    plot_pck({f"{args.descriptor} + {args.pipeline}": (np.array(summary["pck_thresholds"]), np.array(summary["pck"]))}, out / "pck.png", args.dataset)
+    plot_pck(
+        {f"{args.descriptor} + {args.pipeline}": (np.array(summary["pck_thresholds"]), np.array(summary["pck"]))},
+        out / "pck.png",
+        args.dataset,
+    )
     plot_pairs(pictures, out / "pairs.png")
     print(table)
     print(f"{n_pairs} pairs in {seconds:.1f} s; written to {out}")

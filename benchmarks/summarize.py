@@ -44,7 +44,9 @@ def main(argv=None) -> int:
     args.out.with_suffix(".md").write_text(text)
     for dataset in sorted({r["dataset"] for r in rows}):
         curves = {
-            f"{r['descriptor']} + {r['pipeline']}": (np.array(r["pck_thresholds"]), np.array(r["pck"])) for r in rows if r["dataset"] == dataset
+            f"{r['descriptor']} + {r['pipeline']}": (np.array(r["pck_thresholds"]), np.array(r["pck"]))
+            for r in rows
+            if r["dataset"] == dataset
         }
         plot_pck(curves, args.out.parent / f"{args.out.name}_pck_{dataset}.png", dataset)
     print(text)

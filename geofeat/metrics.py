@@ -57,7 +57,9 @@ def _check_range(arr: np.ndarray, n_x: int, name: str) -> None:
 def _as_distance_matrix(dist_x) -> np.ndarray:
     arr = np.asarray(dist_x)
     if arr.ndim != 2 or arr.shape[0] != arr.shape[1]:
-        raise MetricError(f"dist_x must be a square (V_x, V_x) matrix of geodesic distances on the target; found shape {arr.shape}.")
+        raise MetricError(
+            f"dist_x must be a square (V_x, V_x) matrix of geodesic distances on the target; found shape {arr.shape}."
+        )
     if arr.dtype.kind not in "fiu":
         raise MetricError(f"dist_x must be a real numeric matrix; found dtype {arr.dtype}.")
     return arr
@@ -66,7 +68,9 @@ def _as_distance_matrix(dist_x) -> np.ndarray:
 def _as_mask(mask, n: int, name: str) -> np.ndarray:
     arr = np.asarray(mask)
     if arr.dtype != bool:
-        raise MetricError(f"{name} must be a boolean array; found dtype {arr.dtype}. Threshold scores first (for example score > 0.5).")
+        raise MetricError(
+            f"{name} must be a boolean array; found dtype {arr.dtype}. Threshold scores first (for example score > 0.5)."
+        )
     if arr.shape != (n,):
         raise MetricError(f"{name} must have shape ({n},); found shape {arr.shape}.")
     return arr
@@ -158,7 +162,9 @@ def _pooled(errors) -> np.ndarray:
         raise MetricError(f"errors must be an array or a sequence of per-pair arrays; found {type(errors).__name__}.")
     for part in parts:
         if part.ndim != 1 or part.dtype.kind not in "fiu":
-            raise MetricError(f"every error array must be 1-D and numeric, shape (n_eval,); found shape {part.shape}, dtype {part.dtype}.")
+            raise MetricError(
+                f"every error array must be 1-D and numeric, shape (n_eval,); found shape {part.shape}, dtype {part.dtype}."
+            )
     pooled = np.concatenate(parts).astype(np.float64) if parts else np.zeros(0)
     if pooled.size == 0:
         raise MetricError("no evaluated vertices: every error array is empty.")

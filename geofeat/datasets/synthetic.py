@@ -256,7 +256,9 @@ def bone_transforms(proportions: Proportions, pose: np.ndarray) -> tuple[np.ndar
         head = np.array(bone.head)
         direction = np.array(bone.tail) - head
         direction /= np.linalg.norm(direction)
-        scale = proportions.thickness[b] * np.eye(3) + (proportions.length[b] - proportions.thickness[b]) * np.outer(direction, direction)
+        scale = proportions.thickness[b] * np.eye(3) + (proportions.length[b] - proportions.thickness[b]) * np.outer(
+            direction, direction
+        )
         if bone.parent < 0:
             world_rotation[b] = pose[b]
             new_head = head

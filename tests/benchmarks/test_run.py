@@ -25,7 +25,9 @@ def test_default_run_on_the_builtin_collection_writes_every_report(tmp_path):
 
 
 def test_p2p_run_reports_miou(tmp_path):
-    result = run("--dataset", "synthetic_p2p", "--pipeline", "fmap", "--descriptor", "hks", "--limit", "1", "--out", str(tmp_path))
+    result = run(
+        "--dataset", "synthetic_p2p", "--pipeline", "fmap", "--descriptor", "hks", "--limit", "1", "--out", str(tmp_path)
+    )
     assert result.returncode == 0, result.stderr
     report = json.loads((tmp_path / "results.json").read_text())
     assert 0 < report["miou"] <= 1 and report["pairs"][0]["iou"] == report["miou"]
@@ -38,3 +40,14 @@ def test_clear_errors_for_bad_names_and_missing_data(tmp_path):
     assert result.returncode == 2 and "unknown descriptor 'dinov9'" in result.stderr
     result = run("--dataset", "faust_r_cuts", "--data-root", str(tmp_path / "nowhere"), "--out", str(tmp_path))
     assert result.returncode == 2 and "off/" in result.stderr and "corres/" in result.stderr
+
+
+def test_reference_pipelines_bracket_the_metrics(tmp_path):
+    for pipeline in ("random", "mirrored_truth"):
+        result = run("--pipeline", pipeline, "--limit", "2", "--out", str(tmp_path / pipeline))
+        assert result.returncode == 0, result.stderr
+    random = json.loads((tmp_path / "random" / "results.json").read_text())
+    mirrored = json.loads((tmp_path / "mirrored_truth" / "results.json").read_text())
+    assert random["descriptor"] == "none"
+    assert mirrored["chirality_accuracy"] == 0.0 and 0.3 < random["chirality_accuracy"] < 0.7
+    assert mirrored["geodesic_error"] < random["geodesic_error"]
