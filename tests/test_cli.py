@@ -1,5 +1,6 @@
 import subprocess
 import sys
+from pathlib import Path
 
 from geofeat.cli import main
 
@@ -16,7 +17,8 @@ def test_demo_runs_offline_and_wks_beats_hks(capsys):
 def test_descriptors_listing_and_console_script(capsys):
     assert main(["descriptors"]) == 0
     assert "wks        available" in capsys.readouterr().out
-    result = subprocess.run(["geofeat", "--help"], capture_output=True, text=True)
+    console_script = Path(sys.executable).parent / "geofeat"  # installed beside the interpreter, on PATH or not
+    result = subprocess.run([str(console_script), "--help"], capture_output=True, text=True)
     assert result.returncode == 0 and "cache" in result.stdout
 
 
