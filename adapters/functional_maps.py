@@ -14,6 +14,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from geofeat.devices import resolve_device
 from geofeat.errors import FunctionalMapError
 from geofeat.geometry.spectral import SpectralBasis
 
@@ -26,13 +27,6 @@ NN_CANDIDATES = 4
 
 
 # ----------------------------------------------------------------------------- nearest neighbours
-
-
-def resolve_device(device: str | torch.device) -> torch.device:
-    """``"auto"`` -> CUDA when available, else CPU; anything else as given to torch."""
-    if isinstance(device, str) and device == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    return torch.device(device)
 
 
 def nearest_neighbors(reference, queries, device: str | torch.device = "cpu") -> np.ndarray:

@@ -37,3 +37,15 @@ class MetricError(GeofeatError, ValueError):
 
 class FunctionalMapError(GeofeatError, ValueError):
     """Bad input to a functional-map routine (shapes, sizes, indices)."""
+
+
+class RenderError(GeofeatError, ValueError):
+    """Bad input to the rendering layer (cameras, image size, mesh tensors, settings)."""
+
+
+class BackboneError(GeofeatError, ValueError):
+    """A DINO backbone cannot be loaded or used: missing or malformed weights, bad options or images."""
+
+
+class DeviceError(GeofeatError, ValueError):
+    """An unknown torch device, or CUDA requested where there is none."""

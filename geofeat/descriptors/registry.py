@@ -56,6 +56,18 @@ def register(entry: RegistryEntry) -> None:
 
 register(RegistryEntry("hks", "geofeat.descriptors.spectral:HKS", summary="Heat Kernel Signature, log-spaced times"))
 register(RegistryEntry("wks", "geofeat.descriptors.spectral:WKS", summary="Wave Kernel Signature (ULRSSM/pyFM definition)"))
+register(
+    RegistryEntry(
+        "dinov2", "geofeat.descriptors.dino:DINOv2", requires=("transformers",), extra="dino",
+        summary="DINOv2 features from multi-view renders, back-projected to vertices",
+    )
+)
+register(
+    RegistryEntry(
+        "dinov3", "geofeat.descriptors.dino:DINOv3", requires=("transformers",), extra="dino",
+        summary="DINOv3 features from multi-view renders, back-projected to vertices",
+    )
+)
 
 
 def _missing_modules(entry: RegistryEntry) -> list[str]:

@@ -1,0 +1,47 @@
+"""DINOv2 / DINOv3 backbones through Hugging Face `transformers` (the optional ``dino`` extra).
+
+`load_backbone` gives a `DinoBackbone` from a Hugging Face model folder, an official Meta
+``.pth`` (converted by `geofeat.backbones.convert`) or a Hub id; `DinoBackbone.pixel_features`
+turns (N, H, W, 3) renders into per-pixel, L2-normalised features. Importing this package does
+not import `transformers`; using it without `transformers` raises `MissingDependencyError`.
+"""
+
+from geofeat.backbones.convert import (
+    convert_dinov2_state_dict,
+    convert_dinov3_state_dict,
+    convert_official,
+    detect_official_kind,
+    infer_dinov2_config,
+    infer_dinov3_config,
+    unwrap_official_checkpoint,
+)
+from geofeat.backbones.dino import (
+    IMAGENET_MEAN,
+    IMAGENET_STD,
+    KINDS,
+    WEIGHTS_ENV,
+    DinoBackbone,
+    load_backbone,
+    missing_weights_message,
+    state_dict_digest,
+    upsample_patch_features,
+)
+
+__all__ = [
+    "IMAGENET_MEAN",
+    "IMAGENET_STD",
+    "KINDS",
+    "WEIGHTS_ENV",
+    "DinoBackbone",
+    "convert_dinov2_state_dict",
+    "convert_dinov3_state_dict",
+    "convert_official",
+    "detect_official_kind",
+    "infer_dinov2_config",
+    "infer_dinov3_config",
+    "load_backbone",
+    "missing_weights_message",
+    "state_dict_digest",
+    "unwrap_official_checkpoint",
+    "upsample_patch_features",
+]

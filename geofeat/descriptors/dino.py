@@ -1,0 +1,193 @@
+"""Raw DINOv2 / DINOv3 features lifted from multi-view renders to mesh vertices.
+
+Mesh -> cameras -> rasterize + gray Phong shading -> backbone -> per-pixel features ->
+back-projection to vertices, in batches of views so that memory stays bounded.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import ClassVar
+
+import numpy as np
+import torch
+from tqdm.auto import tqdm
+
+from geofeat.descriptors.base import Descriptor
+from geofeat.errors import DescriptorError
+from geofeat.mesh import Mesh
+from geofeat.render import Cameras, make_cameras, render_phong
+from geofeat.render.backproject import BACKPROJECT_MODES, VertexFeatureAccumulator
+
+PixelFeatureFn = Callable[[torch.Tensor, tuple[int, int]], torch.Tensor]
+
+
+def multiview_features(
+    mesh: Mesh,
+    cameras: Cameras,
+    pixel_features: PixelFeatureFn,
+    n_channels: int,
+    backproject: str = "ball",
+    fill: str = "nearest",
+    batch_size: int = 4,
+    progress: bool = False,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Render a mesh from every camera, compute pixel features and back-project them to vertices.
+
+    Parameters
+    ----------
+    mesh : Mesh
+        Triangle mesh.
+    cameras : Cameras
+        N views.
+    pixel_features : callable
+        ``(images (B, H, W, 3) float in [0, 1], (H, W)) -> (B, H, W, C)`` features.
+    n_channels : int
+        C.
+    backproject : {"ball", "face"}
+        See `geofeat.render.backproject`.
+    fill : {"nearest", "zero"}
+        Vertices seen in no view: nearest seen vertex's features, or zeros (training masks them).
+    batch_size : int
+        Views rendered and encoded together.
+    progress : bool
+        Show a progress bar over batches of views.
+
+    Returns
+    -------
+    features : numpy.ndarray, shape (V, C), float32
+    seen : numpy.ndarray, shape (V,), bool
+    """
+    if mesh.faces is None:
+        raise DescriptorError(f"{mesh.name!r} is a point cloud: multi-view features need faces to render.")
+    accumulator = VertexFeatureAccumulator(mesh.verts, mesh.faces, n_channels, mode=backproject, device=cameras.device)
+    size = (cameras.height, cameras.width)
+    starts = range(0, len(cameras), batch_size)
+    for start in tqdm(starts, desc=f"views of {mesh.name or 'mesh'}", unit="batch", disable=not progress):
+        views = cameras[start : start + batch_size]
+        rendering = render_phong(mesh, None, views)
+        features = pixel_features(rendering.images, size)
+        accumulator.add(features, rendering.fragments.pix_to_face, rendering.fragments.bary)
+    return accumulator.result(fill=fill)
+
+
+class DinoFeatures(Descriptor):
+    """Shared body of the ``dinov2`` and ``dinov3`` descriptors.
+
+    Parameters
+    ----------
+    weights : str or None
+        A Hugging Face model folder, an official Meta checkpoint (``.pth``) or a Hub id; None
+        reads ``$GEOFEAT_DINOV2_WEIGHTS`` / ``$GEOFEAT_DINOV3_WEIGHTS`` (see
+        `geofeat.backbones.load_backbone`).
+    views : int
+        Number of cameras (49 = the official 7 x 7 grid).
+    image_size : int or None
+        Render size in pixels, a multiple of the patch size; None: 448 for DINOv2 (patch 14),
+        512 for DINOv3 (patch 16).
+    camera_layout : {"official", "uniform"}
+        See `geofeat.render.make_cameras`.
+    backproject : {"ball", "face"}
+    layer : int
+        Transformer layer whose patch tokens are used (-1: the last, after the final norm).
+    device : str
+        ``"auto"``: CUDA when present, else CPU.
+    batch_size : int
+        Views rendered and encoded together.
+    fill : {"nearest", "zero"}
+        Features of vertices seen in no view.
+    random_rotation : bool
+        Rotate the cameras about the up axis by a random angle drawn from ``seed``.
+    seed : int
+        Seed of the random rotation.
+    """
+
+    kind: ClassVar[str] = ""
+    default_image_size: ClassVar[int] = 0
+    version = "1"
+
+    def _store(self, **params) -> None:
+        if not isinstance(params["views"], int) or params["views"] < 1:
+            raise DescriptorError(f"{self.name}: views must be a positive integer; found {params['views']!r}.")
+        if params["backproject"] not in BACKPROJECT_MODES:
+            raise DescriptorError(
+                f"{self.name}: backproject must be one of {BACKPROJECT_MODES}; found {params['backproject']!r}."
+            )
+        if params["fill"] not in ("nearest", "zero"):
+            raise DescriptorError(f"{self.name}: fill must be 'nearest' or 'zero'; found {params['fill']!r}.")
+        if not isinstance(params["batch_size"], int) or params["batch_size"] < 1:
+            raise DescriptorError(f"{self.name}: batch_size must be a positive integer; found {params['batch_size']!r}.")
+        for name, value in params.items():
+            setattr(self, name, value)
+        self._backbone = None
+
+    def get_params(self) -> dict:
+        """Parameters as given, except ``device`` (it does not change the features)."""
+        params = super().get_params()
+        params.pop("device")
+        return params
+
+    def backbone(self):
+        """The loaded backbone (loaded once, on first use)."""
+        if self._backbone is None:
+            from geofeat.backbones import load_backbone
+
+            self._backbone = load_backbone(self.weights, kind=self.kind, layer=self.layer, device=self.device)
+        return self._backbone
+
+    def weights_digest(self) -> str:
+        """SHA-256 of the backbone's weights (part of the cache key)."""
+        return self.backbone().weights_digest
+
+    def compute(self, mesh: Mesh) -> np.ndarray:
+        """Vertex features of shape (V, embed_dim)."""
+        backbone = self.backbone()
+        image_size = self.image_size or self.default_image_size
+        cameras = make_cameras(
+            mesh, self.views, layout=self.camera_layout, image_size=image_size,
+            random_rotation=self.random_rotation, seed=self.seed, device=backbone.device,
+        )  # fmt: skip
+
+        def pixel_features(images: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:
+            return backbone.pixel_features(images, size, batch_size=self.batch_size)
+
+        features, _ = multiview_features(
+            mesh, cameras, pixel_features, backbone.embed_dim, self.backproject, self.fill, self.batch_size, progress=True
+        )
+        return features
+
+
+class DINOv2(DinoFeatures):
+    """Raw DINOv2 features (patch 14) back-projected from multi-view renders; see `DinoFeatures`."""
+
+    name = "dinov2"
+    kind = "dinov2"
+    default_image_size = 448
+
+    def __init__(
+        self, *, weights: str | None = None, views: int = 49, image_size: int | None = None, camera_layout: str = "official",
+        backproject: str = "ball", layer: int = -1, device: str = "auto", batch_size: int = 4, fill: str = "nearest",
+        random_rotation: bool = False, seed: int = 0,
+    ):  # fmt: skip
+        self._store(
+            weights=weights, views=views, image_size=image_size, camera_layout=camera_layout, backproject=backproject,
+            layer=layer, device=device, batch_size=batch_size, fill=fill, random_rotation=random_rotation, seed=seed,
+        )  # fmt: skip
+
+
+class DINOv3(DinoFeatures):
+    """Raw DINOv3 features (patch 16) back-projected from multi-view renders; see `DinoFeatures`."""
+
+    name = "dinov3"
+    kind = "dinov3"
+    default_image_size = 512
+
+    def __init__(
+        self, *, weights: str | None = None, views: int = 49, image_size: int | None = None, camera_layout: str = "official",
+        backproject: str = "ball", layer: int = -1, device: str = "auto", batch_size: int = 4, fill: str = "nearest",
+        random_rotation: bool = False, seed: int = 0,
+    ):  # fmt: skip
+        self._store(
+            weights=weights, views=views, image_size=image_size, camera_layout=camera_layout, backproject=backproject,
+            layer=layer, device=device, batch_size=batch_size, fill=fill, random_rotation=random_rotation, seed=seed,
+        )  # fmt: skip

@@ -1,0 +1,55 @@
+"""Rendering: cameras, a PyTorch rasterizer, gray Phong shading and an optional OpenGL backend.
+
+>>> from geofeat.render import make_cameras, render_phong
+>>> cameras = make_cameras(mesh, n_views=9, layout="official", image_size=224, device="auto")
+>>> images, fragments = render_phong(mesh, None, cameras)
+>>> images.shape, fragments.pix_to_face.shape
+(torch.Size([9, 224, 224, 3]), torch.Size([9, 224, 224]))
+
+The rasterizer and the shader run on ``cameras.device`` (CPU or CUDA) with no compiled code.
+`pyrender_depth` needs the ``gl`` extra and is imported lazily.
+"""
+
+from geofeat.render.cameras import (
+    CAMERA_LAYOUTS,
+    OFFICIAL_DISTANCE_FACTOR,
+    OFFICIAL_FOV_DEGREES,
+    Cameras,
+    ProjectedPoints,
+    fibonacci_cameras,
+    fibonacci_directions,
+    look_at_rotation,
+    make_cameras,
+    official_grid_angles,
+    official_grid_cameras,
+    orbit_cameras,
+)
+from geofeat.render.pyrender_backend import gl_platform, pyrender_depth
+from geofeat.render.rasterizer import Fragments, MeshRasterizer, RasterSettings, rasterize
+from geofeat.render.shading import PhongSettings, Rendering, render_phong, shade_phong, vertex_normals
+
+__all__ = [
+    "CAMERA_LAYOUTS",
+    "OFFICIAL_DISTANCE_FACTOR",
+    "OFFICIAL_FOV_DEGREES",
+    "Cameras",
+    "Fragments",
+    "MeshRasterizer",
+    "PhongSettings",
+    "ProjectedPoints",
+    "RasterSettings",
+    "Rendering",
+    "fibonacci_cameras",
+    "fibonacci_directions",
+    "gl_platform",
+    "look_at_rotation",
+    "make_cameras",
+    "official_grid_angles",
+    "official_grid_cameras",
+    "orbit_cameras",
+    "pyrender_depth",
+    "rasterize",
+    "render_phong",
+    "shade_phong",
+    "vertex_normals",
+]

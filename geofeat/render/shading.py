@@ -1,0 +1,226 @@
+"""Gray Phong shading: the images that GeoLoRA and Diff3f feed to DINO.
+
+Both render with pytorch3d's ``HardPhongShader`` (vikiehm/geo-lora ``utils/dino_utils.py``
+and niladridutt/Diffusion-3D-Features ``render.py``, function ``run_rendering``):
+
+* one ``PointLights`` at the camera centre (``location=camera.get_camera_center()``) with
+  ``ambient_color=(0.6, 0.6, 0.6)``, ``diffuse_color=(0.4, 0.4, 0.5)``,
+  ``specular_color=(0.01, 0.01, 0.01)``;
+* vertex colours 0.8 (``TexturesVertex`` / ``Textures(verts_rgb=ones * 0.8)``, GeoLoRA
+  ``utils/utils.py::convert_verts_faces_to_torch_mesh``, Diff3f ``utils.py``);
+* pytorch3d's default ``Materials`` (facebookresearch/pytorch3d
+  ``pytorch3d/renderer/materials.py``): ambient, diffuse and specular reflectivity 1,
+  shininess 64;
+* pytorch3d's default ``BlendParams`` (``pytorch3d/renderer/blending.py``): white background
+  ``(1, 1, 1)``; ``hard_rgb_blend`` keeps the nearest face and does not clamp.
+
+pytorch3d's Phong shading (``pytorch3d/renderer/mesh/shading.py::phong_shading`` and
+``pytorch3d/renderer/lighting.py``) interpolates the positions and the area-weighted vertex
+normals (``Meshes.verts_normals_packed``) with the rasterizer's perspective-correct
+barycentrics, renormalises the normal, and computes per pixel, with ``L`` the unit vector to
+the light, ``V`` the unit vector to the camera and ``n`` the unit normal::
+
+    colour = (ambient + diffuse * max(0, n . L)) * texel
+             + specular * (max(0, V . (2 (n . L) n - L)) * [n . L > 0]) ** shininess
+
+With the light at the camera ``L = V``. On a surface facing the camera head-on this gives
+``0.8 * (0.6 + 0.4) + 0.01 = 0.81`` in red and green and ``0.8 * (0.6 + 0.5) + 0.01 = 0.89``
+in blue: the images are gray with a slight blue tint. Normals are not flipped towards the
+camera, so a back face drawn without culling gets ambient light only.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from geofeat.errors import RenderError
+from geofeat.mesh import Mesh
+from geofeat.render.cameras import Cameras, as_tensor
+from geofeat.render.rasterizer import Fragments, RasterSettings, mesh_tensors, rasterize
+
+Color = tuple[float, float, float]
+_PIXELS_PER_CHUNK = 1 << 18
+
+
+@dataclass(frozen=True)
+class PhongSettings:
+    """Light, material and background of the Phong shader (defaults: GeoLoRA / Diff3f).
+
+    Parameters
+    ----------
+    ambient, diffuse, specular : (float, float, float)
+        RGB intensities of the point light (pytorch3d's material reflectivities are all 1,
+        so these are the products).
+    shininess : float
+        Specular exponent (pytorch3d ``Materials`` default 64).
+    vertex_color : (float, float, float)
+        Colour of every vertex when `shade_phong` gets no per-vertex colours.
+    background : (float, float, float)
+        Colour of pixels that no face covers.
+    """
+
+    ambient: Color = (0.6, 0.6, 0.6)
+    diffuse: Color = (0.4, 0.4, 0.5)
+    specular: Color = (0.01, 0.01, 0.01)
+    shininess: float = 64.0
+    vertex_color: Color = (0.8, 0.8, 0.8)
+    background: Color = (1.0, 1.0, 1.0)
+
+    def __post_init__(self) -> None:
+        for name in ("ambient", "diffuse", "specular", "vertex_color", "background"):
+            value = tuple(float(v) for v in getattr(self, name))
+            if len(value) != 3 or not all(np.isfinite(value)):
+                raise RenderError(f"{name} must be three finite numbers (RGB); found {getattr(self, name)!r}.")
+            object.__setattr__(self, name, value)
+        if not (np.isfinite(self.shininess) and self.shininess >= 0):
+            raise RenderError(f"shininess must be a finite number >= 0; found {self.shininess!r}.")
+
+
+class Rendering(NamedTuple):
+    """Shaded images and the fragments they were shaded from.
+
+    Attributes
+    ----------
+    images : torch.Tensor, shape (N, H, W, 3), float32
+        RGB, background as `PhongSettings.background`; not clamped (defaults stay in [0, 1]).
+    fragments : Fragments
+    """
+
+    images: torch.Tensor
+    fragments: Fragments
+
+
+def vertex_normals(verts: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
+    """Area-weighted unit vertex normals (as pytorch3d's ``Meshes.verts_normals_packed``).
+
+    Parameters
+    ----------
+    verts : torch.Tensor, shape (V, 3), float
+    faces : torch.Tensor, shape (F, 3), int64
+
+    Returns
+    -------
+    torch.Tensor, shape (V, 3), same dtype as ``verts``
+        Sum of the right-hand normals (length twice the area) of the faces around each
+        vertex, normalised; zero for vertices in no face.
+    """
+    corners = verts[faces]
+    face_normals = torch.linalg.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0], dim=-1)
+    normals = torch.zeros_like(verts)
+    for k in range(3):
+        normals.index_add_(0, faces[:, k], face_normals)
+    return F.normalize(normals, dim=-1, eps=1e-12)
+
+
+def shade_phong(
+    fragments: Fragments,
+    verts: Mesh | np.ndarray | torch.Tensor,
+    faces: np.ndarray | torch.Tensor | None,
+    cameras: Cameras,
+    settings: PhongSettings | None = None,
+    vertex_colors: np.ndarray | torch.Tensor | None = None,
+) -> torch.Tensor:
+    """Phong-shade rasterized views with a point light at each camera.
+
+    Parameters
+    ----------
+    fragments : Fragments
+        From `rasterize` with the same mesh and cameras.
+    verts : Mesh or array_like, shape (V, 3)
+    faces : array_like of int, shape (F, 3), or None with a Mesh
+    cameras : Cameras
+    settings : PhongSettings, optional
+    vertex_colors : array_like, shape (V, 3), optional
+        Per-vertex RGB, interpolated by barycentrics; default ``settings.vertex_color`` everywhere.
+
+    Returns
+    -------
+    torch.Tensor, shape (N, H, W, 3), float32
+    """
+    settings = settings if settings is not None else PhongSettings()
+    verts_t, faces_t = mesh_tensors(verts, faces, cameras.device)
+    expected = (len(cameras), *cameras.image_size)
+    if tuple(fragments.pix_to_face.shape) != expected:
+        raise RenderError(f"fragments of shape {tuple(fragments.pix_to_face.shape)} do not match the cameras {expected}.")
+    colors = _vertex_colors(vertex_colors, verts_t.shape[0], settings, cameras.device)
+    normals = vertex_normals(verts_t, faces_t)
+    images = torch.empty((*expected, 3), dtype=torch.float32, device=cameras.device)
+    images[:] = torch.tensor(settings.background, dtype=torch.float32, device=cameras.device)
+    flat_images = images.view(len(cameras), -1, 3)
+    pix_to_face = fragments.pix_to_face.to(cameras.device).reshape(len(cameras), -1)
+    all_bary = fragments.bary.to(cameras.device).reshape(len(cameras), -1, 3)
+    for view in range(len(cameras)):
+        covered = torch.nonzero(pix_to_face[view] >= 0, as_tuple=True)[0]
+        for start in range(0, covered.numel(), _PIXELS_PER_CHUNK):  # bounds the float64 temporaries
+            pixel = covered[start : start + _PIXELS_PER_CHUNK]
+            corners = faces_t[pix_to_face[view, pixel]]  # (M, 3)
+            bary = all_bary[view, pixel].to(torch.float64)[..., None]  # (M, 3, 1)
+            shaded = _phong(
+                points=(bary * verts_t[corners]).sum(dim=1),
+                normals=(bary * normals[corners]).sum(dim=1),
+                texels=(bary * colors[corners]).sum(dim=1),
+                eye=cameras.position[view],
+                settings=settings,
+            )
+            flat_images[view, pixel] = shaded.float()
+    return images
+
+
+def render_phong(
+    verts: Mesh | np.ndarray | torch.Tensor,
+    faces: np.ndarray | torch.Tensor | None,
+    cameras: Cameras,
+    raster_settings: RasterSettings | None = None,
+    settings: PhongSettings | None = None,
+    vertex_colors: np.ndarray | torch.Tensor | None = None,
+) -> Rendering:
+    """Rasterize and Phong-shade a mesh in every view (GeoLoRA's / Diff3f's images by default).
+
+    Parameters
+    ----------
+    verts, faces : see `rasterize`
+    cameras : Cameras
+    raster_settings : RasterSettings, optional
+        Default culls back faces, as GeoLoRA does.
+    settings : PhongSettings, optional
+    vertex_colors : array_like, shape (V, 3), optional
+
+    Returns
+    -------
+    Rendering
+        ``images`` (N, H, W, 3) float32 and the ``fragments``.
+    """
+    fragments = rasterize(verts, faces, cameras, raster_settings)
+    images = shade_phong(fragments, verts, faces, cameras, settings, vertex_colors)
+    return Rendering(images, fragments)
+
+
+def _phong(points, normals, texels, eye, settings: PhongSettings) -> torch.Tensor:
+    """Colours (M, 3) of surface points lit by a point light at ``eye`` and seen from ``eye``."""
+    device, dtype = points.device, points.dtype
+
+    def rgb(value: Color) -> torch.Tensor:
+        return torch.tensor(value, dtype=dtype, device=device)
+
+    normals = F.normalize(normals, dim=-1, eps=1e-6)
+    to_light = F.normalize(eye - points, dim=-1, eps=1e-6)
+    to_viewer = to_light  # the light sits at the camera
+    cos_light = (normals * to_light).sum(dim=-1, keepdim=True)
+    reflected = 2.0 * cos_light * normals - to_light
+    highlight = (to_viewer * reflected).sum(dim=-1, keepdim=True).clamp(min=0.0) * (cos_light > 0)
+    lit = rgb(settings.ambient) + rgb(settings.diffuse) * cos_light.clamp(min=0.0)
+    return lit * texels + rgb(settings.specular) * highlight.pow(settings.shininess)
+
+
+def _vertex_colors(vertex_colors, n_vertices: int, settings: PhongSettings, device: torch.device) -> torch.Tensor:
+    if vertex_colors is None:
+        return torch.tensor(settings.vertex_color, dtype=torch.float64, device=device).expand(n_vertices, 3)
+    colors = as_tensor(vertex_colors, device=device).to(torch.float64)
+    if colors.shape != (n_vertices, 3):
+        raise RenderError(f"vertex_colors must have shape ({n_vertices}, 3); found {tuple(colors.shape)}.")
+    return colors
