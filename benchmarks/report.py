@@ -107,3 +107,15 @@ def plot_pairs(pairs: list[tuple], path: Path) -> None:
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
+
+
+def plot_mesh_colors(mesh: Mesh, colors: np.ndarray, path: Path, title: str) -> None:
+    """A mesh with per-vertex colours (V, 3) seen from the front and from the back."""
+    fig = plt.figure(figsize=(6, 3.6))
+    for col, (azimuth, side) in enumerate(((-90, "front"), (90, "back"))):
+        ax = fig.add_subplot(1, 2, col + 1, projection="3d")
+        _draw(ax, mesh, colors, f"{title}, {side}" if col == 0 else side)
+        ax.view_init(elev=10, azim=azimuth)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)

@@ -58,13 +58,19 @@ register(RegistryEntry("hks", "geofeat.descriptors.spectral:HKS", summary="Heat 
 register(RegistryEntry("wks", "geofeat.descriptors.spectral:WKS", summary="Wave Kernel Signature (ULRSSM/pyFM definition)"))
 register(
     RegistryEntry(
-        "dinov2", "geofeat.descriptors.dino:DINOv2", requires=("transformers",), extra="dino",
+        "dinov2",
+        "geofeat.descriptors.dino:DINOv2",
+        requires=("transformers",),
+        extra="dino",
         summary="DINOv2 features from multi-view renders, back-projected to vertices",
     )
 )
 register(
     RegistryEntry(
-        "dinov3", "geofeat.descriptors.dino:DINOv3", requires=("transformers",), extra="dino",
+        "dinov3",
+        "geofeat.descriptors.dino:DINOv3",
+        requires=("transformers",),
+        extra="dino",
         summary="DINOv3 features from multi-view renders, back-projected to vertices",
     )
 )

@@ -18,6 +18,7 @@ matrix is ever formed (neighbours come from a KD-tree).
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -87,29 +88,34 @@ class VertexFeatureAccumulator:
                 f"pixel features of shape {tuple(pixel_features.shape)} do not match fragments of shape "
                 f"{tuple(pix_to_face.shape)} with {self.n_channels} channels."
             )
-        foreground = pix_to_face >= 0
+        foreground = (pix_to_face >= 0).reshape(-1)
         if not bool(foreground.any()):
             return
-        features = pixel_features[foreground].to(self.device, torch.float32)  # (M, C)
-        face_ids = pix_to_face[foreground].cpu().numpy()
-        weights_bary = bary[foreground].cpu().numpy().astype(np.float64)  # (M, 3)
+        pixels = torch.nonzero(foreground).squeeze(1).cpu().numpy()  # flat indices of foreground pixels (M,)
+        face_ids = pix_to_face.reshape(-1)[pixels].cpu().numpy()
+        weights_bary = bary.reshape(-1, 3)[pixels].cpu().numpy().astype(np.float64)  # (M, 3)
         if self.mode == "face":
             rows = self.faces[face_ids].ravel()  # (3M,)
-            cols = np.repeat(np.arange(len(face_ids)), 3)
+            cols = np.repeat(pixels, 3)
             values = weights_bary.ravel()
         else:
             points = np.einsum("mk,mkd->md", weights_bary, self.verts[self.faces[face_ids]])  # surface points (M, 3)
-            rows, cols = _pairs_within(self.verts, points, self.radius)
+            rows, local = _pairs_within(self.verts, points, self.radius)
+            cols = pixels[local]
             values = np.ones(rows.size)
-        self._scatter(rows, cols, values, features)
+        # The product reads the features in place: no (M, C) copy of the foreground pixels.
+        self._scatter(rows, cols, values, pixel_features.reshape(-1, self.n_channels).to(self.device, torch.float32))
 
     def _scatter(self, rows: np.ndarray, cols: np.ndarray, values: np.ndarray, features: torch.Tensor) -> None:
+        """``sums += S @ features`` and ``weights += S @ 1`` for the sparse (V, P) matrix S given by its entries."""
         if rows.size == 0:
             return
         index = torch.as_tensor(np.stack([rows, cols]), dtype=torch.int64, device=self.device)
         values = torch.as_tensor(values, dtype=torch.float32, device=self.device)
         matrix = torch.sparse_coo_tensor(index, values, (len(self.verts), features.shape[0]), check_invariants=False)
-        self.sums += torch.sparse.mm(matrix, features)
+        with warnings.catch_warnings():  # "sparse CSR support is in beta": CSR products are the fast path here
+            warnings.filterwarnings("ignore", message="Sparse CSR tensor support is in beta")
+            self.sums += torch.sparse.mm(matrix.coalesce().to_sparse_csr(), features)
         self.weights.index_add_(0, index[0], values)
 
     def result(self, fill: str = "nearest") -> tuple[np.ndarray, np.ndarray]:

@@ -1,0 +1,170 @@
+"""Time one shape through the multi-view DINO path, stage by stage, and draw what it makes.
+
+Stages, each summed over the batches of views: render (rasterize + gray Phong shading),
+backbone (ImageNet normalisation, ViT forward, upsampling, per-pixel L2 norm) and
+back-projection (ball mode: KD-tree neighbours and a sparse product). Backbones are randomly
+initialised DINOv3 architectures (no weights can be downloaded here): a tiny one and one of
+ViT-B/16 size (12 layers, width 768, 12 heads, 4 register tokens).
+
+Also writes a PNG grid of the rendered views and a PCA colouring of the back-projected
+features of the ViT-B-sized backbone.
+
+Usage::
+
+    python benchmarks/speed_dino.py --data ../shared/data --views 49 --image-size 512
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE))
+
+from common import DEFAULT_DATA, faust_test_shapes, machine  # noqa: E402
+from report import plot_mesh_colors  # noqa: E402
+
+from geofeat.backbones import DinoBackbone  # noqa: E402
+from geofeat.render import make_cameras, render_phong  # noqa: E402
+from geofeat.render.backproject import VertexFeatureAccumulator  # noqa: E402
+
+BACKBONES = {
+    "tiny (2 layers, width 32)": dict(hidden_size=32, intermediate_size=64, num_hidden_layers=2, num_attention_heads=2),
+    "ViT-B/16 size (12 layers, width 768)": dict(
+        hidden_size=768, intermediate_size=3072, num_hidden_layers=12, num_attention_heads=12
+    ),
+}
+
+
+def random_dinov3(seed: int, **sizes) -> DinoBackbone:
+    """A DINOv3-architecture backbone with random weights (patch 16, 4 register tokens)."""
+    from transformers import DINOv3ViTConfig, DINOv3ViTModel
+
+    torch.manual_seed(seed)
+    config = DINOv3ViTConfig(patch_size=16, image_size=224, num_register_tokens=4, **sizes)
+    return DinoBackbone(DINOv3ViTModel(config), kind="dinov3")
+
+
+def run_stages(mesh, cameras, backbone: DinoBackbone, batch_size: int) -> tuple[dict, np.ndarray, list]:
+    """Seconds per stage, vertex features (V, C) and the rendered images (kept for the figure)."""
+    seconds = {"render": 0.0, "backbone": 0.0, "backproject": 0.0}
+    accumulator = VertexFeatureAccumulator(mesh.verts, mesh.faces, backbone.embed_dim, mode="ball")
+    size = (cameras.height, cameras.width)
+    images = []
+    for start in range(0, len(cameras), batch_size):
+        views = cameras[start : start + batch_size]
+        t0 = time.perf_counter()
+        rendering = render_phong(mesh, None, views)
+        t1 = time.perf_counter()
+        features = backbone.pixel_features(rendering.images, size, batch_size=batch_size)
+        t2 = time.perf_counter()
+        accumulator.add(features, rendering.fragments.pix_to_face, rendering.fragments.bary)
+        t3 = time.perf_counter()
+        seconds["render"] += t1 - t0
+        seconds["backbone"] += t2 - t1
+        seconds["backproject"] += t3 - t2
+        images.extend(rendering.images.numpy())
+    t0 = time.perf_counter()
+    features, _ = accumulator.result()
+    seconds["backproject"] += time.perf_counter() - t0
+    return seconds, features, images
+
+
+def pca_colors(features: np.ndarray) -> np.ndarray:
+    """First three principal components of the features, each scaled to [0, 1], shape (V, 3)."""
+    centered = features - features.mean(axis=0)
+    _, _, vt = np.linalg.svd(centered, full_matrices=False)
+    components = centered @ vt[:3].T
+    lo, hi = np.percentile(components, 2, axis=0), np.percentile(components, 98, axis=0)
+    return np.clip((components - lo) / np.where(hi > lo, hi - lo, 1.0), 0, 1)
+
+
+def save_view_grid(images: list, path: Path) -> None:
+    """All rendered views in a square grid."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    side = int(np.ceil(np.sqrt(len(images))))
+    fig, axes = plt.subplots(side, side, figsize=(1.6 * side, 1.6 * side))
+    for ax, image in zip(axes.ravel(), images + [None] * (side * side - len(images)), strict=True):
+        ax.set_axis_off()
+        if image is not None:
+            ax.imshow(np.clip(image, 0, 1))
+    fig.tight_layout(pad=0.1)
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--data", default=DEFAULT_DATA)
+    parser.add_argument("--views", type=int, default=49)
+    parser.add_argument("--image-size", type=int, default=512)
+    parser.add_argument("--batch-size", type=int, default=7)
+    parser.add_argument("--device", default="auto")
+    parser.add_argument(
+        "--out", default=str(HERE / "results" / "speed_dino"), help="writes OUT.json, OUT.md, OUT_views.png, OUT_pca.png"
+    )
+    args = parser.parse_args(argv)
+
+    mesh = faust_test_shapes(args.data, 1)[0]
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    rows, features_for_figure, images_for_figure = [], None, None
+    for label, sizes in BACKBONES.items():
+        backbone = random_dinov3(0, **sizes)
+        backbone.model.to(
+            torch.device(args.device if args.device != "auto" else ("cuda" if torch.cuda.is_available() else "cpu"))
+        )
+        cameras = make_cameras(mesh, args.views, layout="official", image_size=args.image_size, device=backbone.device)
+        run_stages(mesh, cameras[:1], backbone, 1)  # warm-up: first-call allocations
+        seconds, features, images = run_stages(mesh, cameras, backbone, args.batch_size)
+        rows.append({"name": label, **seconds, "total": sum(seconds.values())})
+        print(f"{label}: " + ", ".join(f"{k} {v:.2f} s" for k, v in rows[-1].items() if k != "name"), flush=True)
+        features_for_figure, images_for_figure = features, images
+
+    result = {
+        "date": datetime.date.today().isoformat(),
+        "machine": machine(),
+        "device": str(backbone.device),
+        "shape": mesh.name,
+        "vertices": mesh.n_vertices,
+        "views": args.views,
+        "image_size": args.image_size,
+        "batch_size": args.batch_size,
+        "rows": rows,
+    }
+    lines = [
+        f"One FAUST_r shape ({mesh.name}, {mesh.n_vertices} vertices), {args.views} views at {args.image_size} x {args.image_size}, "
+        f"batches of {args.batch_size} views, device {result['device']}, {result['date']}, {result['machine']}",
+        "",
+        "| backbone (random DINOv3 weights) | render | backbone | back-project (ball) | render + back-project | total |",
+        "|---|---|---|---|---|---|",
+    ]
+    for row in rows:
+        lines.append(
+            f"| {row['name']} | {row['render']:.2f} s | {row['backbone']:.2f} s | {row['backproject']:.2f} s | "
+            f"{row['render'] + row['backproject']:.2f} s | {row['total']:.2f} s |"
+        )
+    out.with_suffix(".json").write_text(json.dumps(result, indent=2) + "\n")
+    out.with_suffix(".md").write_text("\n".join(lines) + "\n")
+    save_view_grid(images_for_figure, out.parent / f"{out.name}_views.png")
+    plot_mesh_colors(
+        mesh, pca_colors(features_for_figure), out.parent / f"{out.name}_pca.png", "PCA of back-projected features (random ViT-B)"
+    )
+    print("\n".join(lines))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
