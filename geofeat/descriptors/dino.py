@@ -106,6 +106,26 @@ class DinoFeatures(Descriptor):
     default_image_size: ClassVar[int] = 0
     version = "1"
 
+    def __init__(
+        self,
+        *,
+        weights: str | None = None,
+        views: int = 49,
+        image_size: int | None = None,
+        camera_layout: str = "official",
+        backproject: str = "ball",
+        layer: int = -1,
+        device: str = "auto",
+        batch_size: int = 4,
+        fill: str = "nearest",
+        random_rotation: bool = False,
+        seed: int = 0,
+    ):
+        self._store(
+            weights=weights, views=views, image_size=image_size, camera_layout=camera_layout, backproject=backproject,
+            layer=layer, device=device, batch_size=batch_size, fill=fill, random_rotation=random_rotation, seed=seed,
+        )  # fmt: skip
+
     def _store(self, **params) -> None:
         if not isinstance(params["views"], int) or params["views"] < 1:
             raise DescriptorError(f"{self.name}: views must be a positive integer; found {params['views']!r}.")
@@ -164,16 +184,6 @@ class DINOv2(DinoFeatures):
     kind = "dinov2"
     default_image_size = 448
 
-    def __init__(
-        self, *, weights: str | None = None, views: int = 49, image_size: int | None = None, camera_layout: str = "official",
-        backproject: str = "ball", layer: int = -1, device: str = "auto", batch_size: int = 4, fill: str = "nearest",
-        random_rotation: bool = False, seed: int = 0,
-    ):  # fmt: skip
-        self._store(
-            weights=weights, views=views, image_size=image_size, camera_layout=camera_layout, backproject=backproject,
-            layer=layer, device=device, batch_size=batch_size, fill=fill, random_rotation=random_rotation, seed=seed,
-        )  # fmt: skip
-
 
 class DINOv3(DinoFeatures):
     """Raw DINOv3 features (patch 16) back-projected from multi-view renders; see `DinoFeatures`."""
@@ -181,13 +191,3 @@ class DINOv3(DinoFeatures):
     name = "dinov3"
     kind = "dinov3"
     default_image_size = 512
-
-    def __init__(
-        self, *, weights: str | None = None, views: int = 49, image_size: int | None = None, camera_layout: str = "official",
-        backproject: str = "ball", layer: int = -1, device: str = "auto", batch_size: int = 4, fill: str = "nearest",
-        random_rotation: bool = False, seed: int = 0,
-    ):  # fmt: skip
-        self._store(
-            weights=weights, views=views, image_size=image_size, camera_layout=camera_layout, backproject=backproject,
-            layer=layer, device=device, batch_size=batch_size, fill=fill, random_rotation=random_rotation, seed=seed,
-        )  # fmt: skip
