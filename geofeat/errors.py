@@ -49,3 +49,7 @@ class BackboneError(GeofeatError, ValueError):
 
 class DeviceError(GeofeatError, ValueError):
     """An unknown torch device, or CUDA requested where there is none."""
+
+
+class TrainingError(GeofeatError, ValueError):
+    """Bad input to a training routine (loss tensors of the wrong shape, dtype or values, bad options)."""
