@@ -281,7 +281,9 @@ def _check_pair(feat_partial: torch.Tensor, feat_full: torch.Tensor) -> None:
     if feat_full.shape[0] == 0:
         raise TrainingError("feat_full has no vertex (shape (0, C)); the full shape needs at least one.")
     if feat_partial.device != feat_full.device:
-        raise TrainingError(f"feat_partial is on {feat_partial.device} but feat_full on {feat_full.device}; move both to one device.")
+        raise TrainingError(
+            f"feat_partial is on {feat_partial.device} but feat_full on {feat_full.device}; move both to one device."
+        )
 
 
 def _check_index(gt: torch.Tensor, n_p: int, n_f: int, device: torch.device) -> None:

@@ -1,0 +1,645 @@
+"""LoRA adapters (GeoLoRA) on the attention projections of a frozen DINO backbone, through `peft`.
+
+>>> backbone = load_backbone("/models/dinov3-vitb16", kind="dinov3")        # doctest: +SKIP
+>>> add_lora(backbone)                   # rank 16, alpha 32 on q/k/v; base frozen   # doctest: +SKIP
+>>> save_adapter(backbone, "runs/faust/adapter", LoraSettings(training={"lr": 1e-4}))  # doctest: +SKIP
+>>> load_adapter(load_backbone("/models/dinov3-vitb16", kind="dinov3"), "runs/faust/adapter")  # doctest: +SKIP
+>>> load_official_lora(load_backbone(..., kind="dinov3"), "saved_models/becos.pth")  # doctest: +SKIP
+
+One adapter (peft's ``"default"``) serves full and partial shapes alike (siamese training).
+The low-rank update of a projection ``W`` (out, in) is ``W + (alpha / rank) * B @ A`` with
+``A`` (rank, in) and ``B`` (out, rank).
+
+Adapter folders hold two files:
+
+``adapter.safetensors``
+    Tensors keyed ``layer.<i>.<target>.lora_A.weight`` (rank, in) and
+    ``layer.<i>.<target>.lora_B.weight`` (out, rank), ``<i>`` the block index, ``<target>`` the
+    projection's leaf name (``q_proj``, ``k_proj``, ``v_proj`` for DINOv3).
+``adapter_config.json``
+    geofeat version, backbone kind, source and weights digest, rank, alpha, dropout, targets,
+    number of blocks, free-form training settings and extra information.
+
+The GeoLoRA release checkpoints (``saved_models/*.pth`` of the authors' repository) adapt the
+fused ``blocks.<i>.attn.qkv`` projection of the official DINOv3 (peft ``r=16``,
+``lora_alpha=32``, ``target_modules=["qkv"]``, ``bias="none"``). Their update ``B @ A`` splits
+exactly into per-projection adapters sharing ``A``, with ``B`` cut into three row blocks
+(query, key, value); `load_official_lora` does that conversion.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import logging
+import os
+import re
+import tempfile
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import torch
+from torch import Tensor
+
+from geofeat.backbones.dino import DinoBackbone, state_dict_digest
+from geofeat.errors import BackboneError, MissingDependencyError
+
+logger = logging.getLogger(__name__)
+
+__all__ = [
+    "ADAPTER_CONFIG_FILE",
+    "ADAPTER_WEIGHTS_FILE",
+    "OFFICIAL_ALPHA",
+    "LoraSettings",
+    "adapter_digest",
+    "add_lora",
+    "convert_official_lora",
+    "has_lora",
+    "load_adapter",
+    "load_official_lora",
+    "lora_state_dict",
+    "save_adapter",
+]
+
+ADAPTER_WEIGHTS_FILE = "adapter.safetensors"
+ADAPTER_CONFIG_FILE = "adapter_config.json"
+_FORMAT = "geofeat-lora"
+_FORMAT_VERSION = 1
+_ADAPTER = "default"
+_REQUIRED_KEYS = ("backbone_kind", "backbone_digest", "rank", "alpha", "targets")
+_CANONICAL_KEY = re.compile(r"^layer\.(\d+)\.([A-Za-z0-9_]+)\.lora_([AB])\.weight$")
+# the release checkpoints: peft-wrapped official DINOv3, fused qkv (the prefix and adapter name are optional)
+_OFFICIAL_KEY = re.compile(r"^(?:module\.)?(?:base_model\.model\.)?blocks\.(\d+)\.attn\.qkv\.lora_([AB])(?:\.default)?\.weight$")
+_OFFICIAL_EXAMPLE = "base_model.model.blocks.<i>.attn.qkv.lora_A.default.weight (rank, D) and ...lora_B.default.weight (3D, rank)"
+OFFICIAL_ALPHA = 32.0
+
+
+def _require_peft() -> Any:
+    try:
+        import peft
+    except ImportError as exc:
+        raise MissingDependencyError(
+            "LoRA adapters need the optional dependency 'peft', which is not installed; install it with: "
+            "pip install 'geofeat[dino]'"
+        ) from exc
+    return peft
+
+
+def _require_safetensors() -> Any:
+    try:
+        import safetensors.torch
+    except ImportError as exc:
+        raise MissingDependencyError(
+            "LoRA adapter files need the optional dependency 'safetensors', which is not installed; install it with: "
+            "pip install 'geofeat[dino]'"
+        ) from exc
+    return safetensors.torch
+
+
+# ----------------------------------------------------------------------------- settings
+
+
+@dataclass
+class LoraSettings:
+    """LoRA hyper-parameters, plus free-form training settings stored with the adapter.
+
+    Parameters
+    ----------
+    rank : int
+        Rank ``r`` of the update (GeoLoRA: 16).
+    alpha : float
+        Scale numerator: the update is multiplied by ``alpha / rank`` (GeoLoRA: 32, i.e. 2).
+    dropout : float
+        Dropout on the LoRA input during training, in [0, 1) (GeoLoRA: 0).
+    targets : tuple of str, optional
+        Leaf names of the adapted modules; None means the backbone's query/key/value
+        projections (`DinoBackbone.attention_projections`).
+    training : dict
+        JSON-serialisable training settings (learning rate, views, data, ...), stored as given.
+    """
+
+    rank: int = 16
+    alpha: float = 32.0
+    dropout: float = 0.0
+    targets: tuple[str, ...] | None = None
+    training: dict[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        if isinstance(self.rank, bool) or not isinstance(self.rank, int) or self.rank < 1:
+            raise BackboneError(f"LoRA rank must be a positive integer, found {self.rank!r}")
+        if isinstance(self.alpha, bool) or not isinstance(self.alpha, (int, float)) or not self.alpha > 0:
+            raise BackboneError(f"LoRA alpha must be a positive number, found {self.alpha!r}")
+        if isinstance(self.dropout, bool) or not isinstance(self.dropout, (int, float)) or not 0 <= self.dropout < 1:
+            raise BackboneError(f"LoRA dropout must be a number in [0, 1), found {self.dropout!r}")
+        self.alpha, self.dropout = float(self.alpha), float(self.dropout)
+        if self.targets is not None:
+            if isinstance(self.targets, str) or not all(isinstance(t, str) and t for t in self.targets) or not self.targets:
+                raise BackboneError(f"LoRA targets must be a non-empty sequence of module names, found {self.targets!r}")
+            self.targets = tuple(self.targets)
+        if not isinstance(self.training, dict):
+            raise BackboneError(f"training settings must be a dict, found {type(self.training).__name__}")
+        try:
+            json.dumps(self.training)
+        except (TypeError, ValueError) as exc:
+            raise BackboneError(f"training settings must be JSON-serialisable: {exc}") from exc
+
+    @property
+    def scaling(self) -> float:
+        """``alpha / rank``, the factor applied to ``B @ A``."""
+        return self.alpha / self.rank
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain JSON-ready dict (targets as a list or None)."""
+        out = dataclasses.asdict(self)
+        out["targets"] = list(self.targets) if self.targets is not None else None
+        return out
+
+    @classmethod
+    def from_dict(cls, data: Mapping[str, Any]) -> LoraSettings:
+        """Build from a dict; unknown keys are ignored with a debug log."""
+        names = {f.name for f in dataclasses.fields(cls)}
+        unknown = sorted(set(data) - names)
+        if unknown:
+            logger.debug("ignoring unknown LoRA settings keys %s", unknown)
+        return cls(**{k: v for k, v in data.items() if k in names})
+
+    def to_json(self, path: str | os.PathLike) -> None:
+        """Write the settings as JSON (atomically)."""
+        _atomic_write(Path(path), lambda p: p.write_text(json.dumps(self.to_dict(), indent=2, sort_keys=True)))
+
+    @classmethod
+    def from_json(cls, path: str | os.PathLike) -> LoraSettings:
+        """Read settings written by `to_json` (unknown keys ignored)."""
+        return cls.from_dict(_read_json(Path(path)))
+
+
+# ----------------------------------------------------------------------------- adding LoRA
+
+
+def has_lora(backbone: DinoBackbone) -> bool:
+    """Whether ``backbone.model`` already carries peft LoRA layers."""
+    peft = _require_peft()
+    return any(isinstance(m, peft.tuners.lora.LoraLayer) for m in backbone.model.modules())
+
+
+def _resolve_targets(backbone: DinoBackbone, settings: LoraSettings) -> tuple[str, ...]:
+    targets = settings.targets if settings.targets is not None else backbone.attention_projections
+    leaves = {name.rsplit(".", 1)[-1] for name, _ in backbone.model.named_modules()}
+    missing = sorted(set(targets) - leaves)
+    if missing:
+        raise BackboneError(
+            f"LoRA targets {missing} are not modules of this {backbone.kind} model; its attention projections are "
+            f"{backbone.attention_projections}"
+        )
+    return tuple(targets)
+
+
+def add_lora(backbone: DinoBackbone, config: LoraSettings | None = None) -> DinoBackbone:
+    """Wrap the backbone's model with a trainable LoRA adapter; every base weight is frozen.
+
+    The model is modified in place (``backbone.model`` becomes a ``peft.PeftModel``) and the same
+    backbone is returned; its `weights_digest` stays the digest of the base weights.
+    `DinoBackbone.patch_features` is then differentiable with respect to the LoRA parameters
+    (the only ones with ``requires_grad``). New adapters start as the identity (``B = 0``).
+
+    Parameters
+    ----------
+    backbone : DinoBackbone
+        A backbone without LoRA.
+    config : LoraSettings, optional
+        Defaults to ``LoraSettings()`` (rank 16, alpha 32, no dropout, query/key/value).
+
+    Returns
+    -------
+    DinoBackbone
+        ``backbone`` itself, with ``rank * (in + out)`` trainable LoRA parameters per target and block.
+
+    Raises
+    ------
+    BackboneError
+        The backbone already has LoRA layers, or a target is not a module of the model.
+    """
+    peft = _require_peft()
+    settings = config if config is not None else LoraSettings()
+    if not isinstance(settings, LoraSettings):
+        raise BackboneError(f"config must be a LoraSettings, found {type(settings).__name__}")
+    if has_lora(backbone):
+        raise BackboneError("this backbone already has a LoRA adapter; load a fresh backbone to add another")
+    targets = _resolve_targets(backbone, settings)
+    lora_config = peft.LoraConfig(
+        r=settings.rank, lora_alpha=settings.alpha, lora_dropout=settings.dropout, target_modules=list(targets), bias="none"
+    )
+    model = peft.get_peft_model(backbone.model, lora_config)
+    for name, param in model.named_parameters():
+        param.requires_grad_("lora_" in name)
+    model.eval()
+    backbone.model = model
+    logger.info(
+        "added LoRA (rank %d, alpha %g, targets %s) to %s: %d trainable parameters",
+        settings.rank,
+        settings.alpha,
+        list(targets),
+        backbone.kind,
+        sum(p.numel() for p in model.parameters() if p.requires_grad),
+    )
+    return backbone
+
+
+def _active_settings(backbone: DinoBackbone) -> LoraSettings:
+    """Rank, alpha, dropout and targets of the backbone's peft adapter."""
+    if not has_lora(backbone):
+        raise BackboneError("this backbone has no LoRA adapter; call add_lora(backbone) or load_adapter(backbone, folder) first")
+    peft_config = getattr(backbone.model, "peft_config", None)
+    if not peft_config or _ADAPTER not in peft_config:
+        raise BackboneError("the backbone's LoRA layers were not added by add_lora (no peft 'default' adapter config)")
+    config = peft_config[_ADAPTER]
+    targets = config.target_modules
+    targets = tuple(sorted(targets)) if not isinstance(targets, str) else (targets,)
+    return LoraSettings(rank=int(config.r), alpha=float(config.lora_alpha), dropout=float(config.lora_dropout), targets=targets)
+
+
+def _lora_modules(backbone: DinoBackbone) -> dict[tuple[int, str], Any]:
+    """Map (block index, target leaf name) to the peft LoRA layer."""
+    peft = _require_peft()
+    found: dict[tuple[int, str], Any] = {}
+    for name, module in backbone.model.named_modules():
+        match = re.search(r"(?:^|\.)layer\.(\d+)\.(?:.+\.)?([A-Za-z0-9_]+)$", name)
+        if match and isinstance(module, peft.tuners.lora.LoraLayer):
+            found[(int(match.group(1)), match.group(2))] = module
+    return found
+
+
+def lora_state_dict(backbone: DinoBackbone) -> dict[str, Tensor]:
+    """The LoRA tensors in geofeat's layout (detached CPU copies).
+
+    Returns
+    -------
+    dict of str to torch.Tensor
+        ``layer.<i>.<target>.lora_A.weight`` (rank, in) and ``layer.<i>.<target>.lora_B.weight``
+        (out, rank), float32.
+    """
+    _active_settings(backbone)
+    out: dict[str, Tensor] = {}
+    for (block, target), module in sorted(_lora_modules(backbone).items()):
+        for part in ("A", "B"):
+            weight = getattr(module, f"lora_{part}")[_ADAPTER].weight
+            out[f"layer.{block}.{target}.lora_{part}.weight"] = weight.detach().to("cpu", torch.float32, copy=True).contiguous()
+    return out
+
+
+def _load_lora_tensors(backbone: DinoBackbone, tensors: Mapping[str, Tensor], source: str) -> None:
+    """Copy geofeat-layout LoRA tensors into the backbone's adapter (every LoRA layer must be covered)."""
+    modules = _lora_modules(backbone)
+    expected = {f"layer.{b}.{t}.lora_{p}.weight" for (b, t) in modules for p in "AB"}
+    missing, unexpected = sorted(expected - set(tensors)), sorted(set(tensors) - expected)
+    if missing or unexpected:
+        raise BackboneError(
+            f"the LoRA tensors from {source} do not fit this backbone's adapter: missing {missing[:6]}, unexpected "
+            f"{unexpected[:6]}; the adapter was made for another architecture or other targets"
+        )
+    with torch.no_grad():
+        for (block, target), module in modules.items():
+            for part in ("A", "B"):
+                key = f"layer.{block}.{target}.lora_{part}.weight"
+                weight = getattr(module, f"lora_{part}")[_ADAPTER].weight
+                value = tensors[key]
+                if tuple(value.shape) != tuple(weight.shape):
+                    raise BackboneError(
+                        f"LoRA tensor {key} from {source} has shape {tuple(value.shape)}, expected {tuple(weight.shape)}"
+                    )
+                weight.copy_(value.to(weight.device, weight.dtype))
+
+
+# ----------------------------------------------------------------------------- files
+
+
+def _atomic_write(path: Path, write: Callable[[Path], None]) -> None:
+    """Write through a temporary file in the same folder, then rename over ``path``."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    handle, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    os.close(handle)
+    try:
+        write(Path(tmp))
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def _read_json(path: Path) -> dict[str, Any]:
+    try:
+        data = json.loads(path.read_text())
+    except FileNotFoundError as exc:
+        raise BackboneError(f"{path} does not exist; expected a LoRA adapter written by save_adapter") from exc
+    except (OSError, ValueError) as exc:
+        raise BackboneError(f"could not read {path} as JSON: {exc}") from exc
+    if not isinstance(data, dict):
+        raise BackboneError(f"{path} should hold a JSON object, found {type(data).__name__}")
+    return data
+
+
+def _geofeat_version() -> str:
+    from geofeat import __version__  # lazy: geofeat/__init__ imports the descriptor layer
+
+    return __version__
+
+
+def save_adapter(
+    backbone: DinoBackbone,
+    folder: str | os.PathLike,
+    settings: LoraSettings | None = None,
+    extra_info: Mapping[str, Any] | None = None,
+) -> Path:
+    """Save the backbone's LoRA adapter as ``adapter.safetensors`` + ``adapter_config.json``.
+
+    Parameters
+    ----------
+    backbone : DinoBackbone
+        A backbone with LoRA (`add_lora`, `load_adapter` or `load_official_lora`).
+    folder : str or os.PathLike
+        Created if needed; existing adapter files in it are replaced atomically.
+    settings : LoraSettings, optional
+        Its ``training`` dict is stored; its rank, alpha and dropout must agree with the adapter
+        (None: read them from the adapter, no training settings).
+    extra_info : Mapping, optional
+        JSON-serialisable extra information (e.g. step, loss), stored under ``"extra_info"``.
+
+    Returns
+    -------
+    pathlib.Path
+        The folder.
+    """
+    active = _active_settings(backbone)
+    if settings is not None:
+        mismatch = [n for n in ("rank", "alpha", "dropout") if getattr(settings, n) != getattr(active, n)]
+        if settings.targets is not None and set(settings.targets) != set(active.targets or ()):
+            mismatch.append("targets")
+        if mismatch:
+            raise BackboneError(
+                f"settings disagree with the backbone's adapter on {mismatch}: adapter has rank={active.rank}, "
+                f"alpha={active.alpha}, dropout={active.dropout}, targets={list(active.targets or ())}"
+            )
+        active = dataclasses.replace(active, training=dict(settings.training))
+    config = {
+        "format": _FORMAT,
+        "format_version": _FORMAT_VERSION,
+        "geofeat_version": _geofeat_version(),
+        "backbone_kind": backbone.kind,
+        "backbone_digest": backbone.weights_digest,
+        "backbone_source": backbone.source,
+        "num_layers": backbone.num_layers,
+        **active.to_dict(),
+        "extra_info": dict(extra_info or {}),
+    }
+    try:
+        text = json.dumps(config, indent=2, sort_keys=True)
+    except (TypeError, ValueError) as exc:
+        raise BackboneError(f"extra_info must be JSON-serialisable: {exc}") from exc
+    folder = Path(folder)
+    tensors = lora_state_dict(backbone)
+    st = _require_safetensors()
+    _atomic_write(folder / ADAPTER_WEIGHTS_FILE, lambda p: st.save_file(tensors, str(p), metadata={"format": _FORMAT}))
+    _atomic_write(folder / ADAPTER_CONFIG_FILE, lambda p: p.write_text(text))
+    logger.info("saved LoRA adapter (%d tensors) to %s", len(tensors), folder)
+    return folder
+
+
+def _read_adapter_config(folder: Path) -> dict[str, Any]:
+    config = _read_json(folder / ADAPTER_CONFIG_FILE)
+    missing = [k for k in _REQUIRED_KEYS if k not in config]
+    if missing:
+        raise BackboneError(f"{folder / ADAPTER_CONFIG_FILE} lacks the keys {missing}; it was not written by save_adapter")
+    known = (
+        {f.name for f in dataclasses.fields(LoraSettings)}
+        | set(_REQUIRED_KEYS)
+        | {"format", "format_version", "geofeat_version", "backbone_source", "num_layers", "extra_info"}
+    )
+    unknown = sorted(set(config) - known)
+    if unknown:
+        logger.debug("ignoring unknown keys %s in %s", unknown, folder / ADAPTER_CONFIG_FILE)
+    return config
+
+
+def _read_adapter_tensors(folder: Path) -> dict[str, Tensor]:
+    path = folder / ADAPTER_WEIGHTS_FILE
+    if not path.is_file():
+        raise BackboneError(f"{path} does not exist; expected a LoRA adapter folder written by save_adapter")
+    try:
+        return _require_safetensors().load_file(str(path))
+    except Exception as exc:  # safetensors raises its own SafetensorError and OSError
+        raise BackboneError(f"could not read {path} as safetensors: {exc}") from exc
+
+
+def _check_backbone(backbone: DinoBackbone, config: Mapping[str, Any], folder: Path) -> None:
+    kind, digest = config["backbone_kind"], config["backbone_digest"]
+    if kind != backbone.kind or digest != backbone.weights_digest:
+        source = config.get("backbone_source") or "unrecorded weights"
+        raise BackboneError(
+            f"the adapter in {folder} was trained on a {kind} backbone from {source} (weights digest {str(digest)[:12]}...), "
+            f"but this is a {backbone.kind} backbone from {backbone.source} (digest {backbone.weights_digest[:12]}...); "
+            "load the same backbone weights the adapter was trained on"
+        )
+
+
+def load_adapter(backbone: DinoBackbone, folder: str | os.PathLike) -> DinoBackbone:
+    """Restore an adapter written by `save_adapter` onto a backbone with the same base weights.
+
+    Adds the LoRA layers first when the backbone has none (the base weights are frozen, the
+    LoRA parameters trainable, so training can resume); otherwise the existing adapter must
+    have the same rank, alpha and targets and is overwritten. Unknown config keys are ignored
+    (debug log).
+
+    Parameters
+    ----------
+    backbone : DinoBackbone
+        Its `weights_digest` and kind must match those recorded in the adapter.
+    folder : str or os.PathLike
+        Folder holding ``adapter.safetensors`` and ``adapter_config.json``.
+
+    Returns
+    -------
+    DinoBackbone
+        ``backbone`` itself, in ``eval()`` mode.
+
+    Raises
+    ------
+    BackboneError
+        Missing or malformed files, or another backbone (the message names the one it was trained on).
+    """
+    folder = Path(folder)
+    config = _read_adapter_config(folder)
+    _check_backbone(backbone, config, folder)
+    settings = LoraSettings.from_dict(config)
+    tensors = _read_adapter_tensors(folder)
+    _attach(backbone, settings, str(folder))
+    _load_lora_tensors(backbone, tensors, str(folder))
+    backbone.model.eval()
+    logger.info("loaded LoRA adapter from %s", folder)
+    return backbone
+
+
+def _attach(backbone: DinoBackbone, settings: LoraSettings, source: str) -> None:
+    """Add LoRA with ``settings``, or check that the existing adapter has the same structure."""
+    if not has_lora(backbone):
+        add_lora(backbone, settings)
+        return
+    active = _active_settings(backbone)
+    targets = settings.targets if settings.targets is not None else backbone.attention_projections
+    if (active.rank, active.alpha, set(active.targets or ())) != (settings.rank, settings.alpha, set(targets)):
+        raise BackboneError(
+            f"the adapter from {source} has rank={settings.rank}, alpha={settings.alpha}, targets={list(targets)} but the "
+            f"backbone already carries rank={active.rank}, alpha={active.alpha}, targets={list(active.targets or ())}; "
+            "load it onto a fresh backbone"
+        )
+
+
+def adapter_digest(folder: str | os.PathLike) -> str:
+    """SHA-256 of what determines an adapter's output, for feature cache keys.
+
+    Covers the LoRA tensors (names, shapes, dtypes, bytes), rank, alpha, targets and the base
+    backbone's kind and digest; not the training settings or extra information.
+
+    Returns
+    -------
+    str
+        64 hexadecimal characters.
+    """
+    folder = Path(folder)
+    config = _read_adapter_config(folder)
+    settings = LoraSettings.from_dict(config)
+    head = {
+        "backbone_kind": config["backbone_kind"],
+        "backbone_digest": config["backbone_digest"],
+        "rank": settings.rank,
+        "alpha": settings.alpha,
+        "targets": sorted(settings.targets or ()),
+    }
+    digest = hashlib.sha256(json.dumps(head, sort_keys=True).encode())
+    digest.update(state_dict_digest(_read_adapter_tensors(folder)).encode())
+    return digest.hexdigest()
+
+
+# ----------------------------------------------------------------------------- official checkpoints
+
+
+def _official_blocks(state_dict: Mapping[str, Any]) -> dict[int, dict[str, Tensor]]:
+    """Group the release checkpoint's tensors by block: {i: {"A": (r, D), "B": (3D, r)}}."""
+    blocks: dict[int, dict[str, Tensor]] = {}
+    for key, value in state_dict.items():
+        match = _OFFICIAL_KEY.match(str(key))
+        if match is None or not isinstance(value, Tensor):
+            raise BackboneError(
+                f"unexpected entry {key!r} in the GeoLoRA checkpoint; expected only keys like {_OFFICIAL_EXAMPLE}"
+            )
+        blocks.setdefault(int(match.group(1)), {})[match.group(2)] = value
+    if not blocks:
+        raise BackboneError(f"the GeoLoRA checkpoint holds no LoRA tensors; expected keys like {_OFFICIAL_EXAMPLE}")
+    incomplete = sorted(i for i, parts in blocks.items() if set(parts) != {"A", "B"})
+    if incomplete or sorted(blocks) != list(range(len(blocks))):
+        raise BackboneError(
+            f"the GeoLoRA checkpoint should hold lora_A and lora_B for blocks 0..N-1, found blocks {sorted(blocks)[:12]} "
+            f"(incomplete: {incomplete[:12]})"
+        )
+    return blocks
+
+
+def _check_official_shapes(i: int, a: Tensor, b: Tensor, rank: int, dim: int) -> None:
+    if a.ndim != 2 or b.ndim != 2 or a.shape != (rank, dim) or b.shape != (3 * dim, rank):
+        raise BackboneError(
+            f"block {i} of the GeoLoRA checkpoint has lora_A {tuple(a.shape)} and lora_B {tuple(b.shape)}; expected "
+            f"({rank}, {dim}) and ({3 * dim}, {rank}) for a {dim}-wide backbone with a fused qkv projection of rank {rank}"
+        )
+
+
+def convert_official_lora(
+    state_dict: Mapping[str, Any], embed_dim: int, targets: tuple[str, str, str] = ("q_proj", "k_proj", "v_proj")
+) -> dict[str, Tensor]:
+    """Split a fused-qkv GeoLoRA release checkpoint into per-projection LoRA tensors (exact).
+
+    Parameters
+    ----------
+    state_dict : Mapping[str, torch.Tensor]
+        Keys ``base_model.model.blocks.<i>.attn.qkv.lora_A.default.weight`` (r, D) and
+        ``...lora_B.default.weight`` (3D, r); nothing else.
+    embed_dim : int
+        Width ``D`` of the backbone.
+    targets : (str, str, str)
+        Leaf names of the query, key and value projections, in that order.
+
+    Returns
+    -------
+    dict of str to torch.Tensor
+        geofeat layout: for each block, the three targets share ``lora_A`` (r, D) and get rows
+        ``[0:D]``, ``[D:2D]``, ``[2D:3D]`` of ``lora_B`` (D, r), float32.
+    """
+    blocks = _official_blocks(state_dict)
+    rank = int(blocks[0]["A"].shape[0]) if blocks[0]["A"].ndim == 2 else -1
+    out: dict[str, Tensor] = {}
+    for i, parts in blocks.items():
+        a, b = parts["A"].float(), parts["B"].float()
+        _check_official_shapes(i, a, b, rank, embed_dim)
+        for third, target in enumerate(targets):
+            out[f"layer.{i}.{target}.lora_A.weight"] = a.clone()
+            out[f"layer.{i}.{target}.lora_B.weight"] = b[third * embed_dim : (third + 1) * embed_dim].clone()
+    return out
+
+
+def _read_official(path_or_state_dict: str | os.PathLike | Mapping[str, Any]) -> tuple[Mapping[str, Any], str]:
+    if isinstance(path_or_state_dict, Mapping):
+        return path_or_state_dict, "the given state dict"
+    path = Path(path_or_state_dict)
+    try:
+        raw = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as exc:  # missing file, pickle, zip and weights-only errors have no common base class
+        raise BackboneError(f"could not read {path} as a PyTorch checkpoint: {exc}") from exc
+    if not isinstance(raw, Mapping):
+        raise BackboneError(f"{path} holds a {type(raw).__name__}, expected a state dict of LoRA tensors")
+    return raw, str(path)
+
+
+def load_official_lora(
+    backbone: DinoBackbone, path_or_state_dict: str | os.PathLike | Mapping[str, Any], *, alpha: float = OFFICIAL_ALPHA
+) -> DinoBackbone:
+    """Load a GeoLoRA release checkpoint (``saved_models/*.pth``) into per-projection LoRA.
+
+    The rank is read from the checkpoint (16 for the releases); ``alpha`` must be the one used in
+    training (32 for the releases, scale ``alpha / rank`` = 2). Adds LoRA to the backbone when it
+    has none.
+
+    Parameters
+    ----------
+    backbone : DinoBackbone
+        The DINOv3 the adapter was trained on (ViT-B/16 for the releases); depth and width must match.
+    path_or_state_dict : str, os.PathLike or Mapping
+        The ``.pth`` file or its loaded state dict.
+    alpha : float
+        LoRA alpha of the checkpoint.
+
+    Returns
+    -------
+    DinoBackbone
+        ``backbone`` itself, with the converted adapter, in ``eval()`` mode.
+
+    Raises
+    ------
+    BackboneError
+        Unknown keys, missing blocks, wrong shapes, or a depth that does not match the backbone.
+    """
+    state_dict, source = _read_official(path_or_state_dict)
+    targets = backbone.attention_projections
+    tensors = convert_official_lora(state_dict, backbone.embed_dim, targets)
+    depth = len(tensors) // 6
+    if depth != backbone.num_layers:
+        raise BackboneError(
+            f"the GeoLoRA checkpoint {source} adapts {depth} blocks but this backbone has {backbone.num_layers}; "
+            "the release checkpoints are for DINOv3 ViT-B/16 (12 blocks, width 768)"
+        )
+    rank = int(tensors[f"layer.0.{targets[0]}.lora_A.weight"].shape[0])
+    _attach(backbone, LoraSettings(rank=rank, alpha=alpha, targets=targets), source)
+    _load_lora_tensors(backbone, tensors, source)
+    backbone.model.eval()
+    logger.info("loaded GeoLoRA release checkpoint %s (rank %d, alpha %g, %d blocks)", source, rank, alpha, depth)
+    return backbone

@@ -1,0 +1,302 @@
+"""LoRA adapters on tiny random DINOv3 models: freezing, training step, save/load, release-checkpoint conversion."""
+
+from __future__ import annotations
+
+import copy
+import json
+import logging
+import re
+
+import pytest
+import torch
+
+pytest.importorskip("transformers")
+pytest.importorskip("peft")
+pytest.importorskip("safetensors")
+from transformers import DINOv3ViTConfig, DINOv3ViTModel  # noqa: E402
+
+from geofeat.backbones import DinoBackbone  # noqa: E402
+from geofeat.backbones.lora import (  # noqa: E402
+    ADAPTER_CONFIG_FILE,
+    LoraSettings,
+    adapter_digest,
+    add_lora,
+    convert_official_lora,
+    load_adapter,
+    load_official_lora,
+    lora_state_dict,
+    save_adapter,
+)
+from geofeat.errors import BackboneError, GeofeatError  # noqa: E402
+
+DIM, DEPTH, RANK = 32, 2, 16
+
+
+def _tiny_dinov3(seed: int = 0) -> DINOv3ViTModel:
+    torch.manual_seed(seed)
+    config = DINOv3ViTConfig(
+        hidden_size=DIM,
+        intermediate_size=64,
+        num_hidden_layers=DEPTH,
+        num_attention_heads=2,
+        patch_size=16,
+        image_size=32,
+        num_register_tokens=2,
+    )
+    model = DINOv3ViTModel(config)
+    with torch.no_grad():
+        for param in model.parameters():
+            param.copy_(torch.randn_like(param) * 0.2)
+    return model.eval()
+
+
+@pytest.fixture
+def base_model():
+    return _tiny_dinov3(0)
+
+
+@pytest.fixture
+def images():
+    return torch.rand(2, 32, 48, 3, generator=torch.Generator().manual_seed(0))
+
+
+def _randomize_lora(backbone: DinoBackbone, seed: int = 3) -> None:
+    gen = torch.Generator().manual_seed(seed)
+    with torch.no_grad():
+        for name, param in backbone.model.named_parameters():
+            if "lora_" in name:
+                param.copy_(torch.randn(param.shape, generator=gen) * 0.3)
+
+
+def _base_params(backbone: DinoBackbone) -> dict[str, torch.Tensor]:
+    return {n: p.detach().clone() for n, p in backbone.model.named_parameters() if "lora_" not in n}
+
+
+# ----------------------------------------------------------------------------- adding and training
+
+
+def test_add_lora_freezes_base_and_counts_trainable(base_model, images):
+    backbone = DinoBackbone(base_model, kind="dinov3")
+    digest = backbone.weights_digest
+    before = backbone.patch_features(images).detach()
+    assert add_lora(backbone) is backbone
+    trainable = {n: p.numel() for n, p in backbone.model.named_parameters() if p.requires_grad}
+    # q, k, v per block: A (r, D) + B (D, r)
+    assert sum(trainable.values()) == DEPTH * 3 * (RANK * DIM + DIM * RANK) == 6144
+    assert all("lora_" in n for n in trainable) and len(trainable) == DEPTH * 3 * 2
+    assert backbone.weights_digest == digest
+    torch.testing.assert_close(backbone.patch_features(images).detach(), before, rtol=0, atol=0)  # B = 0 at start
+    with pytest.raises(BackboneError, match="already has a LoRA"):
+        add_lora(backbone)
+
+
+def test_optimizer_step_moves_only_lora(base_model, images):
+    backbone = add_lora(DinoBackbone(base_model, kind="dinov3"))
+    base = _base_params(backbone)
+    lora_before = lora_state_dict(backbone)
+    features_before = backbone.patch_features(images).detach()
+    params = [p for p in backbone.model.parameters() if p.requires_grad]
+    optimizer = torch.optim.Adam(params, lr=1e-2)
+    loss = (backbone.patch_features(images) ** 2).mean()
+    loss.backward()
+    assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in params)
+    optimizer.step()
+    for name, value in _base_params(backbone).items():
+        assert torch.equal(value, base[name]), name
+    after = lora_state_dict(backbone)
+    assert any(not torch.equal(after[k], lora_before[k]) for k in after)
+    assert not torch.allclose(backbone.patch_features(images).detach(), features_before)
+
+
+def test_custom_settings_and_validation(base_model):
+    backbone = add_lora(DinoBackbone(base_model, kind="dinov3"), LoraSettings(rank=2, alpha=4, targets=("q_proj", "v_proj")))
+    assert sum(p.numel() for p in backbone.model.parameters() if p.requires_grad) == DEPTH * 2 * (2 * DIM * 2)
+    with pytest.raises(BackboneError, match="rank"):
+        LoraSettings(rank=0)
+    with pytest.raises(BackboneError, match="dropout"):
+        LoraSettings(dropout=1.0)
+    with pytest.raises(BackboneError, match="JSON"):
+        LoraSettings(training={"bad": object()})
+    with pytest.raises(BackboneError, match="not modules"):
+        add_lora(DinoBackbone(_tiny_dinov3(0), kind="dinov3"), LoraSettings(targets=("qkv",)))
+
+
+def test_settings_json_round_trip(tmp_path, caplog):
+    settings = LoraSettings(rank=8, alpha=16, dropout=0.1, targets=("q_proj",), training={"lr": 1e-4, "views": 49})
+    settings.to_json(tmp_path / "s.json")
+    assert LoraSettings.from_json(tmp_path / "s.json") == settings
+    data = json.loads((tmp_path / "s.json").read_text()) | {"from_the_future": 1}
+    with caplog.at_level(logging.DEBUG, logger="geofeat.backbones.lora"):
+        assert LoraSettings.from_dict(data) == settings
+    assert "from_the_future" in caplog.text
+
+
+# ----------------------------------------------------------------------------- save / load
+
+
+def test_save_load_round_trip(base_model, images, tmp_path):
+    fresh = copy.deepcopy(base_model)
+    backbone = add_lora(DinoBackbone(base_model, kind="dinov3", source="tiny"))
+    _randomize_lora(backbone)
+    expected = backbone.pixel_features(images)
+    settings = LoraSettings(training={"lr": 1e-4, "partial": ["cuts", "holes"]})
+    save_adapter(backbone, tmp_path / "adapter", settings, extra_info={"step": 7})
+
+    config = json.loads((tmp_path / "adapter" / ADAPTER_CONFIG_FILE).read_text())
+    assert config["backbone_kind"] == "dinov3" and config["backbone_digest"] == backbone.weights_digest
+    assert (config["rank"], config["alpha"], sorted(config["targets"])) == (16, 32.0, ["k_proj", "q_proj", "v_proj"])
+    assert config["training"] == settings.training and config["extra_info"] == {"step": 7}
+    assert "geofeat_version" in config
+
+    restored = load_adapter(DinoBackbone(fresh, kind="dinov3"), tmp_path / "adapter")
+    assert torch.equal(restored.pixel_features(images), expected)
+    assert all(("lora_" in n) == p.requires_grad for n, p in restored.model.named_parameters())
+    assert not torch.equal(DinoBackbone(_tiny_dinov3(0), kind="dinov3").pixel_features(images), expected)
+
+
+def test_adapter_digest_tracks_weights(base_model, tmp_path):
+    backbone = add_lora(DinoBackbone(base_model, kind="dinov3"))
+    _randomize_lora(backbone, seed=1)
+    save_adapter(backbone, tmp_path / "a", LoraSettings(training={"lr": 1}))
+    save_adapter(backbone, tmp_path / "b", LoraSettings(training={"lr": 2}))  # training settings do not count
+    _randomize_lora(backbone, seed=2)
+    save_adapter(backbone, tmp_path / "c")
+    digests = [adapter_digest(tmp_path / n) for n in "abc"]
+    assert len(digests[0]) == 64 and digests[0] == digests[1] != digests[2]
+
+
+def test_unknown_config_keys_are_ignored(base_model, images, tmp_path, caplog):
+    fresh = copy.deepcopy(base_model)
+    backbone = add_lora(DinoBackbone(base_model, kind="dinov3"))
+    _randomize_lora(backbone)
+    save_adapter(backbone, tmp_path)
+    path = tmp_path / ADAPTER_CONFIG_FILE
+    path.write_text(json.dumps(json.loads(path.read_text()) | {"new_option": {"x": 1}, "format_version": 2}))
+    with caplog.at_level(logging.DEBUG, logger="geofeat.backbones.lora"):
+        restored = load_adapter(DinoBackbone(fresh, kind="dinov3"), tmp_path)
+    assert "new_option" in caplog.text
+    assert torch.equal(restored.pixel_features(images), backbone.pixel_features(images))
+
+
+def test_digest_mismatch_names_the_training_backbone(base_model, tmp_path):
+    backbone = add_lora(DinoBackbone(base_model, kind="dinov3", source="/models/tiny-a"))
+    save_adapter(backbone, tmp_path)
+    other = DinoBackbone(_tiny_dinov3(seed=5), kind="dinov3", source="/models/tiny-b")
+    with pytest.raises(
+        GeofeatError, match=r"trained on a dinov3 backbone from /models/tiny-a .*digest " + backbone.weights_digest[:12]
+    ):
+        load_adapter(other, tmp_path)
+    assert not any("lora_" in n for n, _ in other.model.named_parameters())  # nothing was attached
+
+
+def test_missing_or_incomplete_adapter_errors(base_model, tmp_path):
+    backbone = DinoBackbone(base_model, kind="dinov3")
+    with pytest.raises(BackboneError, match="does not exist"):
+        load_adapter(backbone, tmp_path / "nowhere")
+    with pytest.raises(BackboneError, match="no LoRA adapter"):
+        save_adapter(backbone, tmp_path / "x")
+    (tmp_path / ADAPTER_CONFIG_FILE).write_text(json.dumps({"rank": 16}))
+    with pytest.raises(BackboneError, match="lacks the keys"):
+        load_adapter(backbone, tmp_path)
+
+
+# ----------------------------------------------------------------------------- release checkpoints
+
+
+def _official_state_dict(seed: int = 7, rank: int = RANK) -> dict[str, torch.Tensor]:
+    gen = torch.Generator().manual_seed(seed)
+    out = {}
+    for i in range(DEPTH):
+        prefix = f"base_model.model.blocks.{i}.attn.qkv."
+        out[prefix + "lora_A.default.weight"] = torch.randn(rank, DIM, generator=gen) * 0.2
+        out[prefix + "lora_B.default.weight"] = torch.randn(3 * DIM, rank, generator=gen) * 0.2
+    return out
+
+
+def test_official_conversion_is_exact(base_model, images, tmp_path):
+    official = _official_state_dict()
+    torch.save(official, tmp_path / "becos.pth")
+    plain = copy.deepcopy(base_model)
+    base_features = DinoBackbone(copy.deepcopy(base_model), kind="dinov3").patch_features(images).detach()
+    backbone = load_official_lora(DinoBackbone(base_model, kind="dinov3"), tmp_path / "becos.pth")
+    scale = 32 / 16
+
+    # per-projection deltas equal the thirds of the fused update x @ (B A)^T * scale
+    x = torch.randn(5, DIM, generator=torch.Generator().manual_seed(1))
+    modules = {}
+    for name, module in backbone.model.named_modules():
+        match = re.search(r"layer\.(\d+)\.attention\.([qkv]_proj)$", name)
+        if match:
+            modules[f"{match.group(1)}.{match.group(2)}"] = module
+    assert len(modules) == 3 * DEPTH
+    for i in range(DEPTH):
+        a = official[f"base_model.model.blocks.{i}.attn.qkv.lora_A.default.weight"]
+        b = official[f"base_model.model.blocks.{i}.attn.qkv.lora_B.default.weight"]
+        fused = x @ (b @ a).T * scale
+        for third, proj in enumerate(("q_proj", "k_proj", "v_proj")):
+            layer = modules[f"{i}.{proj}"]
+            assert layer.scaling["default"] == scale
+            ours = layer.lora_B["default"](layer.lora_A["default"](x)) * layer.scaling["default"]
+            torch.testing.assert_close(ours, fused[:, third * DIM : (third + 1) * DIM], rtol=1e-5, atol=1e-6)
+
+    # whole model: same as a plain copy with the merged deltas added to its q/k/v weights
+    with torch.no_grad():
+        for i in range(DEPTH):
+            delta = (
+                scale
+                * official[f"base_model.model.blocks.{i}.attn.qkv.lora_B.default.weight"]
+                @ official[f"base_model.model.blocks.{i}.attn.qkv.lora_A.default.weight"]
+            )
+            attention = plain.model.layer[i].attention
+            for third, proj in enumerate((attention.q_proj, attention.k_proj, attention.v_proj)):
+                proj.weight += delta[third * DIM : (third + 1) * DIM]
+    manual = DinoBackbone(plain, kind="dinov3").patch_features(images).detach()
+    ours = backbone.patch_features(images).detach()
+    torch.testing.assert_close(ours, manual, rtol=1e-4, atol=1e-5)
+    assert not torch.allclose(ours, base_features, atol=1e-3)
+
+
+def test_official_converts_to_our_layout():
+    official = _official_state_dict(rank=4)
+    tensors = convert_official_lora({k.replace(".default", ""): v for k, v in official.items()}, DIM)
+    assert len(tensors) == DEPTH * 6
+    b = official["base_model.model.blocks.1.attn.qkv.lora_B.default.weight"]
+    assert torch.equal(tensors["layer.1.k_proj.lora_B.weight"], b[DIM : 2 * DIM])
+    assert torch.equal(
+        tensors["layer.1.v_proj.lora_A.weight"], official["base_model.model.blocks.1.attn.qkv.lora_A.default.weight"]
+    )
+
+
+@pytest.mark.parametrize(
+    ("edit", "message"),
+    [
+        (
+            lambda sd: sd.update({"base_model.model.blocks.0.attn.proj.lora_A.default.weight": torch.zeros(RANK, DIM)}),
+            "unexpected entry",
+        ),
+        (
+            lambda sd: sd.update({"base_model.model.blocks.1.attn.qkv.lora_B.default.weight": torch.zeros(3 * DIM - 1, RANK)}),
+            "block 1",
+        ),
+        (
+            lambda sd: sd.update({"base_model.model.blocks.0.attn.qkv.lora_A.default.weight": torch.zeros(RANK, DIM + 1)}),
+            "expected",
+        ),
+        (lambda sd: sd.pop("base_model.model.blocks.1.attn.qkv.lora_A.default.weight"), "incomplete"),
+        (lambda sd: [sd.pop(k) for k in list(sd) if ".blocks.1." in k], "adapts 1 blocks"),
+        (lambda sd: sd.clear(), "no LoRA tensors"),
+    ],
+)
+def test_official_bad_checkpoint_errors(base_model, edit, message):
+    official = _official_state_dict()
+    edit(official)
+    backbone = DinoBackbone(base_model, kind="dinov3")
+    with pytest.raises(BackboneError, match=message):
+        load_official_lora(backbone, official)
+    assert not any("lora_" in n for n, _ in backbone.model.named_parameters())
+
+
+def test_official_unreadable_file(base_model, tmp_path):
+    (tmp_path / "bad.pth").write_bytes(b"not a checkpoint")
+    with pytest.raises(BackboneError, match="could not read"):
+        load_official_lora(DinoBackbone(base_model, kind="dinov3"), tmp_path / "bad.pth")
