@@ -9,7 +9,8 @@ import pytest
 import torch
 
 pytest.importorskip("transformers")
-from transformers import Dinov2Config, Dinov2Model, DINOv3ViTConfig, DINOv3ViTModel  # noqa: E402
+from tiny_models import randomized, tiny_dinov3  # noqa: E402
+from transformers import Dinov2Config, Dinov2Model  # noqa: E402
 
 from geofeat.backbones import (  # noqa: E402
     IMAGENET_MEAN,
@@ -23,34 +24,16 @@ from geofeat.backbones.convert import require_transformers  # noqa: E402
 from geofeat.errors import BackboneError, GeofeatError, MissingDependencyError  # noqa: E402
 
 
-def _random(model):
-    torch.manual_seed(1)
-    with torch.no_grad():
-        for param in model.parameters():
-            param.copy_(torch.randn_like(param) * 0.2)
-    return model.eval()
-
-
 @pytest.fixture
 def dinov2():
     torch.manual_seed(0)
     config = Dinov2Config(hidden_size=32, num_hidden_layers=2, num_attention_heads=2, mlp_ratio=2, patch_size=14, image_size=28)
-    return _random(Dinov2Model(config))
+    return randomized(Dinov2Model(config))
 
 
 @pytest.fixture
 def dinov3():
-    torch.manual_seed(0)
-    config = DINOv3ViTConfig(
-        hidden_size=32,
-        intermediate_size=64,
-        num_hidden_layers=2,
-        num_attention_heads=2,
-        patch_size=16,
-        image_size=32,
-        num_register_tokens=2,
-    )
-    return _random(DINOv3ViTModel(config))
+    return tiny_dinov3()
 
 
 @pytest.fixture

@@ -5,7 +5,8 @@ import pytest
 import torch
 from scipy.spatial.transform import Rotation
 from shapes import bumpy
-from transformers import DINOv3ViTConfig, DINOv3ViTModel
+from tiny_models import tiny_dinov3
+from transformers import DINOv3ViTModel
 
 import geofeat
 from geofeat.descriptors.dino import multiview_features
@@ -14,22 +15,8 @@ from geofeat.render import Cameras, make_cameras
 
 @pytest.fixture(scope="module")
 def tiny_dinov3_folder(tmp_path_factory):
-    torch.manual_seed(0)
-    config = DINOv3ViTConfig(
-        hidden_size=32,
-        intermediate_size=64,
-        num_hidden_layers=2,
-        num_attention_heads=2,
-        patch_size=16,
-        image_size=32,
-        num_register_tokens=2,
-    )
-    model = DINOv3ViTModel(config)
-    with torch.no_grad():
-        for param in model.parameters():
-            param.copy_(torch.randn_like(param) * 0.2)
     folder = tmp_path_factory.mktemp("tiny_dinov3")
-    model.save_pretrained(folder)
+    tiny_dinov3().save_pretrained(folder)
     return folder
 
 
