@@ -13,7 +13,8 @@ import torch
 pytest.importorskip("transformers")
 pytest.importorskip("peft")
 pytest.importorskip("safetensors")
-from transformers import DINOv3ViTConfig, DINOv3ViTModel  # noqa: E402
+
+from tiny_models import tiny_dinov3  # noqa: E402
 
 from geofeat.backbones import DinoBackbone  # noqa: E402
 from geofeat.backbones.lora import (  # noqa: E402
@@ -32,27 +33,9 @@ from geofeat.errors import BackboneError, GeofeatError  # noqa: E402
 DIM, DEPTH, RANK = 32, 2, 16
 
 
-def _tiny_dinov3(seed: int = 0) -> DINOv3ViTModel:
-    torch.manual_seed(seed)
-    config = DINOv3ViTConfig(
-        hidden_size=DIM,
-        intermediate_size=64,
-        num_hidden_layers=DEPTH,
-        num_attention_heads=2,
-        patch_size=16,
-        image_size=32,
-        num_register_tokens=2,
-    )
-    model = DINOv3ViTModel(config)
-    with torch.no_grad():
-        for param in model.parameters():
-            param.copy_(torch.randn_like(param) * 0.2)
-    return model.eval()
-
-
 @pytest.fixture
 def base_model():
-    return _tiny_dinov3(0)
+    return tiny_dinov3(seed=0)
 
 
 @pytest.fixture
@@ -118,7 +101,7 @@ def test_custom_settings_and_validation(base_model):
     with pytest.raises(BackboneError, match="JSON"):
         LoraSettings(training={"bad": object()})
     with pytest.raises(BackboneError, match="not modules"):
-        add_lora(DinoBackbone(_tiny_dinov3(0), kind="dinov3"), LoraSettings(targets=("qkv",)))
+        add_lora(DinoBackbone(tiny_dinov3(seed=0), kind="dinov3"), LoraSettings(targets=("qkv",)))
 
 
 def test_settings_json_round_trip(tmp_path, caplog):
@@ -151,7 +134,7 @@ def test_save_load_round_trip(base_model, images, tmp_path):
     restored = load_adapter(DinoBackbone(fresh, kind="dinov3"), tmp_path / "adapter")
     assert torch.equal(restored.pixel_features(images), expected)
     assert all(("lora_" in n) == p.requires_grad for n, p in restored.model.named_parameters())
-    assert not torch.equal(DinoBackbone(_tiny_dinov3(0), kind="dinov3").pixel_features(images), expected)
+    assert not torch.equal(DinoBackbone(tiny_dinov3(seed=0), kind="dinov3").pixel_features(images), expected)
 
 
 def test_adapter_digest_tracks_weights(base_model, tmp_path):
@@ -181,7 +164,7 @@ def test_unknown_config_keys_are_ignored(base_model, images, tmp_path, caplog):
 def test_digest_mismatch_names_the_training_backbone(base_model, tmp_path):
     backbone = add_lora(DinoBackbone(base_model, kind="dinov3", source="/models/tiny-a"))
     save_adapter(backbone, tmp_path)
-    other = DinoBackbone(_tiny_dinov3(seed=5), kind="dinov3", source="/models/tiny-b")
+    other = DinoBackbone(tiny_dinov3(seed=5), kind="dinov3", source="/models/tiny-b")
     with pytest.raises(
         GeofeatError, match=r"trained on a dinov3 backbone from /models/tiny-a .*digest " + backbone.weights_digest[:12]
     ):
