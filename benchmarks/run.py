@@ -32,7 +32,7 @@ import geofeat  # noqa: E402
 from geofeat import metrics  # noqa: E402
 from geofeat.adapters import matchers  # noqa: E402
 from geofeat.datasets import dataset_names, load_dataset  # noqa: E402
-from geofeat.descriptors import descriptor_class  # noqa: E402
+from geofeat.descriptors.registry import make_descriptor  # noqa: E402
 from geofeat.geometry.geodesic import geodesic_matrix  # noqa: E402
 
 log = logging.getLogger("benchmarks.run")
@@ -107,6 +107,13 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument("--pipeline", default="nn", choices=PIPELINES)
     parser.add_argument("--dataset", default="synthetic_cuts", help=f"one of: {', '.join(dataset_names())}")
     parser.add_argument("--descriptor", default="wks", help="any registered descriptor (geofeat descriptors)")
+    parser.add_argument(
+        "--param",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="descriptor parameter, repeatable (VALUE read as JSON when it parses, else as a string): --param n_descr=64",
+    )
     parser.add_argument("--data-root", default=os.environ.get("GEOFEAT_DATA", str(HERE.parent.parent / "shared" / "data")))
     parser.add_argument("--split", default="test")
     parser.add_argument("--limit", type=int, default=None, help="evaluate the first N pairs only")
@@ -116,15 +123,30 @@ def parse_args(argv=None) -> argparse.Namespace:
     return parser.parse_args(argv)
 
 
+def descriptor_params(pairs: list[str]) -> dict:
+    """``["k=v", ...]`` to a dict; values parsed as JSON when they parse (numbers, booleans, null), else strings."""
+    params = {}
+    for pair in pairs:
+        key, sep, value = pair.partition("=")
+        if not sep or not key:
+            raise geofeat.DescriptorError(f"--param takes KEY=VALUE, found {pair!r}")
+        try:
+            params[key] = json.loads(value)
+        except json.JSONDecodeError:
+            params[key] = value
+    return params
+
+
 def main(argv=None) -> int:
     args = parse_args(argv)
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     try:
         dataset = load_dataset(args.dataset, root=args.data_root, split=args.split, seed=args.seed)
+        params = descriptor_params(args.param)
         if args.pipeline in REFERENCE_PIPELINES:
             args.descriptor = "none"  # reference pipelines use no features
         else:
-            descriptor_class(args.descriptor)  # unknown names and missing extras fail before any work
+            make_descriptor(args.descriptor, **params)  # unknown names, parameters and missing extras fail before any work
     except geofeat.GeofeatError as err:
         sys.stderr.write(f"run.py: error: {err}\n")
         return 2
@@ -139,8 +161,8 @@ def main(argv=None) -> int:
         if args.pipeline in REFERENCE_PIPELINES:  # they ignore features
             feat_x = feat_y = None
         else:
-            feat_x = geofeat.compute(pair.x, args.descriptor)
-            feat_y = geofeat.compute(pair.y, args.descriptor)
+            feat_x = geofeat.compute(pair.x, args.descriptor, **params)
+            feat_y = geofeat.compute(pair.y, args.descriptor, **params)
         predicted, overlap_pred = match(args.pipeline, pair, feat_x, feat_y, seed=args.seed * 100003 + i)
         records.append(evaluate_pair(pair, predicted, overlap_pred))
         if len(pictures) < N_PICTURES:
@@ -152,6 +174,7 @@ def main(argv=None) -> int:
         "pipeline": args.pipeline,
         "dataset": args.dataset,
         "descriptor": args.descriptor,
+        "descriptor_params": params,
         "split": args.split,
         "seed": args.seed,
         "date": datetime.date.today().isoformat(),

@@ -1,8 +1,9 @@
-"""The ``geofeat`` command line: ``geofeat cache info|verify|clear``, ``geofeat descriptors``, ``geofeat demo``."""
+"""The ``geofeat`` command line: ``cache info|verify|clear``, ``descriptors``, ``demo``, ``train-geolora``."""
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import logging
 import sys
 import tempfile
@@ -59,6 +60,54 @@ def _demo_command(args: argparse.Namespace) -> int:
     return 0
 
 
+def _flag_type(default):
+    """argparse type of a TrainConfig field, from its default value."""
+    if isinstance(default, bool):
+        return None
+    if isinstance(default, int):
+        return int
+    if isinstance(default, float):
+        return float
+    if isinstance(default, tuple):
+        return lambda text: tuple(part.strip() for part in text.split(",") if part.strip())
+    return str
+
+
+def _add_train_flags(parser: argparse.ArgumentParser) -> None:
+    """One ``--flag`` per `TrainConfig` setting (its docstring documents them); defaults stay None = not given."""
+    from geofeat.train.config import TrainConfig
+
+    defaults = TrainConfig.__dataclass_fields__
+    numeric_or_none = {"first": int, "max_minutes": float}
+    for name in TrainConfig.field_names():
+        default = (
+            defaults[name].default if defaults[name].default is not dataclasses.MISSING else defaults[name].default_factory()
+        )
+        flag = "--" + name.replace("_", "-")
+        if isinstance(default, bool):
+            parser.add_argument(flag, dest=name, action=argparse.BooleanOptionalAction, default=None, help=f"(default {default})")
+        else:
+            kind = numeric_or_none.get(name) or _flag_type(default)
+            shown = ",".join(default) if isinstance(default, tuple) else default
+            parser.add_argument(flag, dest=name, type=kind, default=None, help=f"(default {shown})")
+
+
+def _train_command(args: argparse.Namespace) -> int:
+    from geofeat.train.config import TrainConfig
+    from geofeat.train.trainer import GeoLoraTrainer
+
+    given = {name: getattr(args, name) for name in TrainConfig.field_names() if getattr(args, name) is not None}
+    config = TrainConfig.from_file(args.config, **given) if args.config else TrainConfig(**given)
+    if config.unknown_keys:
+        logging.getLogger("geofeat.train").warning("ignored unknown settings in %s: %s", args.config, config.unknown_keys)
+    try:
+        checkpoint = GeoLoraTrainer(config).fit()
+    except KeyboardInterrupt:
+        return 130
+    _out(f"adapter: {checkpoint}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of the ``geofeat`` command."""
     parser = argparse.ArgumentParser(prog="geofeat", description=__doc__)
@@ -76,6 +125,15 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--cache-dir", help="cache directory (default: a temporary one)")
     demo.add_argument("--no-progress", action="store_true", help="hide progress bars")
     demo.set_defaults(func=_demo_command)
+    train = sub.add_parser(
+        "train-geolora",
+        help="train a GeoLoRA adapter (self-supervised, on synthetic partial shapes)",
+        description="Train a LoRA adapter on a frozen DINOv3 with the GeoLoRA recipe. Settings come from --config "
+        "(JSON or YAML) and the flags below (flags win). Running again with the same --out resumes from its newest checkpoint.",
+    )
+    train.add_argument("--config", help="settings file (.json, .yaml); keys are the flag names with underscores")
+    _add_train_flags(train)
+    train.set_defaults(func=_train_command)
     return parser
 
 

@@ -37,6 +37,7 @@ from geofeat.backbones.lora import (
     has_lora,
     load_adapter,
     load_official_lora,
+    loaded_adapter_digest,
     lora_state_dict,
     save_adapter,
 )
@@ -52,6 +53,7 @@ __all__ = [
     "has_lora",
     "load_adapter",
     "load_official_lora",
+    "loaded_adapter_digest",
     "lora_state_dict",
     "save_adapter",
     "IMAGENET_MEAN",

@@ -55,6 +55,7 @@ __all__ = [
     "OFFICIAL_ALPHA",
     "LoraSettings",
     "adapter_digest",
+    "loaded_adapter_digest",
     "add_lora",
     "convert_official_lora",
     "has_lora",
@@ -496,11 +497,25 @@ def _attach(backbone: DinoBackbone, settings: LoraSettings, source: str) -> None
         )
 
 
+def _digest(kind: str, base_digest: str, settings: LoraSettings, tensors: Mapping[str, Tensor]) -> str:
+    head = {
+        "backbone_kind": kind,
+        "backbone_digest": base_digest,
+        "rank": settings.rank,
+        "alpha": settings.alpha,
+        "targets": sorted(settings.targets or ()),
+    }
+    digest = hashlib.sha256(json.dumps(head, sort_keys=True).encode())
+    digest.update(state_dict_digest(tensors).encode())
+    return digest.hexdigest()
+
+
 def adapter_digest(folder: str | os.PathLike) -> str:
     """SHA-256 of what determines an adapter's output, for feature cache keys.
 
     Covers the LoRA tensors (names, shapes, dtypes, bytes), rank, alpha, targets and the base
-    backbone's kind and digest; not the training settings or extra information.
+    backbone's kind and digest; not the training settings or extra information. Equal to
+    `loaded_adapter_digest` of a backbone carrying that adapter.
 
     Returns
     -------
@@ -510,16 +525,18 @@ def adapter_digest(folder: str | os.PathLike) -> str:
     folder = Path(folder)
     config = _read_adapter_config(folder)
     settings = LoraSettings.from_dict(config)
-    head = {
-        "backbone_kind": config["backbone_kind"],
-        "backbone_digest": config["backbone_digest"],
-        "rank": settings.rank,
-        "alpha": settings.alpha,
-        "targets": sorted(settings.targets or ()),
-    }
-    digest = hashlib.sha256(json.dumps(head, sort_keys=True).encode())
-    digest.update(state_dict_digest(_read_adapter_tensors(folder)).encode())
-    return digest.hexdigest()
+    return _digest(config["backbone_kind"], config["backbone_digest"], settings, _read_adapter_tensors(folder))
+
+
+def loaded_adapter_digest(backbone: DinoBackbone) -> str:
+    """`adapter_digest` of the adapter a backbone carries now (also for converted release checkpoints).
+
+    Returns
+    -------
+    str
+        64 hexadecimal characters.
+    """
+    return _digest(backbone.kind, backbone.weights_digest, _active_settings(backbone), lora_state_dict(backbone))
 
 
 # ----------------------------------------------------------------------------- official checkpoints

@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 import contextlib
+import json
 import logging
 import multiprocessing
 import os
+from collections import OrderedDict
 from collections.abc import Sequence
 from concurrent.futures import ProcessPoolExecutor, as_completed
 
@@ -14,6 +16,7 @@ from tqdm.auto import tqdm
 
 import geofeat
 from geofeat.cache import FeatureCache, cache_key
+from geofeat.descriptors.base import Descriptor
 from geofeat.descriptors.registry import make_descriptor
 from geofeat.errors import CacheError, DescriptorError
 from geofeat.mesh import Mesh, load_mesh
@@ -21,6 +24,32 @@ from geofeat.mesh import Mesh, load_mesh
 log = logging.getLogger(__name__)
 
 CacheArg = bool | str | os.PathLike | FeatureCache | None
+
+#: Descriptors kept alive between calls, so that a model is loaded once per process, not per mesh.
+_RECENT_DESCRIPTORS: OrderedDict[tuple[str, str], Descriptor] = OrderedDict()
+_RECENT_SIZE = 4
+
+
+def reusable_descriptor(name: str, **params) -> Descriptor:
+    """`make_descriptor`, reusing the instance of a recent call with the same name and parameters.
+
+    Model-backed descriptors load their weights on first use and keep them; reusing the
+    instance saves that load on every further mesh. Weights files changed on disk during
+    the process are not re-read (call `clear_descriptors`).
+    """
+    key = (name, json.dumps(params, sort_keys=True, default=str))
+    descriptor = _RECENT_DESCRIPTORS.pop(key, None)
+    if descriptor is None:
+        descriptor = make_descriptor(name, **params)
+    _RECENT_DESCRIPTORS[key] = descriptor
+    while len(_RECENT_DESCRIPTORS) > _RECENT_SIZE:
+        _RECENT_DESCRIPTORS.popitem(last=False)
+    return descriptor
+
+
+def clear_descriptors() -> None:
+    """Forget the descriptors (and their loaded models) kept by `compute`."""
+    _RECENT_DESCRIPTORS.clear()
 
 
 def resolve_cache(cache: CacheArg) -> FeatureCache | None:
@@ -59,7 +88,7 @@ def compute(mesh_or_path: Mesh | str | os.PathLike, name: str, cache: CacheArg =
     numpy.ndarray, shape (V, dim), float32, C-contiguous
     """
     mesh = mesh_or_path if isinstance(mesh_or_path, Mesh) else load_mesh(mesh_or_path)
-    descriptor = make_descriptor(name, **params)
+    descriptor = reusable_descriptor(name, **params)
     store = resolve_cache(cache)
     if store is None:
         return descriptor(mesh)

@@ -191,3 +191,76 @@ class DINOv3(DinoFeatures):
     name = "dinov3"
     kind = "dinov3"
     default_image_size = 512
+
+
+class GeoLoRA(DinoFeatures):
+    """GeoLoRA features: DINOv3 with a trained LoRA adapter, back-projected from multi-view renders.
+
+    Parameters
+    ----------
+    checkpoint : str
+        The adapter: a folder written by `geofeat.backbones.save_adapter` (every checkpoint
+        of ``geofeat train-geolora``, ``<run>/checkpoints/step_NNNNNNN``) or a GeoLoRA release
+        checkpoint ``.pth`` (``saved_models/*.pth`` of the authors' repository, for DINOv3
+        ViT-B/16).
+    weights, views, image_size, camera_layout, backproject, layer, device, batch_size, fill, random_rotation, seed
+        As for ``dinov3`` (`DinoFeatures`): 49 views of the official grid at 512 x 512 by default.
+    """
+
+    name = "geolora"
+    kind = "dinov3"
+    default_image_size = 512
+
+    def __init__(
+        self,
+        *,
+        checkpoint: str | None = None,
+        weights: str | None = None,
+        views: int = 49,
+        image_size: int | None = None,
+        camera_layout: str = "official",
+        backproject: str = "ball",
+        layer: int = -1,
+        device: str = "auto",
+        batch_size: int = 4,
+        fill: str = "nearest",
+        random_rotation: bool = False,
+        seed: int = 0,
+    ):
+        if checkpoint is not None and not isinstance(checkpoint, str):
+            checkpoint = str(checkpoint)  # a pathlib.Path: keep the parameters JSON-serialisable
+        self._store(
+            checkpoint=checkpoint, weights=weights, views=views, image_size=image_size, camera_layout=camera_layout,
+            backproject=backproject, layer=layer, device=device, batch_size=batch_size, fill=fill,
+            random_rotation=random_rotation, seed=seed,
+        )  # fmt: skip
+
+    def backbone(self):
+        """The DINOv3 backbone with the adapter loaded (once, on first use)."""
+        if self._backbone is None:
+            from pathlib import Path
+
+            from geofeat.backbones import load_backbone
+            from geofeat.backbones.lora import load_adapter, load_official_lora
+
+            if not self.checkpoint:
+                raise DescriptorError(
+                    "geolora needs checkpoint=: an adapter folder written by `geofeat train-geolora` "
+                    "(<run>/checkpoints/step_NNNNNNN) or a GeoLoRA release .pth (saved_models/*.pth of vikiehm/geo-lora)."
+                )
+            path = Path(self.checkpoint).expanduser()
+            if not path.exists():
+                raise DescriptorError(f"geolora: the checkpoint {path} does not exist.")
+            backbone = load_backbone(self.weights, kind=self.kind, layer=self.layer, device=self.device)
+            if path.is_dir():
+                load_adapter(backbone, path)
+            else:
+                load_official_lora(backbone, path)
+            self._backbone = backbone
+        return self._backbone
+
+    def weights_digest(self) -> str:
+        """SHA-256 of the base weights together with the adapter (part of the cache key)."""
+        from geofeat.backbones.lora import loaded_adapter_digest
+
+        return loaded_adapter_digest(self.backbone())

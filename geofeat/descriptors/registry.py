@@ -76,6 +76,17 @@ register(
 )
 
 
+register(
+    RegistryEntry(
+        "geolora",
+        "geofeat.descriptors.dino:GeoLoRA",
+        requires=("transformers", "peft", "safetensors"),
+        extra="dino",
+        summary="GeoLoRA: DINOv3 + a LoRA adapter trained on partial shapes, back-projected from multi-view renders",
+    )
+)
+
+
 def _missing_modules(entry: RegistryEntry) -> list[str]:
     return [module for module in entry.requires if importlib.util.find_spec(module) is None]
 

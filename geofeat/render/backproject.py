@@ -118,8 +118,11 @@ class VertexFeatureAccumulator:
             self.sums += torch.sparse.mm(matrix.coalesce().to_sparse_csr(), features)
         self.weights.index_add_(0, index[0], values)
 
-    def result(self, fill: str = "nearest") -> tuple[np.ndarray, np.ndarray]:
-        """Mean feature per vertex.
+    def result_tensor(self, fill: str = "nearest") -> tuple[torch.Tensor, torch.Tensor]:
+        """Mean feature per vertex as tensors on the accumulator's device.
+
+        Differentiable with respect to the pixel features that were added while gradients
+        were enabled (GeoLoRA training).
 
         Parameters
         ----------
@@ -128,20 +131,33 @@ class VertexFeatureAccumulator:
 
         Returns
         -------
-        features : numpy.ndarray, shape (V, C), float32
-        seen : numpy.ndarray, shape (V,), bool
+        features : torch.Tensor, shape (V, C), float32
+        seen : torch.Tensor, shape (V,), bool
             Vertices that received at least one pixel.
         """
         if fill not in ("nearest", "zero"):
             raise BackprojectError(f"fill must be 'nearest' or 'zero'; found {fill!r}.")
-        weights = self.weights.cpu().numpy()
-        seen = weights > 0
-        features = np.zeros((len(self.verts), self.n_channels), dtype=np.float32)
-        features[seen] = (self.sums.cpu().numpy()[seen] / weights[seen, None]).astype(np.float32)
-        if fill == "nearest" and seen.any() and not seen.all():
-            _, nearest = cKDTree(self.verts[seen]).query(self.verts[~seen])
-            features[~seen] = features[seen][nearest]
+        seen = self.weights > 0
+        features = self.sums / torch.where(seen, self.weights, 1.0)[:, None]  # unseen rows: 0 / 1 = 0
+        if fill == "nearest" and bool(seen.any()) and not bool(seen.all()):
+            seen_np = seen.cpu().numpy()
+            _, nearest = cKDTree(self.verts[seen_np]).query(self.verts[~seen_np])
+            source = torch.nonzero(seen).squeeze(1)[torch.as_tensor(nearest, device=seen.device)]
+            index = torch.arange(len(self.verts), device=seen.device)
+            index[~seen] = source
+            features = features.index_select(0, index)
         return features, seen
+
+    def result(self, fill: str = "nearest") -> tuple[np.ndarray, np.ndarray]:
+        """Mean feature per vertex, as numpy arrays (see `result_tensor`).
+
+        Returns
+        -------
+        features : numpy.ndarray, shape (V, C), float32
+        seen : numpy.ndarray, shape (V,), bool
+        """
+        features, seen = self.result_tensor(fill)
+        return features.detach().cpu().numpy().astype(np.float32, copy=False), seen.cpu().numpy()
 
 
 def _pairs_within(verts: np.ndarray, points: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray]:

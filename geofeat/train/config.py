@@ -1,0 +1,225 @@
+"""Settings of a GeoLoRA training run: one dataclass, saved as JSON beside the checkpoints.
+
+Defaults are the paper's settings (the released ``train.py`` and ``config/train/*.yaml`` of
+vikiehm/geo-lora): DINOv3 ViT-B/16 at 512 x 512, LoRA rank 16 / alpha 32 on query, key and
+value, 9 views of the full shape and 4 of each partial shape, two partial shapes per full
+shape and step drawn from CUTS / HOLES / RAY, Adam at 1e-4, gradient norm clipped at 1.0,
+the geodesic-weighted PointInfoNCE at temperature 0.1, full shapes above 12,000 vertices
+decimated, a checkpoint and a validation every 5,000 steps, 50,000 steps in all.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from geofeat.errors import TrainingError
+from geofeat.geometry.partial import PARTIAL_KINDS
+
+__all__ = ["LOSSES", "RESUMABLE_CHANGES", "TrainConfig"]
+
+LOSSES = ("geodesic", "plain")
+AMP_MODES = ("auto", "on", "off")
+#: Fields that may differ between a run and its resumption (they do not change what is learned).
+RESUMABLE_CHANGES = frozenset(
+    {"steps", "max_minutes", "progress", "device", "checkpoint_every", "validate_every", "val_pairs", "geodesic_cache"}
+)
+
+
+@dataclass
+class TrainConfig:
+    """Every setting of ``geofeat train-geolora``.
+
+    Parameters
+    ----------
+    data : str
+        A folder of meshes (``.off``, ``.obj``, ``.ply``; sorted by name) or the name of a
+        geofeat full-shape dataset (``faust_r``, ``scape_r``) read from ``data_root``.
+    out : str
+        Run folder: ``config.json``, ``log.csv``, ``checkpoints/step_NNNNNNN/``.
+    data_root : str or None
+        Root of the geofeat datasets (``$GEOFEAT_DATA`` when None).
+    split : str
+        Split of a dataset name (``"train"``: the first 80 FAUST_r shapes).
+    first : int or None
+        Use only the first N shapes (after sorting).
+    max_vertices : int
+        Full shapes with more vertices are decimated to this many (quadric decimation).
+    weights : str or None
+        DINOv3 backbone (see `geofeat.backbones.load_backbone`); None reads ``$GEOFEAT_DINOV3_WEIGHTS``.
+    layer : int
+        Backbone block whose patch tokens are used (-1: the last).
+    rank, alpha : int, float
+        LoRA rank and alpha.
+    image_size : int
+        Render size in pixels (a multiple of the patch size).
+    views_full, views_partial : int
+        Cameras of the official grid for the full shape and for each partial shape.
+    camera_layout : {"official", "uniform"}
+    backproject : {"ball", "face"}
+    partials_per_shape : int
+        Partial shapes cut from the full shape at every step.
+    partial_kinds : tuple of str
+        Generators drawn from uniformly (``"cuts"``, ``"holes"``, ``"ray"``).
+    loss : {"geodesic", "plain"}
+        Geodesic-weighted PointInfoNCE or the plain one (ablation).
+    temperature, offset : float
+        Loss temperature and the weight offset of the geodesic-weighted loss.
+    steps : int
+        Total optimisation steps (the run stops there; a resumed run continues up to it).
+    max_minutes : float or None
+        Stop (with a checkpoint and a validation) once this much wall time has been spent in this process.
+    lr, grad_clip : float
+        Adam learning rate and the gradient-norm clip.
+    amp : {"auto", "on", "off"}
+        bfloat16 autocast of the backbone: "auto" = on CUDA only.
+    seed : int
+        Seeds the LoRA initialisation, the shape order, the rotations and the partial shapes.
+    device : str
+        ``"auto"``: CUDA when present, else CPU.
+    checkpoint_every, validate_every : int
+        Steps between checkpoints and between validations (0: only at the end).
+    val_dataset : str or None
+        A geofeat P2F benchmark name (e.g. ``faust_r_cuts``) for validation; None: no validation.
+    val_split : str
+    val_pairs : int
+        Validation pairs (the first N of the benchmark's seeded order).
+    geodesic_cache : str or None
+        Folder of cached geodesic matrices (None: ``<geofeat cache>/geodesics``).
+    progress : bool
+        Show progress bars.
+    """
+
+    data: str = ""
+    out: str = "runs/geolora"
+    data_root: str | None = None
+    split: str = "train"
+    first: int | None = None
+    max_vertices: int = 12000
+    weights: str | None = None
+    layer: int = -1
+    rank: int = 16
+    alpha: float = 32.0
+    image_size: int = 512
+    views_full: int = 9
+    views_partial: int = 4
+    camera_layout: str = "official"
+    backproject: str = "ball"
+    partials_per_shape: int = 2
+    partial_kinds: tuple[str, ...] = PARTIAL_KINDS
+    loss: str = "geodesic"
+    temperature: float = 0.1
+    offset: float = 0.5
+    steps: int = 50000
+    max_minutes: float | None = None
+    lr: float = 1e-4
+    grad_clip: float = 1.0
+    amp: str = "auto"
+    seed: int = 0
+    device: str = "auto"
+    checkpoint_every: int = 5000
+    validate_every: int = 5000
+    val_dataset: str | None = None
+    val_split: str = "test"
+    val_pairs: int = 20
+    geodesic_cache: str | None = None
+    progress: bool = True
+    _extra: dict[str, Any] = field(default_factory=dict, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        self.partial_kinds = tuple(self.partial_kinds)
+        problems = []
+        if not self.data:
+            problems.append("data is empty: give a folder of meshes or a dataset name (faust_r, scape_r)")
+        if self.loss not in LOSSES:
+            problems.append(f"loss must be one of {LOSSES}, found {self.loss!r}")
+        if self.amp not in AMP_MODES:
+            problems.append(f"amp must be one of {AMP_MODES}, found {self.amp!r}")
+        unknown_kinds = sorted(set(self.partial_kinds) - set(PARTIAL_KINDS))
+        if unknown_kinds or not self.partial_kinds:
+            problems.append(f"partial_kinds must be a non-empty subset of {PARTIAL_KINDS}, found {list(self.partial_kinds)}")
+        for name in ("rank", "image_size", "views_full", "views_partial", "partials_per_shape", "max_vertices"):
+            if not isinstance(getattr(self, name), int) or getattr(self, name) < 1:
+                problems.append(f"{name} must be a positive integer, found {getattr(self, name)!r}")
+        for name in ("steps", "checkpoint_every", "validate_every", "val_pairs"):
+            if not isinstance(getattr(self, name), int) or getattr(self, name) < 0:
+                problems.append(f"{name} must be an integer >= 0, found {getattr(self, name)!r}")
+        if self.first is not None and (not isinstance(self.first, int) or self.first < 1):
+            problems.append(f"first must be a positive integer or None, found {self.first!r}")
+        for name in ("lr", "grad_clip", "temperature", "alpha"):
+            if not isinstance(getattr(self, name), (int, float)) or getattr(self, name) <= 0:
+                problems.append(f"{name} must be a number > 0, found {getattr(self, name)!r}")
+        if self.max_minutes is not None and (not isinstance(self.max_minutes, (int, float)) or self.max_minutes <= 0):
+            problems.append(f"max_minutes must be a number > 0 or None, found {self.max_minutes!r}")
+        if problems:
+            raise TrainingError("bad training settings: " + "; ".join(problems) + ".")
+
+    # -- serialisation
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready settings (tuples as lists), without unknown keys read from a file."""
+        data = {f.name: getattr(self, f.name) for f in dataclasses.fields(self) if not f.name.startswith("_")}
+        data["partial_kinds"] = list(self.partial_kinds)
+        return data
+
+    def save(self, path: str | os.PathLike) -> None:
+        """Write the settings as JSON (atomically)."""
+        path = Path(path)
+        tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+        tmp.write_text(json.dumps(self.to_dict(), indent=2, sort_keys=True) + "\n")
+        os.replace(tmp, path)
+
+    @classmethod
+    def field_names(cls) -> list[str]:
+        """Names of the settings, in declaration order."""
+        return [f.name for f in dataclasses.fields(cls) if not f.name.startswith("_")]
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any], **overrides: Any) -> TrainConfig:
+        """Build from a mapping; unknown keys are kept aside (and reported by `unknown_keys`), not refused."""
+        known = set(cls.field_names())
+        values = {k: v for k, v in data.items() if k in known}
+        values.update({k: v for k, v in overrides.items() if v is not None})
+        config = cls(**values)
+        config._extra = {k: v for k, v in data.items() if k not in known}
+        return config
+
+    @classmethod
+    def from_file(cls, path: str | os.PathLike, **overrides: Any) -> TrainConfig:
+        """Read a ``.json`` or ``.yaml`` / ``.yml`` file; ``overrides`` that are not None win.
+
+        Raises
+        ------
+        TrainingError
+            Missing or unreadable file, or not a mapping.
+        """
+        path = Path(path)
+        if not path.is_file():
+            raise TrainingError(f"configuration file {path} does not exist.")
+        text = path.read_text()
+        try:
+            if path.suffix.lower() in (".yaml", ".yml"):
+                import yaml
+
+                data = yaml.safe_load(text)
+            else:
+                data = json.loads(text)
+        except Exception as exc:  # json and yaml raise unrelated error types
+            raise TrainingError(f"could not parse {path}: {exc}") from exc
+        if not isinstance(data, dict):
+            raise TrainingError(f"{path} must hold a mapping of settings, found {type(data).__name__}.")
+        return cls.from_dict(data, **overrides)
+
+    @property
+    def unknown_keys(self) -> list[str]:
+        """Keys of the file this was read from that are no setting (ignored)."""
+        return sorted(self._extra)
+
+    def changes_from(self, other: TrainConfig) -> list[str]:
+        """Names of the settings that differ from ``other``."""
+        mine, theirs = self.to_dict(), other.to_dict()
+        return [name for name in self.field_names() if mine[name] != theirs[name]]
