@@ -53,3 +53,7 @@ class DeviceError(GeofeatError, ValueError):
 
 class TrainingError(GeofeatError, ValueError):
     """Bad input to a training routine (loss tensors of the wrong shape, dtype or values, bad options)."""
+
+
+class DiffusionNetError(GeofeatError, ValueError):
+    """Bad input to DiffusionNet: options, feature tensors or operators that do not fit together."""

@@ -1,0 +1,349 @@
+"""Per-shape operators of DiffusionNet: mass, Laplace-Beltrami eigenpairs and tangent-plane gradients.
+
+The gradient operator follows the construction that Sharp et al. (2022, "DiffusionNet:
+Discretization Agnostic Learning on Surfaces", section 3.3) describe for meshes and point
+clouds: each vertex gets a normal and a tangent basis ``(X, Y)``; the gradient of a scalar
+function at a vertex is the least-squares fit of the function differences along the edges
+to its neighbours (the mesh edges, or the ``k`` nearest points of a point cloud), with the
+edge vectors expressed in that basis. It is stored as two real sparse matrices, the ``X``
+and ``Y`` components, i.e. the real and imaginary parts of a complex gradient.
+
+Eigenpairs and mass come from `geofeat.geometry.spectral.spectral_basis` (the same cache, so
+they are never recomputed for a shape already seen). Everything is computed in float64 and
+handed out as float32 torch tensors.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections import OrderedDict
+from dataclasses import dataclass, fields, replace
+
+import numpy as np
+import scipy.sparse as sp
+import torch
+from scipy.spatial import cKDTree
+
+from geofeat.devices import resolve_device
+from geofeat.errors import MeshError
+from geofeat.geometry.spectral import spectral_basis
+from geofeat.mesh import Mesh
+
+#: Neighbours of each point used for normals and gradients of a point cloud (as in DiffusionNet).
+N_NEIGHBORS_CLOUD = 30
+#: Tikhonov regularisation of the per-vertex least-squares gradient fit, relative to the mean
+#: squared tangent edge length at the vertex (keeps nearly collinear neighbourhoods solvable).
+GRADIENT_REGULARIZATION = 1e-5
+#: A normal candidate axis is rejected for the tangent X axis when ``|n . axis|`` reaches this.
+_AXIS_ALIGNMENT_LIMIT = 0.9
+_CACHE_SIZE = 8
+
+
+@dataclass(frozen=True, eq=False)
+class SurfaceOperators:
+    """Everything DiffusionNet needs about one shape, as float32 torch tensors on one device.
+
+    Attributes
+    ----------
+    mass : torch.Tensor, shape (V,), float32
+        Lumped vertex areas.
+    evals : torch.Tensor, shape (k,), float32
+        Laplace-Beltrami eigenvalues, ascending, clipped at zero.
+    evecs : torch.Tensor, shape (V, k), float32
+        Eigenvectors, orthonormal for the mass.
+    grad_x, grad_y : torch.Tensor, sparse COO, shape (V, V), float32
+        ``grad_x @ f`` and ``grad_y @ f`` are the components of the tangent gradient of a
+        per-vertex function ``f`` along ``frames[:, 0]`` and ``frames[:, 1]``.
+    frames : torch.Tensor, shape (V, 3, 3), float32
+        Per-vertex orthonormal frames; rows are the tangent axes ``X``, ``Y`` and the normal.
+    faces : torch.Tensor, shape (F, 3), int64, or None
+        Triangles (None for a point cloud).
+    edges : torch.Tensor, shape (E, 2), int64, or None
+        Undirected mesh edges, each once with the smaller index first (None for a point cloud).
+
+    Notes
+    -----
+    Instances returned by `surface_operators` are shared through its cache: never change
+    their tensors in place.
+    """
+
+    mass: torch.Tensor
+    evals: torch.Tensor
+    evecs: torch.Tensor
+    grad_x: torch.Tensor
+    grad_y: torch.Tensor
+    frames: torch.Tensor
+    faces: torch.Tensor | None = None
+    edges: torch.Tensor | None = None
+
+    @property
+    def n_vertices(self) -> int:
+        """Number of vertices V."""
+        return int(self.mass.shape[0])
+
+    @property
+    def k(self) -> int:
+        """Number of eigenpairs."""
+        return int(self.evals.shape[0])
+
+    @property
+    def device(self) -> torch.device:
+        """Device holding the tensors."""
+        return self.mass.device
+
+    def to(self, device: str | torch.device) -> SurfaceOperators:
+        """The same operators on another device.
+
+        Parameters
+        ----------
+        device : str or torch.device
+            Target device (``"auto"``: CUDA when available).
+
+        Returns
+        -------
+        SurfaceOperators
+            A new record (``self`` when the tensors are already there).
+        """
+        target = resolve_device(device)
+        if _same_device(self.device, target):
+            return self
+        moved = {f.name: None if getattr(self, f.name) is None else getattr(self, f.name).to(target) for f in fields(self)}
+        return replace(self, **moved)
+
+
+def _same_device(a: torch.device, b: torch.device) -> bool:
+    if a.type != b.type:
+        return False
+    if a.type != "cuda":
+        return True
+    current = torch.cuda.current_device()
+    return (a.index if a.index is not None else current) == (b.index if b.index is not None else current)
+
+
+_operator_cache: OrderedDict[tuple, SurfaceOperators] = OrderedDict()
+_operator_lock = threading.Lock()
+
+
+def surface_operators(mesh: Mesh, k: int = 128, laplacian_kind: str = "robust", cache: bool = True) -> SurfaceOperators:
+    """Build (or fetch from the in-memory cache) the DiffusionNet operators of a shape.
+
+    Parameters
+    ----------
+    mesh : Mesh
+        Triangle mesh, or point cloud (``faces=None``).
+    k : int
+        Number of Laplace-Beltrami eigenpairs, ``1 <= k < V``.
+    laplacian_kind : {"robust", "cotan"}
+        Discretisation of the Laplacian, see `geofeat.geometry.laplacian`.
+    cache : bool
+        Reuse the operators built before for the same mesh content, ``k`` and Laplacian
+        (a small LRU cache in memory).
+
+    Returns
+    -------
+    SurfaceOperators
+        Float32 CPU tensors: mass (V,), evals (k,), evecs (V, k), sparse grad_x and
+        grad_y (V, V), frames (V, 3, 3), faces (F, 3) and edges (E, 2).
+
+    Raises
+    ------
+    geofeat.SpectralError
+        Bad ``k`` or a failed eigensolve.
+    geofeat.MeshError
+        Unknown Laplacian kind, or a point cloud with ``kind="cotan"``.
+    """
+    key = (mesh.hash, int(k) if isinstance(k, (int, np.integer)) else k, laplacian_kind)
+    if cache:
+        with _operator_lock:
+            if key in _operator_cache:
+                _operator_cache.move_to_end(key)
+                return _operator_cache[key]
+    basis = spectral_basis(mesh, k, laplacian_kind=laplacian_kind)
+    frames = tangent_frames(vertex_normals(mesh))
+    grad_x, grad_y = gradient_matrices(mesh, frames)
+    edges = None if mesh.faces is None else _undirected_edges(mesh.faces)
+    ops = SurfaceOperators(
+        mass=_dense32(basis.mass),
+        evals=_dense32(np.clip(basis.evals, 0.0, None)),
+        evecs=_dense32(basis.evecs),
+        grad_x=_sparse32(grad_x),
+        grad_y=_sparse32(grad_y),
+        frames=_dense32(frames),
+        faces=None if mesh.faces is None else torch.from_numpy(np.array(mesh.faces, dtype=np.int64)),
+        edges=None if edges is None else torch.from_numpy(edges),
+    )
+    if cache:
+        with _operator_lock:
+            _operator_cache[key] = ops
+            while len(_operator_cache) > _CACHE_SIZE:
+                _operator_cache.popitem(last=False)
+    return ops
+
+
+def clear_operator_cache() -> None:
+    """Forget every cached `SurfaceOperators` (the spectral-basis cache is left alone)."""
+    with _operator_lock:
+        _operator_cache.clear()
+
+
+def _dense32(array: np.ndarray) -> torch.Tensor:
+    return torch.from_numpy(np.ascontiguousarray(array, dtype=np.float32))
+
+
+def _sparse32(matrix: sp.spmatrix) -> torch.Tensor:
+    coo = sp.coo_matrix(matrix)
+    indices = torch.from_numpy(np.vstack((coo.row, coo.col)).astype(np.int64))
+    values = torch.from_numpy(coo.data.astype(np.float32))
+    return torch.sparse_coo_tensor(indices, values, coo.shape, check_invariants=True).coalesce()
+
+
+# ----------------------------------------------------------------------------- geometry (float64)
+
+
+def vertex_normals(mesh: Mesh) -> np.ndarray:
+    """Unit normal at every vertex.
+
+    Parameters
+    ----------
+    mesh : Mesh
+        Triangle mesh or point cloud.
+
+    Returns
+    -------
+    numpy.ndarray, shape (V, 3), float64
+        On a mesh, the area-weighted mean of the adjacent face normals (oriented like the
+        faces). On a point cloud, and on mesh vertices without a usable face normal
+        (unreferenced, or normals that cancel), the direction of least variance of the
+        `N_NEIGHBORS_CLOUD` nearest points, oriented away from the centroid of the shape.
+    """
+    verts = mesh.verts
+    normals = np.zeros_like(verts)
+    if mesh.faces is not None:
+        tri = verts[mesh.faces]
+        face_normals = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])  # length = 2 * area
+        for corner in range(3):
+            np.add.at(normals, mesh.faces[:, corner], face_normals)
+    lengths = np.linalg.norm(normals, axis=1)
+    scale = max(mesh.bbox_diagonal(), 1e-300)
+    missing = lengths <= 1e-12 * scale**2
+    if missing.any():
+        normals[missing] = _cloud_normals(verts, np.flatnonzero(missing))
+        lengths[missing] = 1.0
+    return normals / lengths[:, None]
+
+
+def _cloud_normals(verts: np.ndarray, which: np.ndarray) -> np.ndarray:
+    """Least-variance direction of the neighbourhood of ``verts[which]``, (n, 3) unit."""
+    n_query = min(N_NEIGHBORS_CLOUD + 1, len(verts))
+    if n_query < 3:
+        normals = np.zeros((len(which), 3))
+        normals[:, 2] = 1.0
+        return normals
+    _, neighbors = cKDTree(verts).query(verts[which], k=n_query)
+    local = verts[neighbors] - verts[which][:, None, :]
+    local -= local.mean(axis=1, keepdims=True)
+    normals = np.linalg.svd(local, full_matrices=False)[2][:, 2, :]
+    outward = np.einsum("nd,nd->n", normals, verts[which] - verts.mean(axis=0))
+    return np.where(outward[:, None] < 0, -normals, normals)
+
+
+def tangent_frames(normals: np.ndarray) -> np.ndarray:
+    """An orthonormal tangent basis at every vertex.
+
+    Parameters
+    ----------
+    normals : numpy.ndarray, shape (V, 3)
+        Unit normals.
+
+    Returns
+    -------
+    numpy.ndarray, shape (V, 3, 3), float64
+        ``frames[i] = [X_i, Y_i, n_i]`` (rows): ``X_i`` is the x axis (the y axis where the
+        normal is nearly parallel to x) projected onto the tangent plane and normalised,
+        ``Y_i = n_i x X_i``, so ``(X, Y, n)`` is right-handed.
+    """
+    normals = np.asarray(normals, dtype=np.float64)
+    axis = np.zeros_like(normals)
+    near_x = np.abs(normals[:, 0]) >= _AXIS_ALIGNMENT_LIMIT
+    axis[~near_x, 0] = 1.0
+    axis[near_x, 1] = 1.0
+    basis_x = axis - normals * np.einsum("vd,vd->v", axis, normals)[:, None]
+    basis_x /= np.linalg.norm(basis_x, axis=1, keepdims=True)
+    basis_y = np.cross(normals, basis_x)
+    return np.stack((basis_x, basis_y, normals), axis=1)
+
+
+def gradient_matrices(mesh: Mesh, frames: np.ndarray) -> tuple[sp.csr_matrix, sp.csr_matrix]:
+    """Least-squares tangent gradient operators.
+
+    Parameters
+    ----------
+    mesh : Mesh
+        Triangle mesh (neighbours: the vertices sharing an edge) or point cloud
+        (neighbours: the `N_NEIGHBORS_CLOUD` nearest points).
+    frames : numpy.ndarray, shape (V, 3, 3)
+        Per-vertex frames from `tangent_frames`.
+
+    Returns
+    -------
+    grad_x, grad_y : scipy.sparse.csr_matrix, shape (V, V), float64
+        For a per-vertex function ``f``, ``(grad_x @ f)[i], (grad_y @ f)[i]`` is the vector
+        ``g`` of the tangent plane of vertex ``i`` (in its ``X, Y`` axes) minimising
+        ``sum_j (e_ij . g - (f_j - f_i))^2 + r_i |g|^2`` over the neighbours ``j``, with
+        ``e_ij`` the edge vector ``p_j - p_i`` projected onto the ``X, Y`` axes and ``r_i``
+        `GRADIENT_REGULARIZATION` times the mean of ``|e_ij|^2``. Exact for functions that
+        are linear in the tangent plane (up to the regularisation). Rows of vertices without
+        neighbours are zero.
+    """
+    verts = mesh.verts
+    n = len(verts)
+    tails, tips = _directed_neighbors(mesh)
+    edge_vecs = verts[tips] - verts[tails]
+    tangent = np.stack(
+        (
+            np.einsum("ed,ed->e", edge_vecs, frames[tails, 0]),
+            np.einsum("ed,ed->e", edge_vecs, frames[tails, 1]),
+        ),
+        axis=1,
+    )  # (E, 2)
+    # per-vertex normal equations [[a, b], [b, c]] of the 2x2 least-squares problem
+    a = np.bincount(tails, weights=tangent[:, 0] ** 2, minlength=n)
+    b = np.bincount(tails, weights=tangent[:, 0] * tangent[:, 1], minlength=n)
+    c = np.bincount(tails, weights=tangent[:, 1] ** 2, minlength=n)
+    count = np.bincount(tails, minlength=n)
+    reg = GRADIENT_REGULARIZATION * (a + c) / np.maximum(count, 1)
+    a, c = a + reg, c + reg
+    det = a * c - b * b
+    inv_det = np.divide(1.0, det, out=np.zeros(n), where=det > 0)
+    # coefficient of (f_j - f_i) in the fitted gradient at i: inverse normal matrix times e_ij
+    coef_x = inv_det[tails] * (c[tails] * tangent[:, 0] - b[tails] * tangent[:, 1])
+    coef_y = inv_det[tails] * (a[tails] * tangent[:, 1] - b[tails] * tangent[:, 0])
+    rows = np.concatenate((tails, tails))
+    cols = np.concatenate((tips, tails))
+    grad_x = sp.csr_matrix((np.concatenate((coef_x, -coef_x)), (rows, cols)), shape=(n, n))
+    grad_y = sp.csr_matrix((np.concatenate((coef_y, -coef_y)), (rows, cols)), shape=(n, n))
+    return grad_x, grad_y
+
+
+def _directed_neighbors(mesh: Mesh) -> tuple[np.ndarray, np.ndarray]:
+    """(tail, tip) index arrays of every directed neighbour pair, no self pairs."""
+    if mesh.faces is not None:
+        edges = _undirected_edges(mesh.faces)
+        return np.concatenate((edges[:, 0], edges[:, 1])), np.concatenate((edges[:, 1], edges[:, 0]))
+    n = mesh.n_vertices
+    n_query = min(N_NEIGHBORS_CLOUD + 1, n)
+    if n_query < 3:
+        raise MeshError(f"point cloud {mesh.name!r} has {n} points; at least 3 are needed for tangent gradients.")
+    _, neighbors = cKDTree(mesh.verts).query(mesh.verts, k=n_query)
+    tails = np.repeat(np.arange(n), n_query)
+    tips = neighbors.ravel()
+    keep = tips != tails  # the point itself (or a duplicate of it found first)
+    return tails[keep], tips[keep]
+
+
+def _undirected_edges(faces: np.ndarray) -> np.ndarray:
+    """Unique undirected edges (E, 2) int64 of the triangles, smaller index first, no self edges."""
+    pairs = faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2)
+    pairs = np.sort(pairs, axis=1)
+    pairs = pairs[pairs[:, 0] != pairs[:, 1]]
+    return np.unique(pairs, axis=0).astype(np.int64)
