@@ -1,0 +1,399 @@
+"""One interface for every matcher: a configuration, training on pairs, matching a pair, checkpoints.
+
+>>> head = make_head("ulrssm", descriptor="wks", epochs=5)                 # doctest: +SKIP
+>>> head.fit(load_dataset("faust_r_cuts", split="train"))                  # doctest: +SKIP
+>>> match = head.match(pair)              # map_yx (V_y,), overlap_y (V_y,), overlap_x (V_x,) or None
+>>> head.save("runs/ulrssm"); same = load_head("runs/ulrssm")             # doctest: +SKIP
+
+Every head reads its input features from any registered geofeat descriptor
+(``descriptor="wks"``, ``"geolora"`` with ``descriptor_params={"checkpoint": ...}``) or the
+raw vertex coordinates (``descriptor="xyz"``, as the original papers do). Learned heads
+subclass `LearnedHead`: they build a torch module from the input width, give a training loss
+for a pair and a prediction for a pair; the loop (Adam, optional cosine annealing, time
+budget, progress bar) and the checkpoint format (``head_config.json`` + ``weights.safetensors``)
+are shared.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import importlib
+import json
+import logging
+import math
+import os
+import time
+from collections import OrderedDict
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, ClassVar, NamedTuple
+
+import numpy as np
+import torch
+from tqdm.auto import tqdm
+
+import geofeat
+from geofeat.datasets.records import ShapePair
+from geofeat.devices import resolve_device
+from geofeat.errors import GeofeatError
+from geofeat.mesh import Mesh
+
+from . import matchers
+from .operators import SurfaceOperators, surface_operators
+
+log = logging.getLogger(__name__)
+
+__all__ = [
+    "HEADS",
+    "FunctionalMapHead",
+    "Head",
+    "HeadConfig",
+    "HeadError",
+    "LearnedHead",
+    "Match",
+    "NearestNeighbourHead",
+    "input_features",
+    "load_head",
+    "make_head",
+]
+
+CONFIG_FILE = "head_config.json"
+WEIGHTS_FILE = "weights.safetensors"
+
+
+class HeadError(GeofeatError, ValueError):
+    """Bad head settings, inputs or checkpoints."""
+
+
+@dataclass
+class HeadConfig:
+    """Settings shared by every head (subclasses add their own fields).
+
+    Parameters
+    ----------
+    descriptor : str
+        Input features: a registered descriptor name, or ``"xyz"`` (vertex coordinates).
+    descriptor_params : dict
+        Keyword parameters of the descriptor.
+    n_eig : int
+        Eigenpairs of the surface operators (DiffusionNet, functional maps).
+    epochs : int
+        Passes over the training pairs.
+    lr : float
+        Adam learning rate.
+    cosine_annealing : bool
+        Anneal the learning rate to 0 over the training with a cosine.
+    max_minutes : float or None
+        Stop training after this much wall time.
+    seed : int
+        Seeds the initialisation and the pair order.
+    device : str
+        ``"auto"``: CUDA when present, else CPU.
+    progress : bool
+        Progress bars.
+    """
+
+    descriptor: str = "wks"
+    descriptor_params: dict = field(default_factory=dict)
+    n_eig: int = 128
+    epochs: int = 1
+    lr: float = 1e-3
+    cosine_annealing: bool = False
+    max_minutes: float | None = None
+    seed: int = 0
+    device: str = "cpu"
+    progress: bool = True
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready settings."""
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> HeadConfig:
+        """Build from a mapping; unknown keys are ignored (logged at debug level)."""
+        names = {f.name for f in dataclasses.fields(cls)}
+        unknown = sorted(set(data) - names)
+        if unknown:
+            log.debug("ignoring unknown head settings %s", unknown)
+        return cls(**{k: v for k, v in data.items() if k in names})
+
+
+class Match(NamedTuple):
+    """A predicted correspondence from ``y`` to ``x``.
+
+    Attributes
+    ----------
+    map_yx : numpy.ndarray, shape (V_y,), int64
+        For every vertex of ``y`` a vertex of ``x``.
+    overlap_y : numpy.ndarray, shape (V_y,), bool
+        Vertices of ``y`` predicted to have a counterpart (all True for heads without overlap prediction).
+    overlap_x : numpy.ndarray, shape (V_x,), bool, or None
+        Vertices of ``x`` predicted to have a counterpart, where the head predicts it.
+    """
+
+    map_yx: np.ndarray
+    overlap_y: np.ndarray
+    overlap_x: np.ndarray | None = None
+
+
+def input_features(mesh: Mesh, descriptor: str, params: dict | None = None) -> np.ndarray:
+    """Per-vertex input features of a head: a geofeat descriptor, or ``"xyz"`` coordinates.
+
+    Returns
+    -------
+    numpy.ndarray, shape (V, C), float32
+        ``"xyz"``: the vertices centred on their mean and scaled to unit surface area.
+    """
+    if descriptor == "xyz":
+        if params:
+            raise HeadError(f"descriptor 'xyz' takes no parameters; found {sorted(params)}.")
+        verts = mesh.verts - mesh.verts.mean(axis=0)
+        scale = math.sqrt(mesh.area) if mesh.faces is not None and mesh.area > 0 else 1.0
+        return np.ascontiguousarray(verts / scale, dtype=np.float32)
+    return geofeat.compute(mesh, descriptor, **(params or {}))
+
+
+class Head:
+    """A matcher: ``fit`` on training pairs (a no-op when training-free), ``match`` a pair, save and load.
+
+    Subclasses set ``name`` and ``config_class``.
+    """
+
+    name: ClassVar[str] = ""
+    config_class: ClassVar[type[HeadConfig]] = HeadConfig
+
+    def __init__(self, config: HeadConfig | None = None, **settings: Any):
+        if config is not None and settings:
+            raise HeadError("give either a config or keyword settings, not both.")
+        if config is None:
+            unknown = _unknown(self.config_class, settings)
+            if unknown:
+                valid = [f.name for f in dataclasses.fields(self.config_class)]
+                raise HeadError(f"unknown setting(s) {unknown} for head {self.name!r}; valid: {valid}.")
+            config = self.config_class(**settings)
+        if not isinstance(config, self.config_class):
+            raise HeadError(f"head {self.name!r} takes a {self.config_class.__name__}; found {type(config).__name__}.")
+        self.config = config
+        self._inputs: OrderedDict[str, tuple[torch.Tensor, SurfaceOperators]] = OrderedDict()
+
+    # -- inputs
+
+    @property
+    def device(self) -> torch.device:
+        """Where the head computes."""
+        return resolve_device(self.config.device)
+
+    def features(self, mesh: Mesh) -> np.ndarray:
+        """Input features of ``mesh`` (V, C) float32."""
+        return input_features(mesh, self.config.descriptor, self.config.descriptor_params)
+
+    def shape_inputs(self, mesh: Mesh) -> tuple[torch.Tensor, SurfaceOperators]:
+        """Input features as a tensor (V, C) and the surface operators, on the head's device (kept for 64 meshes)."""
+        key = mesh.hash
+        if key in self._inputs:
+            self._inputs.move_to_end(key)
+            return self._inputs[key]
+        feats = torch.as_tensor(self.features(mesh), device=self.device)
+        entry = (feats, surface_operators(mesh, self.config.n_eig).to(self.device))
+        self._inputs[key] = entry
+        while len(self._inputs) > 64:
+            self._inputs.popitem(last=False)
+        return entry
+
+    # -- the interface
+
+    def fit(self, pairs: Sequence[ShapePair]) -> list[float]:
+        """Train on pairs; returns the loss per step (empty for training-free heads)."""
+        return []
+
+    def match(self, pair: ShapePair) -> Match:
+        """Predict the correspondence of ``pair.y`` to ``pair.x``."""
+        raise NotImplementedError
+
+    def save(self, folder: str | os.PathLike) -> Path:
+        """Write ``head_config.json`` (and the weights of learned heads) into ``folder``."""
+        folder = Path(folder)
+        folder.mkdir(parents=True, exist_ok=True)
+        payload = {"head": self.name, "geofeat_version": geofeat.__version__, "config": self.config.to_dict()}
+        _atomic_write_text(folder / CONFIG_FILE, json.dumps(payload, indent=2, sort_keys=True) + "\n")
+        return folder
+
+
+class NearestNeighbourHead(Head):
+    """Nearest neighbour in feature space (training-free)."""
+
+    name = "nn"
+
+    def match(self, pair: ShapePair) -> Match:
+        map_yx = matchers.nn_match(self.features(pair.x), self.features(pair.y))
+        return Match(map_yx, np.ones(pair.y.n_vertices, dtype=bool))
+
+
+@dataclass
+class FunctionalMapConfig(HeadConfig):
+    """`HeadConfig` plus the functional-map size and ZoomOut (see `matchers.fmap_match`)."""
+
+    k: int = 30
+    zoomout: bool = False
+    k_final: int = 100
+
+
+class FunctionalMapHead(Head):
+    """A functional map from the input features, converted to a point map (training-free)."""
+
+    name = "fmap"
+    config_class = FunctionalMapConfig
+
+    def match(self, pair: ShapePair) -> Match:
+        c = self.config
+        map_yx = matchers.fmap_match(
+            pair.x, pair.y, self.features(pair.x), self.features(pair.y), k=c.k, zoomout=c.zoomout, k_final=c.k_final,
+            n_eig=max(c.n_eig, c.k_final if c.zoomout else c.k),
+        )  # fmt: skip
+        return Match(map_yx, np.ones(pair.y.n_vertices, dtype=bool))
+
+
+class LearnedHead(Head):
+    """A head with a torch module: the shared training loop and checkpoint format.
+
+    Subclasses implement `build_model` (the module, from the input width), `training_loss`
+    (a scalar tensor for one pair) and `predict` (a `Match` for one pair, under ``no_grad``).
+    """
+
+    def __init__(self, config: HeadConfig | None = None, **settings: Any):
+        super().__init__(config, **settings)
+        self.model: torch.nn.Module | None = None
+        self.in_channels: int | None = None
+
+    def build_model(self, in_channels: int) -> torch.nn.Module:
+        """The trainable module for ``in_channels`` input features."""
+        raise NotImplementedError
+
+    def training_loss(self, pair: ShapePair) -> torch.Tensor:
+        """Scalar training loss of one pair."""
+        raise NotImplementedError
+
+    def predict(self, pair: ShapePair) -> Match:
+        """The prediction for one pair (gradients off)."""
+        raise NotImplementedError
+
+    def _ensure_model(self, mesh: Mesh) -> torch.nn.Module:
+        if self.model is None:
+            torch.manual_seed(self.config.seed)
+            self.in_channels = int(self.shape_inputs(mesh)[0].shape[1])
+            self.model = self.build_model(self.in_channels).to(self.device)
+        return self.model
+
+    def fit(self, pairs: Sequence[ShapePair]) -> list[float]:
+        """Adam over ``epochs`` passes of the pairs in a seeded order; returns the loss of every step."""
+        if len(pairs) == 0:
+            raise HeadError(f"head {self.name!r}: no training pairs.")
+        config = self.config
+        model = self._ensure_model(pairs[0].x)
+        optimizer = torch.optim.Adam([p for p in model.parameters() if p.requires_grad], lr=config.lr)
+        total = config.epochs * len(pairs)
+        scheduler = torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, T_max=total) if config.cosine_annealing else None
+        rng = np.random.default_rng(config.seed)
+        losses: list[float] = []
+        start = time.perf_counter()
+        bar = tqdm(total=total, desc=f"training {self.name}", unit="pair", disable=not config.progress)
+        try:
+            for _ in range(config.epochs):
+                for index in rng.permutation(len(pairs)):
+                    model.train()
+                    loss = self.training_loss(pairs[int(index)])
+                    optimizer.zero_grad(set_to_none=True)
+                    loss.backward()
+                    optimizer.step()
+                    if scheduler is not None:
+                        scheduler.step()
+                    losses.append(float(loss.detach()))
+                    bar.update(1)
+                    bar.set_postfix(loss=f"{losses[-1]:.4f}")
+                    if config.max_minutes is not None and time.perf_counter() - start > 60.0 * config.max_minutes:
+                        log.info("%s: time budget spent after %d steps", self.name, len(losses))
+                        return losses
+        finally:
+            bar.close()
+        return losses
+
+    def match(self, pair: ShapePair) -> Match:
+        self._ensure_model(pair.x).eval()
+        with torch.no_grad():
+            return self.predict(pair)
+
+    def save(self, folder: str | os.PathLike) -> Path:
+        """``head_config.json`` and ``weights.safetensors`` (the module's state dict)."""
+        if self.model is None:
+            raise HeadError(f"head {self.name!r} has no model yet: fit it (or load one) before saving.")
+        from safetensors.torch import save_file
+
+        folder = super().save(folder)
+        state = {k: v.detach().to("cpu").contiguous() for k, v in self.model.state_dict().items()}
+        tmp = folder / f".{WEIGHTS_FILE}.tmp-{os.getpid()}"
+        save_file(state, str(tmp), metadata={"in_channels": str(self.in_channels)})
+        os.replace(tmp, folder / WEIGHTS_FILE)
+        return folder
+
+    def load_weights(self, folder: Path, in_channels: int) -> None:
+        """Build the module for ``in_channels`` and load ``weights.safetensors``."""
+        from safetensors.torch import load_file
+
+        self.in_channels = in_channels
+        self.model = self.build_model(in_channels).to(self.device)
+        try:
+            self.model.load_state_dict(load_file(str(folder / WEIGHTS_FILE), device=str(self.device)))
+        except (RuntimeError, OSError) as exc:
+            raise HeadError(f"{folder / WEIGHTS_FILE} does not fit head {self.name!r}: {exc}") from exc
+
+
+#: name -> "module:Class" (imported on first use)
+HEADS = {
+    "nn": "geofeat.adapters.heads:NearestNeighbourHead",
+    "fmap": "geofeat.adapters.heads:FunctionalMapHead",
+    "ulrssm": "geofeat.adapters.ulrssm:ULRSSMHead",
+    "dpfm": "geofeat.adapters.dpfm:DPFMHead",
+    "echomatch": "geofeat.adapters.echomatch:EchoMatchHead",
+}
+
+
+def head_class(name: str) -> type[Head]:
+    """The `Head` subclass registered under ``name``."""
+    if name not in HEADS:
+        raise HeadError(f"unknown head {name!r}; valid names: {sorted(HEADS)}.")
+    module, cls = HEADS[name].split(":")
+    return getattr(importlib.import_module(module), cls)
+
+
+def make_head(name: str, **settings: Any) -> Head:
+    """Build the head ``name`` from keyword settings of its configuration."""
+    return head_class(name)(**settings)
+
+
+def load_head(folder: str | os.PathLike) -> Head:
+    """A head saved by `Head.save`, with its weights for learned heads."""
+    folder = Path(folder)
+    try:
+        payload = json.loads((folder / CONFIG_FILE).read_text())
+    except (OSError, ValueError) as exc:
+        raise HeadError(f"{folder} holds no readable {CONFIG_FILE}: {exc}") from exc
+    cls = head_class(payload.get("head", ""))
+    head = cls(cls.config_class.from_dict(payload.get("config", {})))
+    if isinstance(head, LearnedHead):
+        from safetensors import safe_open
+
+        with safe_open(str(folder / WEIGHTS_FILE), framework="pt") as handle:
+            in_channels = int(handle.metadata()["in_channels"])
+        head.load_weights(folder, in_channels)
+    return head
+
+
+def _unknown(config_class: type[HeadConfig], settings: dict) -> list[str]:
+    return sorted(set(settings) - {f.name for f in dataclasses.fields(config_class)})
+
+
+def _atomic_write_text(path: Path, text: str) -> None:
+    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    tmp.write_text(text)
+    os.replace(tmp, path)
