@@ -21,5 +21,5 @@ PYTHON="${PYTHON:-python3}"
 # torch first, then keep it pinned: an unpinned torch elsewhere would pull CUDA packages.
 .venv/bin/python -m pip install -q "${GEOFEAT_TORCH:-torch==2.13.0}"
 .venv/bin/python -m pip freeze | grep -i '^torch==' > .venv/constraints.txt
-.venv/bin/python -m pip install -q -c .venv/constraints.txt -e ".[dino,gl,bench,test]"
+.venv/bin/python -m pip install -q -c .venv/constraints.txt -e ".[dino,train,gl,bench,test]"
 .venv/bin/python -c "import geofeat; print('geofeat', geofeat.__version__, 'installed in .venv')"

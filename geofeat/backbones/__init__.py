@@ -23,6 +23,7 @@ from geofeat.backbones.dino import (
     DinoBackbone,
     load_backbone,
     missing_weights_message,
+    sample_patch_features,
     state_dict_digest,
     upsample_patch_features,
 )
@@ -69,6 +70,7 @@ __all__ = [
     "infer_dinov3_config",
     "load_backbone",
     "missing_weights_message",
+    "sample_patch_features",
     "state_dict_digest",
     "unwrap_official_checkpoint",
     "upsample_patch_features",

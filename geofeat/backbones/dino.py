@@ -51,6 +51,7 @@ __all__ = [
     "DinoBackbone",
     "load_backbone",
     "missing_weights_message",
+    "sample_patch_features",
     "state_dict_digest",
     "upsample_patch_features",
 ]
@@ -158,6 +159,45 @@ def upsample_patch_features(grid: torch.Tensor, out_size: tuple[int, int]) -> to
     chw = grid.float().permute(0, 3, 1, 2)
     up = F.interpolate(chw, size=tuple(out_size), mode="bilinear", align_corners=False)
     return F.normalize(up, dim=1).permute(0, 2, 3, 1)
+
+
+def sample_patch_features(grid: torch.Tensor, pixels: torch.Tensor, out_size: tuple[int, int]) -> torch.Tensor:
+    """`upsample_patch_features` at chosen pixels only: bilinear samples, L2-normalised (differentiable).
+
+    Equal to ``upsample_patch_features(grid, out_size)[pixels[:, 0], pixels[:, 1], pixels[:, 2]]``
+    without forming the (N, H_out, W_out, C) tensor, so training at 512 x 512 keeps only the
+    foreground pixels' features in memory.
+
+    Parameters
+    ----------
+    grid : torch.Tensor, shape (N, h, w, C)
+        Patch features.
+    pixels : torch.Tensor, shape (M, 3), int64
+        (view, row, column) of each wanted pixel of the (H_out, W_out) images.
+    out_size : (int, int)
+        (H_out, W_out).
+
+    Returns
+    -------
+    torch.Tensor, shape (M, C), float32, unit L2 norm per row (zero rows stay zero)
+    """
+    grid = grid.float()
+    _, h, w, _ = grid.shape
+    pixels = pixels.to(grid.device)
+    view = pixels[:, 0]
+    y0, y1, wy = _source_taps(pixels[:, 1], h, out_size[0])
+    x0, x1, wx = _source_taps(pixels[:, 2], w, out_size[1])
+    top = grid[view, y0, x0] * (1 - wx)[:, None] + grid[view, y0, x1] * wx[:, None]
+    bottom = grid[view, y1, x0] * (1 - wx)[:, None] + grid[view, y1, x1] * wx[:, None]
+    return F.normalize(top * (1 - wy)[:, None] + bottom * wy[:, None], dim=1)
+
+
+def _source_taps(index: torch.Tensor, n_in: int, n_out: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Bilinear taps of ``F.interpolate(align_corners=False)``: lower index, upper index, upper weight."""
+    source = ((index.double() + 0.5) * (n_in / n_out) - 0.5).clamp(min=0.0)
+    lower = source.floor().long().clamp(max=n_in - 1)
+    upper = (lower + 1).clamp(max=n_in - 1)
+    return lower, upper, (source - lower).float()
 
 
 def _check_out_size(out_size: Sequence[int]) -> tuple[int, int]:

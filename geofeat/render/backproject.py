@@ -88,23 +88,45 @@ class VertexFeatureAccumulator:
                 f"pixel features of shape {tuple(pixel_features.shape)} do not match fragments of shape "
                 f"{tuple(pix_to_face.shape)} with {self.n_channels} channels."
             )
-        foreground = (pix_to_face >= 0).reshape(-1)
-        if not bool(foreground.any()):
-            return
-        pixels = torch.nonzero(foreground).squeeze(1).cpu().numpy()  # flat indices of foreground pixels (M,)
+        pixels = torch.nonzero((pix_to_face >= 0).reshape(-1)).squeeze(1).cpu().numpy()  # flat foreground indices (M,)
+        rows, local, values = self._entries(pixels, pix_to_face, bary)
+        # The product reads the features in place: no (M, C) copy of the foreground pixels.
+        features = pixel_features.reshape(-1, self.n_channels).to(self.device, torch.float32)
+        self._scatter(rows, pixels[local], values, features)
+
+    def add_foreground(self, features: torch.Tensor, pix_to_face: torch.Tensor, bary: torch.Tensor) -> None:
+        """Accumulate one batch of views given the features of its foreground pixels only.
+
+        Parameters
+        ----------
+        features : torch.Tensor, shape (M, C), float
+            One row per foreground pixel (``pix_to_face >= 0``), in flat (view, row, column)
+            order, as `foreground_pixels` lists them.
+        pix_to_face : torch.Tensor, shape (N, H, W), int64, -1 on background
+        bary : torch.Tensor, shape (N, H, W, 3), float
+        """
+        pixels = torch.nonzero((pix_to_face >= 0).reshape(-1)).squeeze(1).cpu().numpy()
+        if features.ndim != 2 or features.shape != (pixels.size, self.n_channels):
+            raise BackprojectError(
+                f"foreground features must have shape ({pixels.size}, {self.n_channels}) (one row per foreground pixel); "
+                f"found {tuple(features.shape)}."
+            )
+        rows, local, values = self._entries(pixels, pix_to_face, bary)
+        self._scatter(rows, local, values, features.to(self.device, torch.float32))
+
+    def _entries(
+        self, pixels: np.ndarray, pix_to_face: torch.Tensor, bary: torch.Tensor
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The sparse (V, M) back-projection matrix of M foreground pixels: (vertex, pixel position in ``pixels``, weight)."""
+        if pixels.size == 0:
+            return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0)
         face_ids = pix_to_face.reshape(-1)[pixels].cpu().numpy()
         weights_bary = bary.reshape(-1, 3)[pixels].cpu().numpy().astype(np.float64)  # (M, 3)
         if self.mode == "face":
-            rows = self.faces[face_ids].ravel()  # (3M,)
-            cols = np.repeat(pixels, 3)
-            values = weights_bary.ravel()
-        else:
-            points = np.einsum("mk,mkd->md", weights_bary, self.verts[self.faces[face_ids]])  # surface points (M, 3)
-            rows, local = _pairs_within(self.verts, points, self.radius)
-            cols = pixels[local]
-            values = np.ones(rows.size)
-        # The product reads the features in place: no (M, C) copy of the foreground pixels.
-        self._scatter(rows, cols, values, pixel_features.reshape(-1, self.n_channels).to(self.device, torch.float32))
+            return self.faces[face_ids].ravel(), np.repeat(np.arange(pixels.size), 3), weights_bary.ravel()
+        points = np.einsum("mk,mkd->md", weights_bary, self.verts[self.faces[face_ids]])  # surface points (M, 3)
+        rows, local = _pairs_within(self.verts, points, self.radius)
+        return rows, local, np.ones(rows.size)
 
     def _scatter(self, rows: np.ndarray, cols: np.ndarray, values: np.ndarray, features: torch.Tensor) -> None:
         """``sums += S @ features`` and ``weights += S @ 1`` for the sparse (V, P) matrix S given by its entries."""
@@ -158,6 +180,20 @@ class VertexFeatureAccumulator:
         """
         features, seen = self.result_tensor(fill)
         return features.detach().cpu().numpy().astype(np.float32, copy=False), seen.cpu().numpy()
+
+
+def foreground_pixels(pix_to_face: torch.Tensor) -> torch.Tensor:
+    """(view, row, column) of every foreground pixel, in flat order.
+
+    Parameters
+    ----------
+    pix_to_face : torch.Tensor, shape (N, H, W), int64, -1 on background
+
+    Returns
+    -------
+    torch.Tensor, shape (M, 3), int64, on the device of ``pix_to_face``
+    """
+    return torch.nonzero(pix_to_face >= 0)
 
 
 def _pairs_within(verts: np.ndarray, points: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray]:

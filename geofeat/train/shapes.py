@@ -51,7 +51,7 @@ def decimate(mesh: Mesh, max_vertices: int) -> Mesh:
     import trimesh
 
     try:
-        simplified = trimesh.Trimesh(mesh.verts, mesh.faces, process=False).simplify_quadric_decimation(
+        simplified = trimesh.Trimesh(np.array(mesh.verts), np.array(mesh.faces), process=False).simplify_quadric_decimation(
             face_count=2 * max_vertices
         )
     except (ImportError, ModuleNotFoundError) as exc:

@@ -42,14 +42,14 @@ import numpy as np
 import torch
 from tqdm.auto import tqdm
 
-from geofeat.backbones import DinoBackbone, load_backbone, upsample_patch_features
+from geofeat.backbones import DinoBackbone, load_backbone, sample_patch_features
 from geofeat.backbones.lora import LoraSettings, add_lora, load_adapter, save_adapter
 from geofeat.devices import resolve_device
 from geofeat.errors import TrainingError
 from geofeat.geometry.partial import make_partial
 from geofeat.mesh import Mesh
 from geofeat.render import make_cameras, render_phong
-from geofeat.render.backproject import VertexFeatureAccumulator
+from geofeat.render.backproject import VertexFeatureAccumulator, foreground_pixels
 from geofeat.train.config import RESUMABLE_CHANGES, TrainConfig
 from geofeat.train.losses import geodesic_point_info_nce, point_info_nce
 from geofeat.train.shapes import GeodesicStore, load_training_shapes
@@ -260,15 +260,16 @@ class GeoLoraTrainer:
         with timer("render"):
             cameras = make_cameras(mesh, n_views, layout=self.config.camera_layout, image_size=size, device=self.device)
             rendering = render_phong(mesh, None, cameras)
+        pix_to_face = rendering.fragments.pix_to_face
         with timer("forward"):
             with self._amp():
                 grid = self.backbone.patch_features(rendering.images)
-            pixels = upsample_patch_features(grid.float(), (size, size))
+            features = sample_patch_features(grid, foreground_pixels(pix_to_face), (size, size))  # (M, C)
         with timer("backproject"):
             accumulator = VertexFeatureAccumulator(
                 mesh.verts, mesh.faces, self.backbone.embed_dim, mode=self.config.backproject, device=self.device
             )
-            accumulator.add(pixels, rendering.fragments.pix_to_face, rendering.fragments.bary)
+            accumulator.add_foreground(features, pix_to_face, rendering.fragments.bary)
             return accumulator.result_tensor(fill=fill)
 
     # ------------------------------------------------------------------ one step

@@ -51,3 +51,11 @@ def test_reference_pipelines_bracket_the_metrics(tmp_path):
     assert random["descriptor"] == "none"
     assert mirrored["chirality_accuracy"] == 0.0 and 0.3 < random["chirality_accuracy"] < 0.7
     assert mirrored["geodesic_error"] < random["geodesic_error"]
+
+
+def test_descriptor_parameters_reach_the_descriptor(tmp_path):
+    result = run("--limit", "1", "--param", "n_descr=16", "--param", "n_eig=32", "--out", str(tmp_path))
+    assert result.returncode == 0, result.stderr
+    assert json.loads((tmp_path / "results.json").read_text())["descriptor_params"] == {"n_descr": 16, "n_eig": 32}
+    bad = run("--limit", "1", "--param", "colour=red", "--out", str(tmp_path / "bad"))
+    assert bad.returncode == 2 and "unknown parameter(s) ['colour']" in bad.stderr

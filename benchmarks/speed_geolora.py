@@ -1,0 +1,113 @@
+"""Step time of GeoLoRA training, phase by phase.
+
+Runs training steps of `geofeat.train.GeoLoraTrainer` on FAUST_r shapes with a randomly
+initialised DINOv3 and reports the median seconds per phase (partial-shape generation,
+geodesics, rendering, backbone forward, back-projection, loss, backward, optimizer) over the
+steps after the first (warm-up). Random weights cost the same time as trained ones.
+
+    python benchmarks/speed_geolora.py --model small --image-size 128 --steps 20          # the CPU experiment
+    python benchmarks/speed_geolora.py --model vitb16 --image-size 512 --steps 3          # paper settings
+    python benchmarks/speed_geolora.py --model vitb16 --image-size 512 --device cuda      # on a GPU
+
+Writes ``benchmarks/results/speed_geolora_<model>_<size>_<device>.json`` and ``.md``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import os
+import sys
+import tempfile
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE))
+
+import numpy as np  # noqa: E402
+import torch  # noqa: E402
+from common import machine  # noqa: E402
+
+from geofeat.backbones import DinoBackbone  # noqa: E402
+from geofeat.train.config import TrainConfig  # noqa: E402
+from geofeat.train.trainer import PHASES, GeoLoraTrainer  # noqa: E402
+
+MODELS = {
+    # the backbone of benchmarks/geolora_learns.py
+    "small": dict(hidden_size=96, intermediate_size=384, num_hidden_layers=4, num_attention_heads=4, patch_size=8),
+    # DINOv3 ViT-B/16 (the paper's backbone): width 768, 12 blocks, 12 heads, 4 registers
+    "vitb16": dict(hidden_size=768, intermediate_size=3072, num_hidden_layers=12, num_attention_heads=12, patch_size=16),
+}
+
+
+def random_backbone(model: str, seed: int = 0) -> DinoBackbone:
+    """A DINOv3 of the given size with transformers' random initialisation."""
+    from transformers import DINOv3ViTConfig, DINOv3ViTModel
+
+    torch.manual_seed(seed)
+    config = DINOv3ViTConfig(**MODELS[model], num_register_tokens=4, image_size=224)
+    return DinoBackbone(DINOv3ViTModel(config), kind="dinov3", source=f"random {model}")
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--model", choices=sorted(MODELS), default="small")
+    parser.add_argument("--image-size", type=int, default=128)
+    parser.add_argument("--views-full", type=int, default=9)
+    parser.add_argument("--views-partial", type=int, default=4)
+    parser.add_argument("--backproject", default="face")
+    parser.add_argument("--steps", type=int, default=20, help="timed steps (plus one warm-up)")
+    parser.add_argument("--device", default="cpu")
+    parser.add_argument("--amp", default="auto")
+    parser.add_argument("--data-root", default=os.environ.get("GEOFEAT_DATA", str(HERE.parent.parent / "shared" / "data")))
+    args = parser.parse_args(argv)
+
+    with tempfile.TemporaryDirectory() as tmp:
+        config = TrainConfig(
+            data="faust_r", data_root=args.data_root, split="train", first=10, out=tmp, image_size=args.image_size,
+            views_full=args.views_full, views_partial=args.views_partial, backproject=args.backproject,
+            steps=args.steps + 1, device=args.device, amp=args.amp, progress=False,
+        )  # fmt: skip
+        trainer = GeoLoraTrainer(config, backbone=random_backbone(args.model))
+        trainer._start_or_resume()
+        for mesh in trainer.shapes:
+            trainer.geodesics.ensure(mesh)  # computed once per shape, outside the timed steps
+        if trainer.device.type == "cuda":
+            torch.cuda.reset_peak_memory_stats()
+        records = [trainer.train_step() for _ in range(args.steps + 1)][1:]
+    seconds = {p: float(np.median([r.seconds.get(p, 0.0) for r in records])) for p in PHASES}
+    step = float(np.median([sum(r.seconds.values()) for r in records]))
+    result = {
+        "model": args.model,
+        "image_size": args.image_size,
+        "views": [args.views_full, args.views_partial],
+        "partials_per_step": config.partials_per_shape,
+        "device": str(trainer.device),
+        "amp": config.amp,
+        "steps_timed": len(records),
+        "median_seconds": seconds,
+        "median_step_seconds": step,
+        "steps_per_second": 1.0 / step,
+        "peak_cuda_memory_gib": torch.cuda.max_memory_allocated() / 2**30 if trainer.device.type == "cuda" else None,
+        "machine": machine(),
+        "date": datetime.date.today().isoformat(),
+    }
+    name = f"speed_geolora_{args.model}_{args.image_size}_{trainer.device.type}"
+    (HERE / "results" / f"{name}.json").write_text(json.dumps(result, indent=1) + "\n")
+    lines = [
+        f"GeoLoRA step time: random DINOv3 {args.model}, {args.image_size} x {args.image_size}, "
+        f"{args.views_full} + {config.partials_per_shape} x {args.views_partial} views, {trainer.device}, "
+        f"median of {len(records)} steps; {result['machine']}, {result['date']}",
+        "",
+        "| " + " | ".join(PHASES) + " | step | steps/s |",
+        "|" + "---|" * (len(PHASES) + 2),
+        "| " + " | ".join(f"{seconds[p]:.3f}" for p in PHASES) + f" | {step:.3f} | {1.0 / step:.2f} |",
+    ]
+    (HERE / "results" / f"{name}.md").write_text("\n".join(lines) + "\n")
+    print("\n".join(lines))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,92 @@
+"""The common head interface: training-free heads, the shared training loop and checkpoints."""
+
+from dataclasses import dataclass
+
+import numpy as np
+import pytest
+import torch
+from shapes import bumpy
+
+from geofeat.adapters.heads import (
+    FunctionalMapHead,
+    HeadConfig,
+    HeadError,
+    LearnedHead,
+    Match,
+    input_features,
+    load_head,
+    make_head,
+)
+from geofeat.datasets.records import ShapePair
+from geofeat.geometry import make_partial
+
+
+def _pair(seed: int = 0) -> ShapePair:
+    mesh = bumpy(seed, 3)
+    partial = make_partial(mesh, "cuts", seed=seed)
+    return ShapePair(x=mesh, y=partial.mesh, map_yx=np.asarray(partial.vertex_map, dtype=np.int64), protocol="p2f")
+
+
+def test_nn_head_on_a_partial_of_the_same_shape_is_exact_with_xyz():
+    pair = _pair()
+    match = make_head("nn", descriptor="xyz").match(pair)
+    assert isinstance(match, Match) and match.map_yx.dtype == np.int64 and match.overlap_y.all()
+    np.testing.assert_array_equal(match.map_yx, pair.map_yx)
+
+
+def test_fmap_head_settings_and_errors():
+    head = make_head("fmap", descriptor="wks", k=20, n_eig=40)
+    assert isinstance(head, FunctionalMapHead) and head.config.k == 20
+    match = head.match(_pair())
+    assert match.map_yx.shape == (_pair().y.n_vertices,)
+    with pytest.raises(HeadError, match="unknown setting"):
+        make_head("fmap", colour="red")
+    with pytest.raises(HeadError, match="unknown head"):
+        make_head("magic")
+    with pytest.raises(HeadError, match="no parameters"):
+        input_features(bumpy(0, 2), "xyz", {"scale": 2})
+
+
+@dataclass
+class _AffineConfig(HeadConfig):
+    width: int = 8
+
+
+class _AffineHead(LearnedHead):
+    """A per-vertex linear map trained so that y's features reach their ground-truth x features."""
+
+    name = "test_affine"
+    config_class = _AffineConfig
+
+    def build_model(self, in_channels):
+        return torch.nn.Linear(in_channels, self.config.width)
+
+    def training_loss(self, pair):
+        fx = self.model(self.shape_inputs(pair.x)[0])
+        fy = self.model(self.shape_inputs(pair.y)[0])
+        keep = torch.as_tensor(pair.map_yx >= 0)
+        logits = fy[keep] @ fx.T
+        return torch.nn.functional.cross_entropy(logits, torch.as_tensor(pair.map_yx[keep]))
+
+    def predict(self, pair):
+        fx = self.model(self.shape_inputs(pair.x)[0])
+        fy = self.model(self.shape_inputs(pair.y)[0])
+        return Match((fy @ fx.T).argmax(1).numpy(), np.ones(pair.y.n_vertices, dtype=bool))
+
+
+def test_learned_head_trains_saves_and_loads(tmp_path, monkeypatch):
+    from geofeat.adapters import heads
+
+    monkeypatch.setitem(heads.HEADS, "test_affine", f"{__name__}:_AffineHead")
+    head = _AffineHead(descriptor="wks", n_eig=40, epochs=3, lr=1e-2, cosine_annealing=True, progress=False)
+    pairs = [_pair(0), _pair(1)]
+    with pytest.raises(HeadError, match="no model yet"):
+        head.save(tmp_path / "early")
+    losses = head.fit(pairs)
+    assert len(losses) == 6 and losses[-1] < losses[0]
+    head.save(tmp_path / "head")
+    again = load_head(tmp_path / "head")
+    assert isinstance(again, _AffineHead) and again.config == head.config
+    np.testing.assert_array_equal(again.match(pairs[0]).map_yx, head.match(pairs[0]).map_yx)
+    with pytest.raises(HeadError, match="no training pairs"):
+        head.fit([])
