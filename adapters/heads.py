@@ -149,7 +149,8 @@ def input_features(mesh: Mesh, descriptor: str, params: dict | None = None) -> n
         if params:
             raise HeadError(f"descriptor 'xyz' takes no parameters; found {sorted(params)}.")
         verts = mesh.verts - mesh.verts.mean(axis=0)
-        scale = math.sqrt(mesh.area) if mesh.faces is not None and mesh.area > 0 else 1.0
+        area = mesh.area() if mesh.faces is not None else 0.0
+        scale = math.sqrt(area) if area > 0 else 1.0
         return np.ascontiguousarray(verts / scale, dtype=np.float32)
     return geofeat.compute(mesh, descriptor, **(params or {}))
 

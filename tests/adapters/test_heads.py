@@ -27,8 +27,12 @@ def _pair(seed: int = 0) -> ShapePair:
     return ShapePair(x=mesh, y=partial.mesh, map_yx=np.asarray(partial.vertex_map, dtype=np.int64), protocol="p2f")
 
 
-def test_nn_head_on_a_partial_of_the_same_shape_is_exact_with_xyz():
-    pair = _pair()
+def test_nn_head_matches_a_permuted_copy_exactly_with_xyz():
+    mesh = bumpy(0, 3)
+    order = np.random.default_rng(0).permutation(mesh.n_vertices)
+    inverse = np.argsort(order)
+    copy = type(mesh)(mesh.verts[order], inverse[mesh.faces], "permuted")
+    pair = ShapePair(x=mesh, y=copy, map_yx=order.astype(np.int64), protocol="f2f")
     match = make_head("nn", descriptor="xyz").match(pair)
     assert isinstance(match, Match) and match.map_yx.dtype == np.int64 and match.overlap_y.all()
     np.testing.assert_array_equal(match.map_yx, pair.map_yx)
