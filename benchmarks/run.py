@@ -4,8 +4,11 @@ With no arguments it runs offline on the built-in synthetic collection::
 
     python benchmarks/run.py
     python benchmarks/run.py --pipeline fmap --dataset faust_r_cuts --descriptor wks --data-root ../shared/data
+    python benchmarks/run.py --pipeline ulrssm --dataset faust_r_cuts --descriptor wks --max-minutes 30
+    python benchmarks/run.py --pipeline dpfm --quick          # a smoke run of a learned head, < 2 min on a CPU
 
-Writes into ``--out`` (default ``benchmarks/results/<pipeline>_<dataset>_<descriptor>``):
+Learned heads (ulrssm, dpfm, echomatch) are trained first on ``--train-split`` of the same
+dataset (or loaded with ``--load``) and saved into ``<out>/head``. Writes into ``--out`` (default ``benchmarks/results/<pipeline>_<dataset>_<descriptor>``):
 ``results.json``, ``results.md``, ``pck.png`` and ``pairs.png``.
 """
 
@@ -30,7 +33,7 @@ from report import markdown_table, plot_pairs, plot_pck  # noqa: E402
 
 import geofeat  # noqa: E402
 from geofeat import metrics  # noqa: E402
-from geofeat.adapters import matchers  # noqa: E402
+from geofeat.adapters.heads import Head, Match, load_head, make_head  # noqa: E402
 from geofeat.datasets import dataset_names, load_dataset  # noqa: E402
 from geofeat.descriptors.registry import make_descriptor  # noqa: E402
 from geofeat.geometry.geodesic import geodesic_matrix  # noqa: E402
@@ -38,44 +41,94 @@ from geofeat.geometry.geodesic import geodesic_matrix  # noqa: E402
 log = logging.getLogger("benchmarks.run")
 
 REFERENCE_PIPELINES = ("random", "mirrored_truth")
-PIPELINES = ("nn", "fmap", "fmap_zoomout", *REFERENCE_PIPELINES)
+LEARNED_PIPELINES = ("ulrssm", "dpfm", "echomatch")
+PIPELINES = ("nn", "fmap", "fmap_zoomout", *LEARNED_PIPELINES, *REFERENCE_PIPELINES)
 N_PICTURES = 3
+#: --quick: settings small enough to train and evaluate end to end in well under 2 minutes on a CPU.
+QUICK = {
+    "ulrssm": {"n_eig": 30, "n_fmap": 20, "diffusion_eig": 30, "width": 16, "width_out": 16, "n_blocks": 2, "tta_steps": 1},
+    "dpfm": {"n_eig": 30, "n_fmap": 20, "width": 16, "n_blocks": 2, "attention_dim": 16, "max_samples": 100},
+    "echomatch": {"n_eig": 30, "n_fmap": 20, "width": 16, "n_blocks": 2},
+}
+QUICK_TRAIN_PAIRS = 3
+QUICK_TEST_PAIRS = 2
 
 
-def match(
-    pipeline: str, pair, feat_x: np.ndarray | None, feat_y: np.ndarray | None, seed: int = 0
-) -> tuple[np.ndarray, np.ndarray]:
-    """Predicted map Y -> X (V_y,) and predicted overlap on Y (V_y,) bool.
+def reference_match(pipeline: str, pair, seed: int = 0) -> Match:
+    """The reference pipelines that ignore features.
 
-    The training-free matchers predict no overlap: every vertex of Y counts as overlapping.
-    Two reference pipelines ignore the features: ``random`` (a uniformly random vertex of X,
-    seeded) and ``mirrored_truth`` (the left-right mirrored ground truth: the cost of a
-    perfect but flipped map; needs a dataset with chirality ground truth).
+    ``random``: a uniformly random vertex of X (seeded); ``mirrored_truth``: the left-right
+    mirrored ground truth, the cost of a perfect but flipped map (needs a dataset with
+    chirality ground truth).
     """
+    all_y = np.ones(pair.y.n_vertices, dtype=bool)
     if pipeline == "random":
-        predicted = np.random.default_rng(seed).integers(0, pair.x.n_vertices, pair.y.n_vertices)
-    elif pipeline == "mirrored_truth":
-        if pair.map_yx_sym is None:
-            raise geofeat.DatasetError("pipeline 'mirrored_truth' needs a dataset with a mirrored ground truth")
-        predicted = np.where(pair.map_yx_sym >= 0, pair.map_yx_sym, -1)
-    elif pipeline == "nn":
-        predicted = matchers.nn_match(feat_x, feat_y)
-    elif pipeline in ("fmap", "fmap_zoomout"):
-        predicted = matchers.fmap_match(pair.x, pair.y, feat_x, feat_y, zoomout=pipeline == "fmap_zoomout")
-    else:
-        raise ValueError(f"unknown pipeline {pipeline!r}; expected one of {PIPELINES}")
-    return predicted, np.ones(pair.y.n_vertices, dtype=bool)
+        return Match(np.random.default_rng(seed).integers(0, pair.x.n_vertices, pair.y.n_vertices), all_y)
+    if pair.map_yx_sym is None:
+        raise geofeat.DatasetError("pipeline 'mirrored_truth' needs a dataset with a mirrored ground truth")
+    return Match(np.where(pair.map_yx_sym >= 0, pair.map_yx_sym, -1), all_y)
 
 
-def evaluate_pair(pair, predicted: np.ndarray, overlap_pred: np.ndarray) -> dict:
-    """Per-pair metrics; ``errors`` is the array of per-vertex geodesic errors."""
+def build_head(args, params: dict) -> Head:
+    """The head of ``--pipeline`` with the input descriptor, ``--head-param`` settings and ``--quick`` sizes."""
+    settings = {"descriptor": args.descriptor, "descriptor_params": params, "progress": not args.no_progress}
+    if args.pipeline in ("nn", "fmap", "fmap_zoomout"):
+        zoomout = {"zoomout": True} if args.pipeline == "fmap_zoomout" else {}
+        return make_head("fmap" if zoomout else args.pipeline, **settings, **zoomout)
+    settings |= {"seed": args.seed, "epochs": args.epochs, "max_minutes": args.max_minutes}
+    if args.quick:
+        settings |= QUICK[args.pipeline] | {"max_minutes": min(args.max_minutes or 0.5, 0.5)}
+    settings |= descriptor_params(args.head_param, what="--head-param")
+    return make_head(args.pipeline, **settings)
+
+
+def train_head(head: Head, args, out: Path) -> dict:
+    """Train a learned head on ``--train-split`` (or load ``--load``); returns a summary for the report."""
+    if args.load:
+        return {"loaded_from": args.load}
+    train = load_dataset(args.dataset, root=args.data_root, split=args.train_split, seed=args.seed)
+    n_train = len(train) if args.train_limit is None else min(args.train_limit, len(train))
+    if args.quick:
+        n_train = min(n_train, QUICK_TRAIN_PAIRS)
+    start = time.perf_counter()
+    losses = head.fit(_Pairs(train, n_train))
+    head.save(out / "head")
+    return {"train_split": args.train_split, "train_pairs": n_train, "train_steps": len(losses), "train_seconds": time.perf_counter() - start,
+            "final_loss": losses[-1] if losses else None}  # fmt: skip
+
+
+class _Pairs:
+    """The first ``n`` pairs of a dataset as a sequence, loaded on access."""
+
+    def __init__(self, dataset, n: int):
+        self.dataset, self.n = dataset, n
+
+    def __len__(self) -> int:
+        return self.n
+
+    def __getitem__(self, i: int):
+        if not 0 <= i < self.n:
+            raise IndexError(i)
+        return self.dataset[i]
+
+
+def evaluate_pair(pair, match: Match) -> dict:
+    """Per-pair metrics; ``errors`` is the array of per-vertex geodesic errors.
+
+    The overlap IoU is that of Y, averaged with that of X where the head predicts it and the
+    dataset has it.
+    """
     dist_x = geodesic_matrix(pair.x, method="dijkstra", normalize=True)
+    predicted = match.map_yx
     errors = metrics.geodesic_errors(predicted, pair.map_yx, dist_x)
     record = {"pair": f"{pair.y.name}->{pair.x.name}", "errors": errors, "n_evaluated": int(errors.size)}
     if pair.map_yx_sym is not None:
         record["chirality_accuracy"] = metrics.chirality_accuracy(predicted, pair.map_yx, pair.map_yx_sym, dist_x)
     if pair.overlap_y is not None:
-        record["iou"] = metrics.overlap_iou(overlap_pred, pair.overlap_y)
+        ious = [metrics.overlap_iou(match.overlap_y, pair.overlap_y)]
+        if match.overlap_x is not None and pair.overlap_x is not None:
+            ious.append(metrics.overlap_iou(match.overlap_x, pair.overlap_x))
+        record["iou"] = float(np.mean(ious))
     return record
 
 
@@ -114,6 +167,13 @@ def parse_args(argv=None) -> argparse.Namespace:
         metavar="KEY=VALUE",
         help="descriptor parameter, repeatable (VALUE read as JSON when it parses, else as a string): --param n_descr=64",
     )
+    parser.add_argument("--head-param", action="append", default=[], metavar="KEY=VALUE", help="head setting, repeatable")
+    parser.add_argument("--train-split", default="train", help="learned heads: the training split")
+    parser.add_argument("--train-limit", type=int, default=None, help="learned heads: train on the first N pairs")
+    parser.add_argument("--epochs", type=int, default=1, help="learned heads: passes over the training pairs")
+    parser.add_argument("--max-minutes", type=float, default=None, help="learned heads: training time budget")
+    parser.add_argument("--load", default=None, help="learned heads: a saved head folder instead of training")
+    parser.add_argument("--quick", action="store_true", help="smoke run: tiny head, few pairs, under 2 minutes on a CPU")
     parser.add_argument("--data-root", default=os.environ.get("GEOFEAT_DATA", str(HERE.parent.parent / "shared" / "data")))
     parser.add_argument("--split", default="test")
     parser.add_argument("--limit", type=int, default=None, help="evaluate the first N pairs only")
@@ -123,13 +183,13 @@ def parse_args(argv=None) -> argparse.Namespace:
     return parser.parse_args(argv)
 
 
-def descriptor_params(pairs: list[str]) -> dict:
+def descriptor_params(pairs: list[str], what: str = "--param") -> dict:
     """``["k=v", ...]`` to a dict; values parsed as JSON when they parse (numbers, booleans, null), else strings."""
     params = {}
     for pair in pairs:
         key, sep, value = pair.partition("=")
         if not sep or not key:
-            raise geofeat.DescriptorError(f"--param takes KEY=VALUE, found {pair!r}")
+            raise geofeat.DescriptorError(f"{what} takes KEY=VALUE, found {pair!r}")
         try:
             params[key] = json.loads(value)
         except json.JSONDecodeError:
@@ -143,30 +203,34 @@ def main(argv=None) -> int:
     try:
         dataset = load_dataset(args.dataset, root=args.data_root, split=args.split, seed=args.seed)
         params = descriptor_params(args.param)
+        head = None
         if args.pipeline in REFERENCE_PIPELINES:
             args.descriptor = "none"  # reference pipelines use no features
         else:
-            make_descriptor(args.descriptor, **params)  # unknown names, parameters and missing extras fail before any work
+            if args.descriptor != "xyz":
+                make_descriptor(args.descriptor, **params)  # unknown names, parameters and missing extras fail before any work
+            head = load_head(args.load) if args.load else build_head(args, params)
     except geofeat.GeofeatError as err:
         sys.stderr.write(f"run.py: error: {err}\n")
         return 2
     n_pairs = len(dataset) if args.limit is None else min(args.limit, len(dataset))
+    if args.quick:
+        n_pairs = min(n_pairs, QUICK_TEST_PAIRS)
     out = Path(args.out or HERE / "results" / f"{args.pipeline}_{args.dataset}_{args.descriptor}")
     out.mkdir(parents=True, exist_ok=True)
+    training = train_head(head, args, out) if args.pipeline in LEARNED_PIPELINES else {}
 
     start = time.perf_counter()
     records, pictures = [], []
     for i in tqdm(range(n_pairs), desc=f"{args.pipeline} on {args.dataset}", unit="pair", disable=args.no_progress):
         pair = dataset[i]
-        if args.pipeline in REFERENCE_PIPELINES:  # they ignore features
-            feat_x = feat_y = None
+        if head is None:
+            match = reference_match(args.pipeline, pair, seed=args.seed * 100003 + i)
         else:
-            feat_x = geofeat.compute(pair.x, args.descriptor, **params)
-            feat_y = geofeat.compute(pair.y, args.descriptor, **params)
-        predicted, overlap_pred = match(args.pipeline, pair, feat_x, feat_y, seed=args.seed * 100003 + i)
-        records.append(evaluate_pair(pair, predicted, overlap_pred))
+            match = head.match(pair)
+        records.append(evaluate_pair(pair, match))
         if len(pictures) < N_PICTURES:
-            pictures.append((pair, predicted, f"{args.descriptor} + {args.pipeline}"))
+            pictures.append((pair, match.map_yx, f"{args.descriptor} + {args.pipeline}"))
     seconds = time.perf_counter() - start
 
     summary = summarize(records)
@@ -179,6 +243,8 @@ def main(argv=None) -> int:
         "seed": args.seed,
         "date": datetime.date.today().isoformat(),
         "seconds": seconds,
+        "head": None if head is None else {"name": head.name, "config": head.config.to_dict()},
+        **training,
         **summary,
         "pairs": [
             {k: v for k, v in r.items() if k != "errors"} | {"geodesic_error": 100 * float(r["errors"].mean())} for r in records
@@ -204,7 +270,12 @@ def main(argv=None) -> int:
     )
     plot_pairs(pictures, out / "pairs.png")
     print(table)
-    print(f"{n_pairs} pairs in {seconds:.1f} s; written to {out}")
+    trained = (
+        f"trained {training['train_steps']} steps on {training['train_pairs']} pairs in {training['train_seconds']:.1f} s; "
+        if "train_steps" in training
+        else ""
+    )
+    print(f"{trained}{n_pairs} pairs in {seconds:.1f} s; written to {out}")
     return 0
 
 
