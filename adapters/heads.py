@@ -84,6 +84,8 @@ class HeadConfig:
         Adam learning rate.
     cosine_annealing : bool
         Anneal the learning rate to 0 over the training with a cosine.
+    grad_clip : float or None
+        Clip the gradient norm to this before every step.
     max_minutes : float or None
         Stop training after this much wall time.
     seed : int
@@ -100,6 +102,7 @@ class HeadConfig:
     epochs: int = 1
     lr: float = 1e-3
     cosine_annealing: bool = False
+    grad_clip: float | None = None
     max_minutes: float | None = None
     seed: int = 0
     device: str = "cpu"
@@ -306,6 +309,8 @@ class LearnedHead(Head):
                     loss = self.training_loss(pairs[int(index)])
                     optimizer.zero_grad(set_to_none=True)
                     loss.backward()
+                    if config.grad_clip is not None:
+                        torch.nn.utils.clip_grad_norm_(model.parameters(), config.grad_clip)
                     optimizer.step()
                     if scheduler is not None:
                         scheduler.step()

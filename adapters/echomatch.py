@@ -1,0 +1,771 @@
+"""EchoMatch (Xie, Ehm, Roetzer, El Amrani, Gao, Bernard and Cremers, CVPR 2025): partial-to-partial matching by correspondence reflection.
+
+Both shapes go through one DiffusionNet feature extractor. Cosine similarities of the
+L2-normalised features, divided by a learned temperature, give two soft point maps by a
+row-wise softmax: ``P_xy`` (V_x, V_y) from ``x`` to ``y`` and ``P_yx`` (V_y, V_x) back. Their
+product ``R_x = P_xy P_yx`` (V_x, V_x) is the *correspondence reflection* of ``x``: row ``i``
+says where vertex ``i`` lands after a round trip through ``y``. A vertex that has a
+counterpart comes back to itself or next to it; one outside the overlap echoes somewhere
+else or nowhere. For each vertex the reflection is read at its nearest neighbours in space
+(itself first), divided by the largest value over the shape, and a small DiffusionNet turns
+these values into an overlap probability (the same network for ``y`` with ``R_y = P_yx P_xy``).
+
+Training is supervised (``training_loss``):
+
+- functional-map loss: ``||C - C_gt||_F^2`` between the regularised functional map of the
+  features (`geofeat.adapters.fmap_layers.regularized_fmap`, first ``n_fmap`` eigenpairs;
+  the features of ``y`` outside its ground-truth overlap are zeroed while training) and a
+  ground-truth map fitted to the known correspondences with a strong Laplacian-mask
+  regulariser (`regularized_gt_fmap`);
+- overlap loss: class-balanced binary cross-entropy of both overlap predictions;
+- cross-NCE: for every ground-truth pair, InfoNCE over all vertices of the other shape, in
+  both directions; self-NCE: every vertex against all vertices of its own shape (spreads the
+  features). Both on L2-normalised features with a fixed temperature.
+
+Prediction (``predict``): every vertex of ``y`` goes to the vertex of ``x`` with the most
+similar normalised feature (nearest neighbour), and the overlap probabilities are
+thresholded.
+
+Facts taken from the authors' code (github.com/vikiehm/echo-match, files
+``networks/echo_match_network.py``, ``models/echo_match_model.py``,
+``losses/echo_match_loss.py``, ``utils/fmap_util.py``, ``utils/shape_dataset_util.py``,
+``options/echo_match/train/*.yaml``): feature DiffusionNet with 128 output channels and
+width, 4 blocks, dropout 0.5; learned temperature initialised to 0.1; 64 spatial (Euclidean)
+neighbours; overlap DiffusionNet of width 16 with 3 blocks and a sigmoid; functional map on
+50 eigenpairs with ``lambda = 100`` and resolvent ``gamma = 0.5`` (the DiffusionNet operators
+use 128 eigenpairs); ground-truth functional map regularised with ``lambda = 1e6``; loss
+weights fmap 1, overlap 1, self-NCE 0.1, cross-NCE 0.1, NCE temperature 0.07; only the
+features of the second shape (here ``y``) are masked by the ground-truth overlap before the
+functional map while training; Adam, learning rate 1e-3, 900 epochs; overlap threshold 0.5;
+test-time map by nearest neighbour of the normalised features.
+
+Our choices (not in the reference): the overlap network outputs logits and the loss uses
+the equivalent ``binary_cross_entropy_with_logits``; the learned temperature is clamped at
+``1e-4`` from below (its gradient passed through, so it can come back); the reflection is
+evaluated only at the neighbours (`sampled_reflection`, same values as gathering the dense
+product, about ``V / k`` times cheaper); ``restrict_to_overlap`` (off by default) limits the
+nearest-neighbour search to the predicted overlap of ``x``. Not reproduced: the reference's step schedule
+(learning rate halved every 100 epochs, Adam betas (0.9, 0.99)) and its random rotation,
+noise and scaling of ``xyz`` inputs while training; the shared loop of `LearnedHead` runs
+plain Adam with optional cosine annealing.
+
+>>> head = make_head("echomatch", descriptor="xyz", epochs=5)   # doctest: +SKIP
+>>> head.fit(train_pairs); match = head.match(pair)            # doctest: +SKIP
+>>> match.map_yx, match.overlap_y, match.overlap_x             # doctest: +SKIP
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+from collections import OrderedDict
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from scipy.spatial import cKDTree
+from torch import nn
+
+from geofeat.datasets.records import ShapePair
+from geofeat.mesh import Mesh
+
+from .diffusion_net import DiffusionNet
+from .fmap_layers import regularized_fmap, resolvent_mask
+from .heads import HeadConfig, HeadError, LearnedHead, Match
+from .operators import SurfaceOperators
+
+__all__ = [
+    "PRUNE_STRATEGIES",
+    "EchoMatchConfig",
+    "EchoMatchHead",
+    "EchoMatchNet",
+    "EchoMatchOutput",
+    "balanced_bce_with_logits",
+    "correspondence_reflection",
+    "cross_nce_loss",
+    "ground_truth_overlaps",
+    "pointmap_matrix",
+    "reflection_features",
+    "regularized_gt_fmap",
+    "round_trip_error",
+    "sampled_reflection",
+    "self_nce_loss",
+    "spatial_neighbours",
+]
+
+#: Which features are zeroed outside the ground-truth overlap before the functional map while
+#: training: those of ``y`` (the reference's default), of both shapes, or none.
+PRUNE_STRATEGIES = ("y", "both", "none")
+#: Lower bound of the learned temperature (our choice; the reference does not bound it).
+MIN_TEMPERATURE = 1e-4
+
+
+@dataclass
+class EchoMatchConfig(HeadConfig):
+    """`HeadConfig` plus the EchoMatch network and loss settings (defaults: the authors' values).
+
+    Parameters
+    ----------
+    feature_channels : int
+        Output channels of the feature DiffusionNet (128).
+    width : int
+        Width of the feature DiffusionNet (128).
+    n_blocks : int
+        Blocks of the feature DiffusionNet (4).
+    dropout : float
+        Dropout probability in the MLPs of both DiffusionNets (0.5).
+    temperature_init : float
+        Initial value of the learned softmax temperature of the soft point maps (0.1).
+    n_neighbours : int
+        Spatial neighbours (the vertex itself included) at which the reflection is read: the
+        input width of the overlap network (64).
+    overlap_width : int
+        Width of the overlap DiffusionNet (16).
+    overlap_blocks : int
+        Blocks of the overlap DiffusionNet (3).
+    n_fmap : int
+        Eigenpairs of the functional map (50); at most ``n_eig`` (the operators, 128).
+    fmap_lambda : float
+        Laplacian-mask weight of the feature functional map (100).
+    fmap_gamma : float
+        Resolvent exponent of the Laplacian mask (0.5).
+    gt_fmap_lambda : float
+        Laplacian-mask weight of the ground-truth functional map (1e6); 0 gives
+        ``Phi_y^T M_y P_yx Phi_x``.
+    w_fmap, w_overlap, w_nce_self, w_nce_cross : float
+        Loss weights (1, 1, 0.1, 0.1).
+    nce_temperature : float
+        Temperature of both NCE losses (0.07).
+    prune_strategy : {"y", "both", "none"}
+        Features zeroed outside the ground-truth overlap before the training functional map
+        (``"y"``).
+    overlap_threshold : float
+        Probability above which a vertex is predicted to overlap (0.5).
+    restrict_to_overlap : bool
+        Our option: match ``y`` only to vertices of ``x`` predicted to overlap (all of ``x``
+        when none is). Off by default, as in the reference.
+    epochs, lr
+        900 and 1e-3, the authors' training settings.
+    """
+
+    feature_channels: int = 128
+    width: int = 128
+    n_blocks: int = 4
+    dropout: float = 0.5
+    temperature_init: float = 0.1
+    n_neighbours: int = 64
+    overlap_width: int = 16
+    overlap_blocks: int = 3
+    n_fmap: int = 50
+    fmap_lambda: float = 100.0
+    fmap_gamma: float = 0.5
+    gt_fmap_lambda: float = 1e6
+    w_fmap: float = 1.0
+    w_overlap: float = 1.0
+    w_nce_self: float = 0.1
+    w_nce_cross: float = 0.1
+    nce_temperature: float = 0.07
+    prune_strategy: str = "y"
+    overlap_threshold: float = 0.5
+    restrict_to_overlap: bool = False
+    epochs: int = 900
+    lr: float = 1e-3
+
+    def __post_init__(self) -> None:
+        for name in ("feature_channels", "width", "n_neighbours", "overlap_width", "n_fmap", "n_eig", "epochs"):
+            value = getattr(self, name)
+            if not _is_int(value) or value < 1:
+                raise HeadError(f"echomatch setting {name} must be a positive integer; found {value!r}.")
+        for name in ("n_blocks", "overlap_blocks"):
+            value = getattr(self, name)
+            if not _is_int(value) or value < 0:
+                raise HeadError(f"echomatch setting {name} must be a non-negative integer; found {value!r}.")
+        if self.n_fmap > self.n_eig:
+            raise HeadError(
+                f"echomatch: n_fmap={self.n_fmap} eigenpairs for the functional map, but the operators have only "
+                f"n_eig={self.n_eig}; raise n_eig or lower n_fmap."
+            )
+        for name in ("fmap_lambda", "gt_fmap_lambda", "w_fmap", "w_overlap", "w_nce_self", "w_nce_cross"):
+            value = getattr(self, name)
+            if not _is_real(value) or not value >= 0 or not math.isfinite(value):
+                raise HeadError(f"echomatch setting {name} must be a finite number >= 0; found {value!r}.")
+        for name in ("temperature_init", "nce_temperature", "lr"):
+            value = getattr(self, name)
+            if not _is_real(value) or not value > 0 or not math.isfinite(value):
+                raise HeadError(f"echomatch setting {name} must be a finite number > 0; found {value!r}.")
+        if not _is_real(self.fmap_gamma) or not 0 < self.fmap_gamma <= 1:
+            raise HeadError(f"echomatch setting fmap_gamma must lie in (0, 1]; found {self.fmap_gamma!r}.")
+        if not _is_real(self.dropout) or not 0 <= self.dropout < 1:
+            raise HeadError(f"echomatch setting dropout must be a probability in [0, 1); found {self.dropout!r}.")
+        if not _is_real(self.overlap_threshold) or not 0 < self.overlap_threshold < 1:
+            raise HeadError(f"echomatch setting overlap_threshold must lie in (0, 1); found {self.overlap_threshold!r}.")
+        if self.prune_strategy not in PRUNE_STRATEGIES:
+            raise HeadError(f"echomatch setting prune_strategy must be one of {PRUNE_STRATEGIES}; found {self.prune_strategy!r}.")
+
+
+def _is_int(value) -> bool:
+    return isinstance(value, (int, np.integer)) and not isinstance(value, bool)
+
+
+def _is_real(value) -> bool:
+    return isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, bool)
+
+
+# ----------------------------------------------------------------------------- correspondence reflection
+
+
+def pointmap_matrix(map_yx, n_x: int, dtype: torch.dtype = torch.float32) -> torch.Tensor:
+    """Dense one-hot matrix of a hard point map y -> x; rows of unmatched vertices (``-1``) are zero.
+
+    Parameters
+    ----------
+    map_yx : array_like of int, shape (V_y,)
+        For each vertex of ``y`` a vertex of ``x``, or ``-1``.
+    n_x : int
+        Number of vertices of ``x``.
+    dtype : torch.dtype
+
+    Returns
+    -------
+    torch.Tensor, shape (V_y, n_x)
+        ``P[v, map_yx[v]] = 1``.
+    """
+    index = torch.as_tensor(np.asarray(map_yx), dtype=torch.int64)
+    if index.ndim != 1:
+        raise HeadError(f"map_yx must be a 1-D integer array, shape (V_y,); found shape {tuple(index.shape)}.")
+    if index.numel() and (int(index.min()) < -1 or int(index.max()) >= n_x):
+        raise HeadError(
+            f"map_yx must hold vertex indices in [0, {n_x - 1}] or -1; found range [{int(index.min())}, {int(index.max())}]."
+        )
+    matrix = torch.zeros(index.shape[0], n_x, dtype=dtype)
+    rows = torch.nonzero(index >= 0).squeeze(1)
+    matrix[rows, index[rows]] = 1
+    return matrix
+
+
+def correspondence_reflection(p_xy: torch.Tensor, p_yx: torch.Tensor) -> torch.Tensor:
+    """The round trip x -> y -> x of two (soft) point maps: ``R_x = P_xy P_yx``.
+
+    Parameters
+    ----------
+    p_xy : torch.Tensor, shape (V_x, V_y)
+        Point map from ``x`` to ``y`` (rows are vertices of ``x``; a soft map's rows sum to one).
+    p_yx : torch.Tensor, shape (V_y, V_x)
+        Point map back.
+
+    Returns
+    -------
+    torch.Tensor, shape (V_x, V_x)
+        ``R[i, j]``: how much of vertex ``i`` comes back at vertex ``j``; the identity (on the
+        overlap) for an exact pair of maps. Swap the arguments for ``R_y``.
+    """
+    if p_xy.ndim != 2 or p_yx.ndim != 2 or p_xy.shape[1] != p_yx.shape[0] or p_xy.shape[0] != p_yx.shape[1]:
+        raise HeadError(
+            f"p_xy and p_yx must have shapes (V_x, V_y) and (V_y, V_x); found {tuple(p_xy.shape)} and {tuple(p_yx.shape)}."
+        )
+    return p_xy @ p_yx
+
+
+def spatial_neighbours(verts: np.ndarray, k: int) -> np.ndarray:
+    """The ``min(k, V)`` nearest vertices of every vertex in Euclidean space, itself first.
+
+    Parameters
+    ----------
+    verts : numpy.ndarray, shape (V, 3)
+    k : int
+
+    Returns
+    -------
+    numpy.ndarray, shape (V, min(k, V)), int64
+        Sorted by distance; column 0 is the vertex itself (ties in position aside).
+    """
+    verts = np.asarray(verts, dtype=np.float64)
+    k = min(int(k), verts.shape[0])
+    _, index = cKDTree(verts).query(verts, k=k)
+    index = np.asarray(index, dtype=np.int64).reshape(verts.shape[0], k)
+    for row in np.flatnonzero(index[:, 0] != np.arange(verts.shape[0])):  # coincident vertices: itself first
+        where = np.flatnonzero(index[row] == row)
+        index[row, where[0] if where.size else k - 1] = index[row, 0]
+        index[row, 0] = row
+    return index
+
+
+class _SampledProduct(torch.autograd.Function):
+    """``out[i, j] = a[i, :] @ b[:, index[i, j]]`` without forming ``a @ b`` (a sampled matrix product)."""
+
+    @staticmethod
+    def forward(ctx, a: torch.Tensor, b: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
+        ctx.save_for_backward(a, b, index)
+        n, k = index.shape
+        try:  # sampled dense-dense product on a CSR pattern: a few times faster than the dense product
+            order = index.argsort(dim=1)
+            cols = index.gather(1, order)
+            crow = torch.arange(0, n * k + 1, k, device=index.device)
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", UserWarning)  # "CSR support is in beta"
+                pattern = torch.sparse_csr_tensor(crow, cols.reshape(-1), a.new_zeros(n * k), (n, b.shape[1]),
+                                                  check_invariants=False)  # fmt: skip
+                values = torch.sparse.sampled_addmm(pattern, a, b, beta=0.0).values().reshape(n, k)
+            return torch.empty_like(values).scatter_(1, order, values)
+        except (RuntimeError, NotImplementedError):  # a device without sampled_addmm: gather in chunks
+            b_t = b.T.contiguous()
+            rows = max(1, _CHUNK_ELEMENTS // max(1, k * a.shape[1]))
+            out = [
+                torch.einsum("im,ijm->ij", a[start : start + rows], b_t[index[start : start + rows]])
+                for start in range(0, n, rows)
+            ]
+            return torch.cat(out) if out else a.new_zeros(index.shape)
+
+    @staticmethod
+    def backward(ctx, grad: torch.Tensor):
+        a, b, index = ctx.saved_tensors
+        n, k = index.shape
+        rows = torch.arange(n, device=index.device).repeat_interleave(k)
+        # G (n, n_b): grad[i, j] at (i, index[i, j]); d/da = G b^T, d/db = (G^T a)^T
+        g = torch.sparse_coo_tensor(
+            torch.stack([rows, index.reshape(-1)]), grad.reshape(-1), (n, b.shape[1]), check_invariants=False
+        ).coalesce()
+        grad_a = torch.sparse.mm(g, b.T.contiguous()) if ctx.needs_input_grad[0] else None
+        grad_b = torch.sparse.mm(g.t().coalesce(), a).T if ctx.needs_input_grad[1] else None
+        return grad_a, grad_b, None
+
+
+#: Elements of the largest temporary of `_SampledProduct` (16M float32: 64 MB).
+_CHUNK_ELEMENTS = 1 << 24
+
+
+def sampled_reflection(p_xy: torch.Tensor, p_yx: torch.Tensor, neighbours: torch.Tensor) -> torch.Tensor:
+    """The entries of `correspondence_reflection` at each vertex's neighbours, without the dense product.
+
+    ``out[i, j] = (P_xy P_yx)[i, neighbours[i, j]]``: costs ``V_x * k * V_y`` instead of
+    ``V_x^2 * V_y`` and never holds a (V_x, V_x) matrix; differentiable with respect to both maps.
+
+    Parameters
+    ----------
+    p_xy : torch.Tensor, shape (V_x, V_y)
+    p_yx : torch.Tensor, shape (V_y, V_x)
+    neighbours : torch.Tensor, shape (V_x, k), int64
+
+    Returns
+    -------
+    torch.Tensor, shape (V_x, k)
+    """
+    if p_xy.ndim != 2 or p_yx.ndim != 2 or p_xy.shape[1] != p_yx.shape[0] or p_xy.shape[0] != p_yx.shape[1]:
+        raise HeadError(
+            f"p_xy and p_yx must have shapes (V_x, V_y) and (V_y, V_x); found {tuple(p_xy.shape)} and {tuple(p_yx.shape)}."
+        )
+    if neighbours.ndim != 2 or neighbours.shape[0] != p_xy.shape[0]:
+        raise HeadError(f"neighbours must have shape ({p_xy.shape[0]}, k); found {tuple(neighbours.shape)}.")
+    return _SampledProduct.apply(p_xy, p_yx, neighbours.to(torch.int64))
+
+
+def reflection_features(scores: torch.Tensor, width: int | None = None) -> torch.Tensor:
+    """The input of the overlap network: reflection entries at the neighbours, scaled to a maximum of one.
+
+    Parameters
+    ----------
+    scores : torch.Tensor, shape (V, k)
+        `sampled_reflection` (or ``torch.gather(correspondence_reflection(...), 1, neighbours)``).
+    width : int, optional
+        Columns of the result; zero columns are appended when ``k < width`` (a shape with
+        fewer vertices than neighbours requested). Default ``k``.
+
+    Returns
+    -------
+    torch.Tensor, shape (V, width)
+        ``scores`` divided by their largest value over the shape.
+    """
+    scores = scores / scores.max().clamp_min(torch.finfo(scores.dtype).tiny)
+    width = scores.shape[1] if width is None else int(width)
+    if scores.shape[1] < width:
+        scores = F.pad(scores, (0, width - scores.shape[1]))
+    return scores
+
+
+def round_trip_error(reflection: torch.Tensor, verts, mask=None) -> torch.Tensor:
+    """Mean expected Euclidean distance between a vertex and where its round trip lands.
+
+    Parameters
+    ----------
+    reflection : torch.Tensor, shape (V, V)
+        `correspondence_reflection` (rows of a soft round trip sum to one).
+    verts : array_like, shape (V, 3)
+    mask : array_like of bool, shape (V,), optional
+        Vertices to average over (default all).
+
+    Returns
+    -------
+    torch.Tensor, shape ()
+        ``mean_i sum_j R[i, j] |v_i - v_j|``: zero for an exact round trip.
+    """
+    v = torch.tensor(np.asarray(verts), dtype=reflection.dtype, device=reflection.device)
+    dist = torch.cdist(v, v, compute_mode="donot_use_mm_for_euclid_dist")  # exact zeros on the diagonal
+    per_vertex = (reflection * dist).sum(dim=1)
+    if mask is not None:
+        per_vertex = per_vertex[torch.as_tensor(np.asarray(mask, dtype=bool), device=reflection.device)]
+    return per_vertex.mean()
+
+
+# ----------------------------------------------------------------------------- losses
+
+
+def balanced_bce_with_logits(logits: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """Binary cross-entropy with each class weighted by the frequency of the other one.
+
+    Positives weigh ``1 - p`` and negatives ``p``, ``p`` the fraction of positives, averaged
+    over all vertices; plain mean cross-entropy when ``target`` has a single class.
+
+    Parameters
+    ----------
+    logits : torch.Tensor, shape (V,)
+    target : torch.Tensor, shape (V,), bool or {0, 1}
+
+    Returns
+    -------
+    torch.Tensor, shape ()
+    """
+    target = target.to(logits.dtype)
+    loss = F.binary_cross_entropy_with_logits(logits, target, reduction="none")
+    n_pos = float(target.sum())
+    if n_pos == 0 or n_pos == target.numel():
+        return loss.mean()
+    frac = n_pos / target.numel()
+    weights = torch.where(target > 0.5, 1.0 - frac, frac)
+    return (weights * loss).mean()
+
+
+def cross_nce_loss(
+    feat_x: torch.Tensor, feat_y: torch.Tensor, corr_x: torch.Tensor, corr_y: torch.Tensor, temperature: float
+) -> torch.Tensor:
+    """InfoNCE of ground-truth pairs across the shapes, both directions, on normalised features.
+
+    Parameters
+    ----------
+    feat_x : torch.Tensor, shape (V_x, p)
+    feat_y : torch.Tensor, shape (V_y, p)
+    corr_x, corr_y : torch.Tensor, shape (n,), int64
+        Corresponding vertices: ``corr_x[i]`` of ``x`` matches ``corr_y[i]`` of ``y``.
+    temperature : float
+
+    Returns
+    -------
+    torch.Tensor, shape ()
+        Cross-entropy of ``corr_y`` over all of ``y`` for the rows ``corr_x``, plus the reverse.
+    """
+    fx, fy = F.normalize(feat_x, dim=-1), F.normalize(feat_y, dim=-1)
+    logits = fx @ fy.T / temperature  # (V_x, V_y)
+    return F.cross_entropy(logits[corr_x], corr_y) + F.cross_entropy(logits.T[corr_y], corr_x)
+
+
+def self_nce_loss(feat: torch.Tensor, temperature: float) -> torch.Tensor:
+    """InfoNCE of every vertex against all vertices of its own shape, on normalised features.
+
+    Parameters
+    ----------
+    feat : torch.Tensor, shape (V, p)
+    temperature : float
+
+    Returns
+    -------
+    torch.Tensor, shape ()
+    """
+    f = F.normalize(feat, dim=-1)
+    return F.cross_entropy(f @ f.T / temperature, torch.arange(f.shape[0], device=f.device))
+
+
+def regularized_gt_fmap(map_yx, evecs_x: torch.Tensor, evecs_y: torch.Tensor, evals_x: torch.Tensor, evals_y: torch.Tensor,
+                        lambda_: float, gamma: float = 0.5, mass_y: torch.Tensor | None = None) -> torch.Tensor:  # fmt: skip
+    """Ground-truth functional map (k_y, k_x) of a partial map y -> x, fitted with a Laplacian-mask regulariser.
+
+    Minimises ``||Phi_y C - P_yx Phi_x||_F^2 + lambda_ sum_ij W_ij C_ij^2`` over the vertices
+    of ``y`` (unweighted by area, as the reference), ``P_yx`` the one-hot matrix of
+    ``map_yx`` (zero rows where ``-1``) and ``W`` the resolvent mask; solved column by column
+    in float64. With ``lambda_ = 0`` it returns ``Phi_y^T M_y P_yx Phi_x`` instead (needs
+    ``mass_y``).
+
+    Parameters
+    ----------
+    map_yx : torch.Tensor, shape (V_y,), int64
+    evecs_x : torch.Tensor, shape (V_x, k_x)
+    evecs_y : torch.Tensor, shape (V_y, k_y)
+    evals_x : torch.Tensor, shape (k_x,)
+    evals_y : torch.Tensor, shape (k_y,)
+    lambda_ : float
+    gamma : float
+    mass_y : torch.Tensor, shape (V_y,), optional
+
+    Returns
+    -------
+    torch.Tensor, shape (k_y, k_x), dtype of ``evecs_x``
+    """
+    out_dtype = evecs_x.dtype
+    ex, ey = evecs_x.detach().double(), evecs_y.detach().double()
+    valid = map_yx >= 0
+    pulled = torch.zeros(ey.shape[0], ex.shape[1], dtype=torch.float64, device=ex.device)
+    pulled[valid] = ex[map_yx[valid]]  # P_yx Phi_x
+    if lambda_ == 0:
+        if mass_y is None:
+            raise HeadError("regularized_gt_fmap with lambda_=0 needs mass_y.")
+        return (ey.T @ (mass_y.detach().double()[:, None] * pulled)).to(out_dtype)
+    gram = ey.T @ ey  # (k_y, k_y)
+    rhs = ey.T @ pulled  # (k_y, k_x)
+    weights = resolvent_mask(evals_x.detach().double().cpu(), evals_y.detach().double().cpu(), gamma=gamma).to(ex.device)
+    systems = gram.unsqueeze(0) + lambda_ * torch.diag_embed(weights.T)  # (k_x, k_y, k_y): one per column of C
+    columns = torch.linalg.solve(systems, rhs.T.unsqueeze(-1)).squeeze(-1)  # (k_x, k_y)
+    return columns.T.contiguous().to(out_dtype)
+
+
+def ground_truth_overlaps(pair: ShapePair) -> tuple[np.ndarray, np.ndarray]:
+    """Overlap masks of a pair: its own, else derived from ``map_yx``.
+
+    Parameters
+    ----------
+    pair : ShapePair
+
+    Returns
+    -------
+    overlap_x : numpy.ndarray, shape (V_x,), bool
+        ``pair.overlap_x``, else the vertices of ``x`` that ``map_yx`` hits.
+    overlap_y : numpy.ndarray, shape (V_y,), bool
+        ``pair.overlap_y``, else ``map_yx >= 0``.
+    """
+    map_yx = _checked_map(pair)
+    n_x, n_y = pair.x.n_vertices, pair.y.n_vertices
+    if pair.overlap_x is None:
+        overlap_x = np.zeros(n_x, dtype=bool)
+        overlap_x[map_yx[map_yx >= 0]] = True
+    else:
+        overlap_x = _checked_mask(pair.overlap_x, n_x, "overlap_x", pair)
+    overlap_y = map_yx >= 0 if pair.overlap_y is None else _checked_mask(pair.overlap_y, n_y, "overlap_y", pair)
+    return overlap_x, overlap_y
+
+
+def _checked_map(pair: ShapePair) -> np.ndarray:
+    map_yx = np.asarray(pair.map_yx)
+    if map_yx.ndim != 1 or map_yx.shape[0] != pair.y.n_vertices or not np.issubdtype(map_yx.dtype, np.integer):
+        raise HeadError(
+            f"pair {pair.name}: map_yx must be an integer array of shape ({pair.y.n_vertices},); "
+            f"found {map_yx.dtype} of shape {map_yx.shape}."
+        )
+    if map_yx.size and (map_yx.min() < -1 or map_yx.max() >= pair.x.n_vertices):
+        raise HeadError(
+            f"pair {pair.name}: map_yx must hold vertices of x in [0, {pair.x.n_vertices - 1}] or -1; "
+            f"found range [{map_yx.min()}, {map_yx.max()}]."
+        )
+    return map_yx.astype(np.int64, copy=False)
+
+
+def _checked_mask(mask, n: int, name: str, pair: ShapePair) -> np.ndarray:
+    arr = np.asarray(mask)
+    if arr.shape != (n,):
+        raise HeadError(f"pair {pair.name}: {name} must have shape ({n},); found {arr.shape}.")
+    return arr.astype(bool)
+
+
+# ----------------------------------------------------------------------------- network
+
+
+class EchoMatchOutput(NamedTuple):
+    """What `EchoMatchNet` computes for a pair.
+
+    Attributes
+    ----------
+    feat_x : torch.Tensor, shape (V_x, p)
+    feat_y : torch.Tensor, shape (V_y, p)
+        Raw (unnormalised) features.
+    p_xy : torch.Tensor, shape (V_x, V_y)
+    p_yx : torch.Tensor, shape (V_y, V_x)
+        Soft point maps (rows sum to one).
+    overlap_logits_x : torch.Tensor, shape (V_x,)
+    overlap_logits_y : torch.Tensor, shape (V_y,)
+        Logits of the overlap probabilities.
+    """
+
+    feat_x: torch.Tensor
+    feat_y: torch.Tensor
+    p_xy: torch.Tensor
+    p_yx: torch.Tensor
+    overlap_logits_x: torch.Tensor
+    overlap_logits_y: torch.Tensor
+
+
+class EchoMatchNet(nn.Module):
+    """Feature DiffusionNet, learned temperature and overlap DiffusionNet of EchoMatch.
+
+    Parameters
+    ----------
+    in_channels : int
+        Input features per vertex.
+    config : EchoMatchConfig
+        Sizes (``feature_channels``, ``width``, ``n_blocks``, ``dropout``,
+        ``temperature_init``, ``n_neighbours``, ``overlap_width``, ``overlap_blocks``).
+    """
+
+    def __init__(self, in_channels: int, config: EchoMatchConfig) -> None:
+        super().__init__()
+        self.n_neighbours = int(config.n_neighbours)
+        self.features = DiffusionNet(in_channels, config.feature_channels, width=config.width, n_blocks=config.n_blocks,
+                                     dropout=float(config.dropout))  # fmt: skip
+        self.temperature = nn.Parameter(torch.tensor([float(config.temperature_init)]))
+        self.overlap = DiffusionNet(self.n_neighbours, 1, width=config.overlap_width, n_blocks=config.overlap_blocks,
+                                    dropout=float(config.dropout))  # fmt: skip
+
+    def temperature_value(self) -> torch.Tensor:
+        """The temperature in use, shape (1,): the parameter clamped at `MIN_TEMPERATURE` (gradient passed through unchanged)."""
+        clamped = self.temperature.clamp_min(MIN_TEMPERATURE)
+        return self.temperature + (clamped - self.temperature).detach()
+
+    def soft_maps(self, feat_x: torch.Tensor, feat_y: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """``P_xy`` (V_x, V_y) and ``P_yx`` (V_y, V_x): softmax of cosine similarities over the learned temperature."""
+        similarity = F.normalize(feat_x, dim=-1) @ F.normalize(feat_y, dim=-1).T
+        scaled = similarity / self.temperature_value()
+        return torch.softmax(scaled, dim=1), torch.softmax(scaled.T, dim=1)
+
+    def forward(self, in_x: torch.Tensor, ops_x: SurfaceOperators, nbrs_x: torch.Tensor,
+                in_y: torch.Tensor, ops_y: SurfaceOperators, nbrs_y: torch.Tensor) -> EchoMatchOutput:  # fmt: skip
+        """Features, soft maps and overlap logits of a pair.
+
+        Parameters
+        ----------
+        in_x, in_y : torch.Tensor, shapes (V_x, C) and (V_y, C)
+            Input features.
+        ops_x, ops_y : SurfaceOperators
+        nbrs_x, nbrs_y : torch.Tensor, shapes (V_x, k_x) and (V_y, k_y), int64
+            `spatial_neighbours` of each shape (``k <= n_neighbours``).
+
+        Returns
+        -------
+        EchoMatchOutput
+        """
+        feat_x, feat_y = self.features(in_x, ops_x), self.features(in_y, ops_y)
+        p_xy, p_yx = self.soft_maps(feat_x, feat_y)
+        scores_x = reflection_features(sampled_reflection(p_xy, p_yx, nbrs_x), self.n_neighbours)
+        scores_y = reflection_features(sampled_reflection(p_yx, p_xy, nbrs_y), self.n_neighbours)
+        logits_x = self.overlap(scores_x, ops_x).squeeze(-1)
+        logits_y = self.overlap(scores_y, ops_y).squeeze(-1)
+        return EchoMatchOutput(feat_x, feat_y, p_xy, p_yx, logits_x, logits_y)
+
+
+# ----------------------------------------------------------------------------- head
+
+
+class EchoMatchHead(LearnedHead):
+    """EchoMatch: learned features, overlap prediction by correspondence reflection, nearest-neighbour map."""
+
+    name = "echomatch"
+    config_class = EchoMatchConfig
+
+    def __init__(self, config: EchoMatchConfig | None = None, **settings):
+        super().__init__(config, **settings)
+        self._neighbours: OrderedDict[str, torch.Tensor] = OrderedDict()
+
+    def build_model(self, in_channels: int) -> EchoMatchNet:
+        """`EchoMatchNet` for ``in_channels`` input features, sized by the config."""
+        return EchoMatchNet(in_channels, self.config)
+
+    def neighbours(self, mesh: Mesh) -> torch.Tensor:
+        """`spatial_neighbours` of ``mesh`` on the head's device, (V, min(n_neighbours, V)) int64 (kept for 64 meshes)."""
+        key = mesh.hash
+        if key in self._neighbours:
+            self._neighbours.move_to_end(key)
+            return self._neighbours[key]
+        index = torch.as_tensor(spatial_neighbours(mesh.verts, self.config.n_neighbours), device=self.device)
+        self._neighbours[key] = index
+        while len(self._neighbours) > 64:
+            self._neighbours.popitem(last=False)
+        return index
+
+    def network_outputs(self, pair: ShapePair) -> tuple[EchoMatchOutput, SurfaceOperators, SurfaceOperators]:
+        """Run the network on a pair; also returns the operators of ``x`` and ``y``."""
+        model = self._ensure_model(pair.x)
+        in_x, ops_x = self.shape_inputs(pair.x)
+        in_y, ops_y = self.shape_inputs(pair.y)
+        for mesh, feats in ((pair.x, in_x), (pair.y, in_y)):
+            if feats.shape[1] != self.in_channels:
+                raise HeadError(
+                    f"head {self.name!r} was built for {self.in_channels} input channels, but {mesh.name!r} has "
+                    f"{feats.shape[1]} with descriptor {self.config.descriptor!r}."
+                )
+        out = model(in_x, ops_x, self.neighbours(pair.x), in_y, ops_y, self.neighbours(pair.y))
+        return out, ops_x, ops_y
+
+    def loss_terms(self, pair: ShapePair) -> dict[str, torch.Tensor]:
+        """The weighted loss terms of one pair: ``"fmap"``, ``"overlap"``, ``"nce_cross"``, ``"nce_self"``.
+
+        Raises
+        ------
+        HeadError
+            A malformed ground truth, or a pair without any correspondence.
+        """
+        c = self.config
+        map_np = _checked_map(pair)
+        if not (map_np >= 0).any():
+            raise HeadError(f"pair {pair.name}: map_yx has no correspondence (all -1); EchoMatch trains on known matches.")
+        overlap_x_np, overlap_y_np = ground_truth_overlaps(pair)
+        out, ops_x, ops_y = self.network_outputs(pair)
+        device = out.feat_x.device
+        map_yx = torch.as_tensor(map_np, device=device)
+        overlap_x = torch.as_tensor(overlap_x_np, device=device)
+        overlap_y = torch.as_tensor(overlap_y_np, device=device)
+
+        k = c.n_fmap
+        evecs_x, evecs_y = ops_x.evecs[:, :k], ops_y.evecs[:, :k]
+        evals_x, evals_y = ops_x.evals[:k], ops_y.evals[:k]
+        use_x, use_y = out.feat_x, out.feat_y
+        if c.prune_strategy in ("y", "both"):
+            use_y = use_y * overlap_y[:, None].to(use_y.dtype)
+        if c.prune_strategy == "both":
+            use_x = use_x * overlap_x[:, None].to(use_x.dtype)
+        c_pred = regularized_fmap(use_x, use_y, evecs_x, evecs_y, ops_x.mass, ops_y.mass, evals_x, evals_y,
+                                  lambda_=c.fmap_lambda, gamma=c.fmap_gamma)  # fmt: skip
+        c_gt = regularized_gt_fmap(map_yx, evecs_x, evecs_y, evals_x, evals_y, c.gt_fmap_lambda, c.fmap_gamma, ops_y.mass)
+
+        corr_y = torch.nonzero(map_yx >= 0).squeeze(1)
+        corr_x = map_yx[corr_y]
+        bce_x = balanced_bce_with_logits(out.overlap_logits_x, overlap_x)
+        bce = bce_x + balanced_bce_with_logits(out.overlap_logits_y, overlap_y)
+        nce_self = self_nce_loss(out.feat_x, c.nce_temperature) + self_nce_loss(out.feat_y, c.nce_temperature)
+        return {
+            "fmap": c.w_fmap * (c_pred - c_gt).square().sum(),
+            "overlap": c.w_overlap * bce,
+            "nce_cross": c.w_nce_cross * cross_nce_loss(out.feat_x, out.feat_y, corr_x, corr_y, c.nce_temperature),
+            "nce_self": c.w_nce_self * nce_self,
+        }
+
+    def training_loss(self, pair: ShapePair) -> torch.Tensor:
+        """Sum of `loss_terms`: functional map + overlap BCE + cross-NCE + self-NCE."""
+        return sum(self.loss_terms(pair).values())
+
+    def overlap_probabilities(self, pair: ShapePair) -> tuple[np.ndarray, np.ndarray]:
+        """Predicted overlap probabilities ``(x (V_x,), y (V_y,))`` float32 (network in eval mode, no gradients)."""
+        self._ensure_model(pair.x).eval()
+        with torch.no_grad():
+            out, _, _ = self.network_outputs(pair)
+        return (torch.sigmoid(out.overlap_logits_x).cpu().numpy().astype(np.float32),
+                torch.sigmoid(out.overlap_logits_y).cpu().numpy().astype(np.float32))  # fmt: skip
+
+    def predict(self, pair: ShapePair) -> Match:
+        """Nearest neighbour of the normalised features and overlaps above ``overlap_threshold``.
+
+        Returns
+        -------
+        Match
+            ``map_yx`` (V_y,) int64, ``overlap_y`` (V_y,) bool, ``overlap_x`` (V_x,) bool.
+        """
+        out, _, _ = self.network_outputs(pair)
+        threshold = self.config.overlap_threshold
+        overlap_x = torch.sigmoid(out.overlap_logits_x) > threshold
+        overlap_y = torch.sigmoid(out.overlap_logits_y) > threshold
+        fx, fy = F.normalize(out.feat_x, dim=-1), F.normalize(out.feat_y, dim=-1)
+        candidates = torch.arange(fx.shape[0], device=fx.device)
+        if self.config.restrict_to_overlap and bool(overlap_x.any()):
+            candidates = torch.nonzero(overlap_x).squeeze(1)
+        map_yx = candidates[_nearest(fx[candidates], fy)]
+        return Match(map_yx.cpu().numpy().astype(np.int64), overlap_y.cpu().numpy(), overlap_x.cpu().numpy())
+
+
+def _nearest(fx: torch.Tensor, fy: torch.Tensor, block: int = 4096) -> torch.Tensor:
+    """For every row of ``fy`` (unit vectors) the row of ``fx`` with the largest dot product (= nearest)."""
+    return torch.cat([(fy[start : start + block] @ fx.T).argmax(dim=1) for start in range(0, fy.shape[0], block)])
