@@ -2,6 +2,7 @@ import json
 import subprocess
 import sys
 
+import pytest
 from shapes import REPO
 
 RUN = REPO / "benchmarks" / "run.py"
@@ -59,3 +60,31 @@ def test_descriptor_parameters_reach_the_descriptor(tmp_path):
     assert json.loads((tmp_path / "results.json").read_text())["descriptor_params"] == {"n_descr": 16, "n_eig": 32}
     bad = run("--limit", "1", "--param", "colour=red", "--out", str(tmp_path / "bad"))
     assert bad.returncode == 2 and "unknown parameter(s) ['colour']" in bad.stderr
+
+
+@pytest.mark.parametrize(
+    "pipeline, dataset", [("ulrssm", "synthetic_cuts"), ("dpfm", "synthetic_p2p"), ("echomatch", "synthetic_p2p")]
+)
+def test_quick_learned_heads_train_evaluate_and_reload(pipeline, dataset, tmp_path):
+    result = run("--pipeline", pipeline, "--dataset", dataset, "--quick", "--out", str(tmp_path / "a"))
+    assert result.returncode == 0, result.stderr
+    report = json.loads((tmp_path / "a" / "results.json").read_text())
+    assert report["head"]["name"] == pipeline and report["train_pairs"] == 3 and report["train_steps"] >= 1
+    assert report["n_pairs"] == 2 and 0 <= report["geodesic_error"] < 200
+    if dataset.endswith("p2p"):
+        assert 0 <= report["miou"] <= 1
+    again = run(
+        "--pipeline",
+        pipeline,
+        "--dataset",
+        dataset,
+        "--quick",
+        "--load",
+        str(tmp_path / "a" / "head"),
+        "--out",
+        str(tmp_path / "b"),
+    )
+    assert again.returncode == 0, again.stderr
+    reloaded = json.loads((tmp_path / "b" / "results.json").read_text())
+    assert reloaded["loaded_from"] == str(tmp_path / "a" / "head")
+    assert reloaded["geodesic_error"] == pytest.approx(report["geodesic_error"])
