@@ -15,6 +15,7 @@ dataset (or loaded with ``--load``) and saved into ``<out>/head``. Writes into `
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import datetime
 import json
 import logging
@@ -210,6 +211,8 @@ def main(argv=None) -> int:
             if args.descriptor != "xyz":
                 make_descriptor(args.descriptor, **params)  # unknown names, parameters and missing extras fail before any work
             head = load_head(args.load) if args.load else build_head(args, params)
+            if args.load and args.head_param:  # e.g. --head-param tta_steps=0 on a trained ULRSSM
+                head.config = dataclasses.replace(head.config, **descriptor_params(args.head_param, what="--head-param"))
     except geofeat.GeofeatError as err:
         sys.stderr.write(f"run.py: error: {err}\n")
         return 2
