@@ -73,7 +73,7 @@ from geofeat.mesh import Mesh
 
 from .diffusion_net import DiffusionNet
 from .fmap_layers import regularized_fmap, resolvent_mask
-from .heads import HeadConfig, HeadError, LearnedHead, Match
+from .heads import HeadConfig, HeadError, LearnedHead, Match, UnusablePair
 from .operators import SurfaceOperators
 
 __all__ = [
@@ -702,7 +702,7 @@ class EchoMatchHead(LearnedHead):
         c = self.config
         map_np = _checked_map(pair)
         if not (map_np >= 0).any():
-            raise HeadError(f"pair {pair.name}: map_yx has no correspondence (all -1); EchoMatch trains on known matches.")
+            raise UnusablePair(f"pair {pair.name}: map_yx has no correspondence (all -1); EchoMatch trains on known matches.")
         overlap_x_np, overlap_y_np = ground_truth_overlaps(pair)
         out, ops_x, ops_y = self.network_outputs(pair)
         device = out.feat_x.device

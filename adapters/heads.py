@@ -52,6 +52,7 @@ __all__ = [
     "HeadError",
     "LearnedHead",
     "Match",
+    "UnusablePair",
     "NearestNeighbourHead",
     "input_features",
     "load_head",
@@ -64,6 +65,10 @@ WEIGHTS_FILE = "weights.safetensors"
 
 class HeadError(GeofeatError, ValueError):
     """Bad head settings, inputs or checkpoints."""
+
+
+class UnusablePair(HeadError):
+    """A training pair a head cannot learn from (e.g. two partial shapes that do not overlap); `fit` skips it."""
 
 
 @dataclass
@@ -306,7 +311,12 @@ class LearnedHead(Head):
             for _ in range(config.epochs):
                 for index in rng.permutation(len(pairs)):
                     model.train()
-                    loss = self.training_loss(pairs[int(index)])
+                    try:
+                        loss = self.training_loss(pairs[int(index)])
+                    except UnusablePair as skipped:
+                        log.info("%s: skipped a training pair: %s", self.name, skipped)
+                        bar.update(1)
+                        continue
                     optimizer.zero_grad(set_to_none=True)
                     loss.backward()
                     if config.grad_clip is not None:

@@ -94,8 +94,14 @@ def train_head(head: Head, args, out: Path) -> dict:
     start = time.perf_counter()
     losses = head.fit(_Pairs(train, n_train))
     head.save(out / "head")
-    return {"train_split": args.train_split, "train_pairs": n_train, "train_steps": len(losses), "train_seconds": time.perf_counter() - start,
-            "final_loss": losses[-1] if losses else None}  # fmt: skip
+    return {
+        "train_split": args.train_split,
+        "train_pairs": n_train,
+        "train_steps": len(losses),
+        "train_seconds": time.perf_counter() - start,
+        "final_loss": losses[-1] if losses else None,
+        "train_losses": [round(v, 5) for v in losses],
+    }
 
 
 class _Pairs:

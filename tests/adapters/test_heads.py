@@ -13,6 +13,7 @@ from geofeat.adapters.heads import (
     HeadError,
     LearnedHead,
     Match,
+    UnusablePair,
     input_features,
     load_head,
     make_head,
@@ -94,3 +95,24 @@ def test_learned_head_trains_saves_and_loads(tmp_path, monkeypatch):
     np.testing.assert_array_equal(again.match(pairs[0]).map_yx, head.match(pairs[0]).map_yx)
     with pytest.raises(HeadError, match="no training pairs"):
         head.fit([])
+
+
+class _PickyHead(_AffineHead):
+    """Refuses the pairs of bumpy1, as a head refuses pairs without any correspondence."""
+
+    name = "test_picky"
+
+    def training_loss(self, pair):
+        if pair.x.name == "bumpy1":
+            raise UnusablePair(f"pair {pair.name}: nothing to learn from")
+        return super().training_loss(pair)
+
+
+def test_fit_skips_unusable_pairs(caplog):
+    import logging
+
+    caplog.set_level(logging.INFO, logger="geofeat.adapters.heads")
+    head = _PickyHead(descriptor="wks", n_eig=40, epochs=2, progress=False)
+    losses = head.fit([_pair(0), _pair(1)])
+    assert len(losses) == 2  # the bumpy1 pair skipped in both epochs
+    assert "skipped a training pair" in caplog.text
