@@ -48,7 +48,7 @@ from geofeat.mesh import Mesh
 from .diffusion_net import DiffusionNet
 from .fmap_layers import regularized_fmap
 from .functional_maps import nearest_neighbors
-from .heads import HeadConfig, HeadError, LearnedHead, Match
+from .heads import HeadConfig, HeadError, LearnedHead, Match, UnusablePair
 from .operators import SurfaceOperators
 
 __all__ = [
@@ -483,7 +483,7 @@ def _checked_map(pair: ShapePair) -> np.ndarray:
             f"found range [{map_yx.min()}, {map_yx.max()}]."
         )
     if not (map_yx >= 0).any():
-        raise HeadError(f"dpfm: pair {pair.name} has no ground-truth correspondence (map_yx is all -1).")
+        raise UnusablePair(f"dpfm: pair {pair.name} has no ground-truth correspondence (map_yx is all -1).")
     return map_yx.astype(np.int64, copy=False)
 
 
