@@ -37,6 +37,7 @@ import geofeat
 from geofeat.datasets.records import ShapePair
 from geofeat.devices import resolve_device
 from geofeat.errors import GeofeatError
+from geofeat.files import atomic_write
 from geofeat.mesh import Mesh
 
 from . import matchers
@@ -225,7 +226,8 @@ class Head:
         folder = Path(folder)
         folder.mkdir(parents=True, exist_ok=True)
         payload = {"head": self.name, "geofeat_version": geofeat.__version__, "config": self.config.to_dict()}
-        _atomic_write_text(folder / CONFIG_FILE, json.dumps(payload, indent=2, sort_keys=True) + "\n")
+        text = json.dumps(payload, indent=2, sort_keys=True) + "\n"
+        atomic_write(folder / CONFIG_FILE, lambda tmp: tmp.write_text(text))
         return folder
 
 
@@ -347,9 +349,9 @@ class LearnedHead(Head):
 
         folder = super().save(folder)
         state = {k: v.detach().to("cpu").contiguous() for k, v in self.model.state_dict().items()}
-        tmp = folder / f".{WEIGHTS_FILE}.tmp-{os.getpid()}"
-        save_file(state, str(tmp), metadata={"in_channels": str(self.in_channels)})
-        os.replace(tmp, folder / WEIGHTS_FILE)
+        atomic_write(
+            folder / WEIGHTS_FILE, lambda tmp: save_file(state, str(tmp), metadata={"in_channels": str(self.in_channels)})
+        )
         return folder
 
     def load_weights(self, folder: Path, in_channels: int) -> None:
@@ -407,9 +409,3 @@ def load_head(folder: str | os.PathLike) -> Head:
 
 def _unknown(config_class: type[HeadConfig], settings: dict) -> list[str]:
     return sorted(set(settings) - {f.name for f in dataclasses.fields(config_class)})
-
-
-def _atomic_write_text(path: Path, text: str) -> None:
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    tmp.write_text(text)
-    os.replace(tmp, path)

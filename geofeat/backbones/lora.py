@@ -35,8 +35,7 @@ import json
 import logging
 import os
 import re
-import tempfile
-from collections.abc import Callable, Mapping
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -46,6 +45,7 @@ from torch import Tensor
 
 from geofeat.backbones.dino import DinoBackbone, state_dict_digest
 from geofeat.errors import BackboneError, MissingDependencyError
+from geofeat.files import atomic_write
 
 logger = logging.getLogger(__name__)
 
@@ -169,7 +169,7 @@ class LoraSettings:
 
     def to_json(self, path: str | os.PathLike) -> None:
         """Write the settings as JSON (atomically)."""
-        _atomic_write(Path(path), lambda p: p.write_text(json.dumps(self.to_dict(), indent=2, sort_keys=True)))
+        atomic_write(Path(path), lambda p: p.write_text(json.dumps(self.to_dict(), indent=2, sort_keys=True)))
 
     @classmethod
     def from_json(cls, path: str | os.PathLike) -> LoraSettings:
@@ -317,19 +317,6 @@ def _load_lora_tensors(backbone: DinoBackbone, tensors: Mapping[str, Tensor], so
 # ----------------------------------------------------------------------------- files
 
 
-def _atomic_write(path: Path, write: Callable[[Path], None]) -> None:
-    """Write through a temporary file in the same folder, then rename over ``path``."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    handle, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    os.close(handle)
-    try:
-        write(Path(tmp))
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-
-
 def _read_json(path: Path) -> dict[str, Any]:
     try:
         data = json.loads(path.read_text())
@@ -402,8 +389,8 @@ def save_adapter(
     folder = Path(folder)
     tensors = lora_state_dict(backbone)
     st = _require_safetensors()
-    _atomic_write(folder / ADAPTER_WEIGHTS_FILE, lambda p: st.save_file(tensors, str(p), metadata={"format": _FORMAT}))
-    _atomic_write(folder / ADAPTER_CONFIG_FILE, lambda p: p.write_text(text))
+    atomic_write(folder / ADAPTER_WEIGHTS_FILE, lambda p: st.save_file(tensors, str(p), metadata={"format": _FORMAT}))
+    atomic_write(folder / ADAPTER_CONFIG_FILE, lambda p: p.write_text(text))
     logger.info("saved LoRA adapter (%d tensors) to %s", len(tensors), folder)
     return folder
 

@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import Any
 
 from geofeat.errors import TrainingError
+from geofeat.files import atomic_write
 from geofeat.geometry.partial import PARTIAL_KINDS
 
 __all__ = ["LOSSES", "RESUMABLE_CHANGES", "TrainConfig"]
@@ -168,10 +169,8 @@ class TrainConfig:
 
     def save(self, path: str | os.PathLike) -> None:
         """Write the settings as JSON (atomically)."""
-        path = Path(path)
-        tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-        tmp.write_text(json.dumps(self.to_dict(), indent=2, sort_keys=True) + "\n")
-        os.replace(tmp, path)
+        text = json.dumps(self.to_dict(), indent=2, sort_keys=True) + "\n"
+        atomic_write(path, lambda tmp: tmp.write_text(text))
 
     @classmethod
     def field_names(cls) -> list[str]:

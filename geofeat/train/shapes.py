@@ -21,6 +21,7 @@ from tqdm.auto import tqdm
 
 from geofeat.config import cache_dir
 from geofeat.errors import TrainingError
+from geofeat.files import atomic_write
 from geofeat.geometry.geodesic import geodesic_matrix
 from geofeat.geometry.partial import largest_component_submesh
 from geofeat.mesh import MESH_SUFFIXES, Mesh, load_mesh
@@ -164,15 +165,13 @@ class GeodesicStore:
         dist = geodesic_matrix(mesh, method="dijkstra", normalize=True)
         if not np.isfinite(dist).all():
             raise TrainingError(f"{mesh.name!r} is not connected: its geodesic distances are infinite.")
-        self.folder.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-        try:
-            with open(tmp, "wb") as handle:
-                np.save(handle, dist.astype(np.float16))
-            os.replace(tmp, path)
-        finally:
-            tmp.unlink(missing_ok=True)
-        return path
+        stored = dist.astype(np.float16)
+
+        def write(tmp: Path) -> None:
+            with open(tmp, "wb") as handle:  # a handle: np.save would append ".npy" to the temporary name
+                np.save(handle, stored)
+
+        return atomic_write(path, write)
 
     def load(self, mesh: Mesh, device: str | torch.device = "cpu") -> torch.Tensor:
         """The (V, V) float32 matrix of ``mesh``; computed when missing, recomputed when the file is damaged."""

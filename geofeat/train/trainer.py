@@ -48,6 +48,7 @@ from geofeat.devices import resolve_device
 from geofeat.errors import TrainingError
 from geofeat.geometry.partial import make_partial
 from geofeat.mesh import Mesh
+from geofeat.metrics import geodesic_errors
 from geofeat.render import make_cameras, render_phong
 from geofeat.render.backproject import VertexFeatureAccumulator, foreground_pixels
 from geofeat.train.config import RESUMABLE_CHANGES, TrainConfig
@@ -352,9 +353,7 @@ class GeoLoraTrainer:
             feat_x, _ = self.shape_features(pair.x, config.views_full, timer, fill="nearest")
             feat_y, _ = self.shape_features(pair.y, config.views_partial, timer, fill="nearest")
             predicted = torch.cdist(feat_y, feat_x).argmin(dim=1).cpu().numpy()
-            dist_x = self.geodesics.load(pair.x).numpy()
-            keep = pair.map_yx >= 0
-            errors.append(dist_x[pair.map_yx[keep], predicted[keep]])
+            errors.append(geodesic_errors(predicted, pair.map_yx, self.geodesics.load(pair.x).numpy()))
         return 100.0 * float(np.concatenate(errors).mean())
 
     # ------------------------------------------------------------------ the loop
