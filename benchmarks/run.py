@@ -122,8 +122,8 @@ class _Pairs:
 def evaluate_pair(pair, match: Match) -> dict:
     """Per-pair metrics; ``errors`` is the array of per-vertex geodesic errors.
 
-    The overlap IoU is that of Y, averaged with that of X where the head predicts it and the
-    dataset has it.
+    The overlap IoU is the mean over the shapes whose ground-truth overlap the dataset gives; a
+    head that predicts no overlap for a shape counts as predicting all of it.
     """
     dist_x = geodesic_matrix(pair.x, method="dijkstra", normalize=True)
     predicted = match.map_yx
@@ -131,10 +131,12 @@ def evaluate_pair(pair, match: Match) -> dict:
     record = {"pair": f"{pair.y.name}->{pair.x.name}", "errors": errors, "n_evaluated": int(errors.size)}
     if pair.map_yx_sym is not None:
         record["chirality_accuracy"] = metrics.chirality_accuracy(predicted, pair.map_yx, pair.map_yx_sym, dist_x)
-    if pair.overlap_y is not None:
-        ious = [metrics.overlap_iou(match.overlap_y, pair.overlap_y)]
-        if match.overlap_x is not None and pair.overlap_x is not None:
-            ious.append(metrics.overlap_iou(match.overlap_x, pair.overlap_x))
+    ious = [
+        metrics.overlap_iou(np.ones(truth.shape, dtype=bool) if guess is None else guess, truth)
+        for guess, truth in ((match.overlap_y, pair.overlap_y), (match.overlap_x, pair.overlap_x))
+        if truth is not None
+    ]
+    if ious:
         record["iou"] = float(np.mean(ious))
     return record
 

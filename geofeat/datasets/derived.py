@@ -139,17 +139,20 @@ class DerivedPartialBenchmark:
         in_b = _compose(template_of_y, self.collection.template_map(b))
         sym_map = self.collection.template_map_sym(b)
         in_b_sym = None if sym_map is None else _compose(template_of_y, sym_map)
+        # A vertex of B overlaps when its counterpart in A survived in Y.
+        template_of_b = template_inverse(self.collection.template_map(b), mesh_b.n_vertices)
+        b_in_a = _compose(template_of_b, self.collection.template_map(a))
+        overlap_b = _compose(b_in_a, _subset_inverse(partial_y.vertex_map, mesh_a.n_vertices)) >= 0
         if self.protocol == "p2f":
-            return ShapePair(x=mesh_b, y=y, map_yx=in_b, map_yx_sym=in_b_sym, protocol="p2f")
+            return ShapePair(
+                x=mesh_b, y=y, map_yx=in_b, overlap_x=overlap_b, overlap_y=in_b >= 0, map_yx_sym=in_b_sym, protocol="p2f"
+            )
         partial_x = make_partial(mesh_b, self.kind, seed=int(seeds[1]), **self.partial_options)
         x = partial_x.mesh.renamed(f"{names[b]}_{self.kind}{i}")
         x_of_b = _subset_inverse(partial_x.vertex_map, mesh_b.n_vertices)
         map_yx = _compose(in_b, x_of_b)
         map_yx_sym = None if in_b_sym is None else _compose(in_b_sym, x_of_b)
-        # A vertex of X overlaps when its counterpart in A survived in Y.
-        template_of_b = template_inverse(self.collection.template_map(b), mesh_b.n_vertices)
-        in_a = _compose(template_of_b[partial_x.vertex_map], self.collection.template_map(a))
-        overlap_x = _compose(in_a, _subset_inverse(partial_y.vertex_map, mesh_a.n_vertices)) >= 0
+        overlap_x = overlap_b[partial_x.vertex_map]
         return ShapePair(
             x=x, y=y, map_yx=map_yx, overlap_x=overlap_x, overlap_y=map_yx >= 0, map_yx_sym=map_yx_sym, protocol="p2p"
         )

@@ -30,7 +30,10 @@ def test_p2f_ground_truth_goes_through_the_template(collection, kind):
         # identity template: the counterpart in B is the same template vertex
         np.testing.assert_array_equal(pair.map_yx, sources)
         np.testing.assert_array_equal(pair.map_yx_sym, collection.humans.mirror[sources])
-        assert pair.protocol == "p2f" and pair.overlap_x is None
+        assert pair.protocol == "p2f" and pair.overlap_y.all()
+        # the full shape overlaps exactly where the partial's vertices came from
+        np.testing.assert_array_equal(np.flatnonzero(pair.overlap_x), np.unique(sources))
+        assert 0 < pair.overlap_x.mean() < 1
 
 
 def test_p2p_maps_and_overlaps_are_consistent(collection):
