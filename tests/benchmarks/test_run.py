@@ -1,9 +1,14 @@
+import importlib.util
 import json
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 from shapes import REPO
+
+from geofeat.adapters.heads import Match
+from geofeat.datasets import load_dataset
 
 RUN = REPO / "benchmarks" / "run.py"
 
@@ -88,3 +93,21 @@ def test_quick_learned_heads_train_evaluate_and_reload(pipeline, dataset, tmp_pa
     reloaded = json.loads((tmp_path / "b" / "results.json").read_text())
     assert reloaded["loaded_from"] == str(tmp_path / "a" / "head")
     assert reloaded["geodesic_error"] == pytest.approx(report["geodesic_error"])
+
+
+def load_run_module():
+    spec = importlib.util.spec_from_file_location("benchmark_run", RUN)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_miou_averages_every_shape_with_ground_truth_and_counts_no_prediction_as_all():
+    bench = load_run_module()
+    pair = load_dataset("synthetic_cuts")[0]  # P2F: the ground truth overlap of the full shape x
+    assert pair.overlap_y.all() and 0 < pair.overlap_x.mean() < 1
+    all_y = np.ones(pair.y.n_vertices, dtype=bool)
+    no_prediction = bench.evaluate_pair(pair, Match(pair.map_yx, all_y))
+    assert no_prediction["iou"] == pytest.approx((1.0 + pair.overlap_x.mean()) / 2)
+    exact = bench.evaluate_pair(pair, Match(pair.map_yx, all_y, pair.overlap_x.copy()))
+    assert exact["iou"] == 1.0
