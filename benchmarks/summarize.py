@@ -21,14 +21,24 @@ from report import markdown_table, plot_pck  # noqa: E402
 COLUMNS = [
     ("dataset", "dataset", "s"),
     ("descriptor", "descriptor", "s"),
-    ("pipeline", "matcher", "s"),
+    ("matcher", "matcher", "s"),
     ("n_pairs", "pairs", "d"),
     ("geodesic_error", "geodesic error x100", ".2f"),
     ("pck_auc", "PCK AUC", ".3f"),
     ("miou", "mIoU", ".3f"),
     ("chirality_accuracy", "chirality acc.", ".3f"),
+    ("train_steps", "training steps", "d"),
     ("seconds", "time (s)", ".0f"),
 ]
+
+
+def matcher_label(row: dict) -> str:
+    """The pipeline name, with its test-time adaptation where the head has that setting."""
+    config = row.get("head", {}).get("config", {})
+    if "tta_steps" not in config:
+        return row["pipeline"]
+    steps = config["tta_steps"]
+    return f"{row['pipeline']}, TTA {steps}" if steps else f"{row['pipeline']}, no TTA"
 
 
 def main(argv=None) -> int:
@@ -37,14 +47,16 @@ def main(argv=None) -> int:
     parser.add_argument("--out", type=Path, required=True, help="writes OUT.md and OUT_pck_<dataset>.png")
     args = parser.parse_args(argv)
     rows = [json.loads(path.read_text()) for path in args.results]
-    rows.sort(key=lambda r: (r["dataset"], r["descriptor"], r["pipeline"]))
+    for row in rows:
+        row["matcher"] = matcher_label(row)
+    rows.sort(key=lambda r: (r["dataset"], r["descriptor"], r["matcher"]))
     args.out.parent.mkdir(parents=True, exist_ok=True)
     dates = sorted({r["date"] for r in rows})
     text = markdown_table(rows, COLUMNS) + f"\n\nRuns of {', '.join(dates)}; per-run settings in each results.json.\n"
     args.out.with_suffix(".md").write_text(text)
     for dataset in sorted({r["dataset"] for r in rows}):
         curves = {
-            f"{r['descriptor']} + {r['pipeline']}": (np.array(r["pck_thresholds"]), np.array(r["pck"]))
+            f"{r['descriptor']} + {r['matcher']}": (np.array(r["pck_thresholds"]), np.array(r["pck"]))
             for r in rows
             if r["dataset"] == dataset
         }

@@ -111,3 +111,25 @@ def test_miou_averages_every_shape_with_ground_truth_and_counts_no_prediction_as
     assert no_prediction["iou"] == pytest.approx((1.0 + pair.overlap_x.mean()) / 2)
     exact = bench.evaluate_pair(pair, Match(pair.map_yx, all_y, pair.overlap_x.copy()))
     assert exact["iou"] == 1.0
+
+
+def test_summary_tells_the_test_time_adaptation_apart(tmp_path):
+    curve = {"pck_thresholds": [0.0, 0.25], "pck": [0.1, 0.9]}
+    base = {"dataset": "faust_r_cuts", "descriptor": "wks", "date": "2026-11-21", "n_pairs": 2, "geodesic_error": 50.0}
+    runs = {
+        "nn": {**base, "pipeline": "nn"},
+        "tta": {**base, "pipeline": "ulrssm", "train_steps": 12, "head": {"config": {"tta_steps": 5}}},
+        "notta": {**base, "pipeline": "ulrssm", "train_steps": 12, "head": {"config": {"tta_steps": 0}}},
+    }
+    paths = []
+    for name, row in runs.items():
+        paths.append(tmp_path / f"{name}.json")
+        paths[-1].write_text(json.dumps({**row, **curve}))
+    summary = REPO / "benchmarks" / "summarize.py"
+    result = subprocess.run(
+        [sys.executable, str(summary), *map(str, paths), "--out", str(tmp_path / "summary")], capture_output=True, text=True
+    )
+    assert result.returncode == 0, result.stderr
+    lines = (tmp_path / "summary.md").read_text().splitlines()
+    assert lines[2].startswith("| faust_r_cuts | wks | nn | 2 | 50.00 |") and lines[2].endswith("| - | - |")
+    assert "| ulrssm, TTA 5 | 2 |" in lines[3] and "| ulrssm, no TTA | 2 |" in lines[4] and lines[4].endswith("| 12 | - |")
