@@ -117,7 +117,9 @@ class DPFMConfig(HeadConfig):
         Resolvent exponent in (0, 1] (0.5).
     fmap_features : {"refined", "extracted"}
         Compute the functional map (and the NCE term) from the refined features (the
-        reference's ``robust: True``) or from the DiffusionNet output (``robust: False``).
+        reference's ``robust: True``, its HOLES setting) or from the DiffusionNet output
+        (``robust: False``, its CUTS setting). With ``"extracted"`` only the overlap loss
+        trains the cross-attention refiner.
     overlap_weighted_fmap : bool
         Multiply the features by the predicted overlap probability before the functional map
         (not in the reference code, which uses the overlap only in the loss; off by default).
