@@ -70,3 +70,30 @@ def test_bad_kind_or_protocol(collection):
         DerivedPartialBenchmark(collection, [0, 1], "slices")
     with pytest.raises(ValueError, match="protocol"):
         DerivedPartialBenchmark(collection, [0, 1], "cuts", "f2f")
+
+
+class SparseTemplate(SyntheticCollection):
+    """Synthetic shapes whose template covers only every other vertex, like a remeshed collection."""
+
+    def template_map(self, index):
+        return super().template_map(index)[::2]
+
+    def template_map_sym(self, index):
+        return super().template_map_sym(index)[::2]
+
+
+@pytest.mark.parametrize("protocol", ["p2f", "p2p"])
+def test_overlap_masks_are_geometric_where_the_template_has_gaps(protocol):
+    sparse = SparseTemplate(SyntheticHumans(n_individuals=2, n_poses=3, seed=1))
+    dense = SyntheticCollection(sparse.humans)
+    sparse_pair = DerivedPartialBenchmark(sparse, [0, 1, 2, 3], "cuts", protocol, seed=0)[1]
+    dense_pair = DerivedPartialBenchmark(dense, [0, 1, 2, 3], "cuts", protocol, seed=0)[1]
+    assert (sparse_pair.map_yx < 0).mean() > 0.3  # half the vertices have no ground-truth counterpart
+    for side in ("overlap_x", "overlap_y"):
+        sparse_mask, dense_mask = getattr(sparse_pair, side), getattr(dense_pair, side)
+        # nearest covered vertices fill the gaps: the masks agree with the fully covered ones
+        # except along the cut boundary
+        assert (sparse_mask == dense_mask).mean() > 0.95
+    if protocol == "p2f":
+        assert sparse_pair.overlap_y.all()
+    assert 0.05 < dense_pair.overlap_x.mean() < 0.95  # a real cut, not a trivial mask
