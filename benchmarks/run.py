@@ -37,12 +37,14 @@ from geofeat import metrics  # noqa: E402
 from geofeat.adapters.heads import Head, Match, load_head, make_head  # noqa: E402
 from geofeat.datasets import dataset_names, load_dataset  # noqa: E402
 from geofeat.descriptors.registry import make_descriptor  # noqa: E402
+from geofeat.files import atomic_write  # noqa: E402
 from geofeat.geometry.geodesic import geodesic_matrix  # noqa: E402
 
 log = logging.getLogger("benchmarks.run")
 
 REFERENCE_PIPELINES = ("random", "mirrored_truth")
 LEARNED_PIPELINES = ("ulrssm", "dpfm", "echomatch")
+TRAINING_RECORD = "training.json"  # how a head saved by this script was trained
 PIPELINES = ("nn", "fmap", "fmap_zoomout", *LEARNED_PIPELINES, *REFERENCE_PIPELINES)
 N_PICTURES = 3
 #: --quick: settings small enough to train and evaluate end to end in well under 2 minutes on a CPU.
@@ -84,17 +86,21 @@ def build_head(args, params: dict) -> Head:
 
 
 def train_head(head: Head, args, out: Path) -> dict:
-    """Train a learned head on ``--train-split`` (or load ``--load``); returns a summary for the report."""
+    """Train a learned head on ``--train-split`` (or load ``--load``); returns a summary for the report.
+
+    The summary is also saved as ``training.json`` in the head folder, so that a report on a
+    loaded head still says how it was trained.
+    """
     if args.load:
-        return {"loaded_from": args.load}
+        record = Path(args.load) / TRAINING_RECORD
+        return {"loaded_from": args.load, **(json.loads(record.read_text()) if record.is_file() else {})}
     train = load_dataset(args.dataset, root=args.data_root, split=args.train_split, seed=args.seed)
     n_train = len(train) if args.train_limit is None else min(args.train_limit, len(train))
     if args.quick:
         n_train = min(n_train, QUICK_TRAIN_PAIRS)
     start = time.perf_counter()
     losses = head.fit(_Pairs(train, n_train))
-    head.save(out / "head")
-    return {
+    record = {
         "train_split": args.train_split,
         "train_pairs": n_train,
         "train_steps": len(losses),
@@ -102,6 +108,9 @@ def train_head(head: Head, args, out: Path) -> dict:
         "final_loss": losses[-1] if losses else None,
         "train_losses": [round(v, 5) for v in losses],
     }
+    head.save(out / "head")
+    atomic_write(out / "head" / TRAINING_RECORD, lambda tmp: tmp.write_text(json.dumps(record)))
+    return record
 
 
 class _Pairs:

@@ -92,6 +92,7 @@ def test_quick_learned_heads_train_evaluate_and_reload(pipeline, dataset, tmp_pa
     assert again.returncode == 0, again.stderr
     reloaded = json.loads((tmp_path / "b" / "results.json").read_text())
     assert reloaded["loaded_from"] == str(tmp_path / "a" / "head")
+    assert reloaded["train_steps"] == report["train_steps"] and reloaded["train_losses"] == report["train_losses"]
     assert reloaded["geodesic_error"] == pytest.approx(report["geodesic_error"])
 
 
