@@ -48,7 +48,7 @@ from geofeat.mesh import Mesh
 from .diffusion_net import DiffusionNet
 from .fmap_layers import regularized_fmap
 from .functional_maps import nearest_neighbors
-from .heads import HeadConfig, HeadError, LearnedHead, Match, UnusablePair
+from .heads import HeadConfig, HeadError, LearnedHead, Match, ground_truth_map, ground_truth_overlaps
 from .operators import SurfaceOperators
 
 __all__ = [
@@ -62,7 +62,6 @@ __all__ = [
     "SampleInterpolation",
     "farthest_point_sampling",
     "ground_truth_fmap",
-    "ground_truth_overlaps",
     "sample_interpolation",
     "weighted_overlap_bce",
 ]
@@ -474,44 +473,6 @@ class DPFMNet(nn.Module):
 # ----------------------------------------------------------------------------- supervision
 
 
-def _checked_map(pair: ShapePair) -> np.ndarray:
-    map_yx = np.asarray(pair.map_yx)
-    n_x, n_y = pair.x.n_vertices, pair.y.n_vertices
-    if map_yx.shape != (n_y,) or map_yx.dtype.kind not in "iu":
-        raise HeadError(f"dpfm: pair {pair.name} needs an integer map_yx of shape ({n_y},); found {map_yx.dtype} {map_yx.shape}.")
-    if map_yx.size and (map_yx.min() < -1 or map_yx.max() >= n_x):
-        raise HeadError(
-            f"dpfm: map_yx of pair {pair.name} must hold vertices of x in [0, {n_x - 1}] or -1; "
-            f"found range [{map_yx.min()}, {map_yx.max()}]."
-        )
-    if not (map_yx >= 0).any():
-        raise UnusablePair(f"dpfm: pair {pair.name} has no ground-truth correspondence (map_yx is all -1).")
-    return map_yx.astype(np.int64, copy=False)
-
-
-def ground_truth_overlaps(pair: ShapePair) -> tuple[np.ndarray, np.ndarray]:
-    """Ground-truth overlap masks of a pair: its own, or derived from ``map_yx``.
-
-    Returns
-    -------
-    overlap_x : numpy.ndarray, shape (V_x,), bool
-        ``pair.overlap_x``, else the vertices of ``x`` that some vertex of ``y`` maps to.
-    overlap_y : numpy.ndarray, shape (V_y,), bool
-        ``pair.overlap_y``, else ``map_yx >= 0``.
-    """
-    map_yx = _checked_map(pair)
-    if pair.overlap_x is not None:
-        overlap_x = np.asarray(pair.overlap_x, dtype=bool)
-    else:
-        overlap_x = np.zeros(pair.x.n_vertices, dtype=bool)
-        overlap_x[map_yx[map_yx >= 0]] = True
-    overlap_y = np.asarray(pair.overlap_y, dtype=bool) if pair.overlap_y is not None else map_yx >= 0
-    for name, mask, n in (("overlap_x", overlap_x, pair.x.n_vertices), ("overlap_y", overlap_y, pair.y.n_vertices)):
-        if mask.shape != (n,):
-            raise HeadError(f"dpfm: {name} of pair {pair.name} must have shape ({n},); found {mask.shape}.")
-    return overlap_x, overlap_y
-
-
 def ground_truth_fmap(map_yx, evecs_x: torch.Tensor, evecs_y: torch.Tensor, mass_y: torch.Tensor) -> torch.Tensor:
     """``C_gt = Phi_y^T M_y P_yx Phi_x`` of a possibly partial point map (rows of ``-1`` vertices are zero).
 
@@ -637,7 +598,7 @@ class DPFMHead(LearnedHead):
     def training_loss(self, pair: ShapePair) -> torch.Tensor:
         """``w_fmap * ||C - C_gt||^2 + w_overlap * (BCE_x + BCE_y) + w_nce * NCE`` for one pair."""
         c = self.config
-        map_yx = _checked_map(pair)
+        map_yx = ground_truth_map(pair)
         overlap_x, overlap_y = ground_truth_overlaps(pair)
         out = self.forward(pair)
         _, ops_x = self.shape_inputs(pair.x)

@@ -73,7 +73,7 @@ from geofeat.mesh import Mesh
 
 from .diffusion_net import DiffusionNet
 from .fmap_layers import regularized_fmap, resolvent_mask
-from .heads import HeadConfig, HeadError, LearnedHead, Match, UnusablePair
+from .heads import HeadConfig, HeadError, LearnedHead, Match, ground_truth_map, ground_truth_overlaps
 from .operators import SurfaceOperators
 
 __all__ = [
@@ -85,7 +85,6 @@ __all__ = [
     "balanced_bce_with_logits",
     "correspondence_reflection",
     "cross_nce_loss",
-    "ground_truth_overlaps",
     "pointmap_matrix",
     "reflection_features",
     "regularized_gt_fmap",
@@ -517,53 +516,6 @@ def regularized_gt_fmap(map_yx, evecs_x: torch.Tensor, evecs_y: torch.Tensor, ev
     return columns.T.contiguous().to(out_dtype)
 
 
-def ground_truth_overlaps(pair: ShapePair) -> tuple[np.ndarray, np.ndarray]:
-    """Overlap masks of a pair: its own, else derived from ``map_yx``.
-
-    Parameters
-    ----------
-    pair : ShapePair
-
-    Returns
-    -------
-    overlap_x : numpy.ndarray, shape (V_x,), bool
-        ``pair.overlap_x``, else the vertices of ``x`` that ``map_yx`` hits.
-    overlap_y : numpy.ndarray, shape (V_y,), bool
-        ``pair.overlap_y``, else ``map_yx >= 0``.
-    """
-    map_yx = _checked_map(pair)
-    n_x, n_y = pair.x.n_vertices, pair.y.n_vertices
-    if pair.overlap_x is None:
-        overlap_x = np.zeros(n_x, dtype=bool)
-        overlap_x[map_yx[map_yx >= 0]] = True
-    else:
-        overlap_x = _checked_mask(pair.overlap_x, n_x, "overlap_x", pair)
-    overlap_y = map_yx >= 0 if pair.overlap_y is None else _checked_mask(pair.overlap_y, n_y, "overlap_y", pair)
-    return overlap_x, overlap_y
-
-
-def _checked_map(pair: ShapePair) -> np.ndarray:
-    map_yx = np.asarray(pair.map_yx)
-    if map_yx.ndim != 1 or map_yx.shape[0] != pair.y.n_vertices or not np.issubdtype(map_yx.dtype, np.integer):
-        raise HeadError(
-            f"pair {pair.name}: map_yx must be an integer array of shape ({pair.y.n_vertices},); "
-            f"found {map_yx.dtype} of shape {map_yx.shape}."
-        )
-    if map_yx.size and (map_yx.min() < -1 or map_yx.max() >= pair.x.n_vertices):
-        raise HeadError(
-            f"pair {pair.name}: map_yx must hold vertices of x in [0, {pair.x.n_vertices - 1}] or -1; "
-            f"found range [{map_yx.min()}, {map_yx.max()}]."
-        )
-    return map_yx.astype(np.int64, copy=False)
-
-
-def _checked_mask(mask, n: int, name: str, pair: ShapePair) -> np.ndarray:
-    arr = np.asarray(mask)
-    if arr.shape != (n,):
-        raise HeadError(f"pair {pair.name}: {name} must have shape ({n},); found {arr.shape}.")
-    return arr.astype(bool)
-
-
 # ----------------------------------------------------------------------------- network
 
 
@@ -700,9 +652,7 @@ class EchoMatchHead(LearnedHead):
             A malformed ground truth, or a pair without any correspondence.
         """
         c = self.config
-        map_np = _checked_map(pair)
-        if not (map_np >= 0).any():
-            raise UnusablePair(f"pair {pair.name}: map_yx has no correspondence (all -1); EchoMatch trains on known matches.")
+        map_np = ground_truth_map(pair)
         overlap_x_np, overlap_y_np = ground_truth_overlaps(pair)
         out, ops_x, ops_y = self.network_outputs(pair)
         device = out.feat_x.device

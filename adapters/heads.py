@@ -55,6 +55,8 @@ __all__ = [
     "Match",
     "UnusablePair",
     "NearestNeighbourHead",
+    "ground_truth_map",
+    "ground_truth_overlaps",
     "input_features",
     "load_head",
     "make_head",
@@ -144,6 +146,60 @@ class Match(NamedTuple):
     map_yx: np.ndarray
     overlap_y: np.ndarray
     overlap_x: np.ndarray | None = None
+
+
+def ground_truth_map(pair: ShapePair) -> np.ndarray:
+    """The ground-truth ``map_yx`` of a training pair, checked.
+
+    Returns
+    -------
+    numpy.ndarray, shape (V_y,), int64
+        A vertex of ``x`` for every vertex of ``y``, or -1.
+
+    Raises
+    ------
+    HeadError
+        A map of the wrong shape, type or range.
+    UnusablePair
+        No vertex of ``y`` has a counterpart (supervised heads skip such pairs).
+    """
+    map_yx = np.asarray(pair.map_yx)
+    n_x, n_y = pair.x.n_vertices, pair.y.n_vertices
+    if map_yx.shape != (n_y,) or not np.issubdtype(map_yx.dtype, np.integer):
+        raise HeadError(
+            f"pair {pair.name}: map_yx must be an integer array of shape ({n_y},); found {map_yx.dtype} {map_yx.shape}."
+        )
+    if map_yx.size and (map_yx.min() < -1 or map_yx.max() >= n_x):
+        raise HeadError(
+            f"pair {pair.name}: map_yx must hold vertices of x in [0, {n_x - 1}] or -1; "
+            f"found range [{map_yx.min()}, {map_yx.max()}]."
+        )
+    if not (map_yx >= 0).any():
+        raise UnusablePair(f"pair {pair.name}: no correspondence in the ground truth (map_yx is all -1).")
+    return map_yx.astype(np.int64, copy=False)
+
+
+def ground_truth_overlaps(pair: ShapePair) -> tuple[np.ndarray, np.ndarray]:
+    """Ground-truth overlap masks of a training pair: its own, else derived from ``map_yx``.
+
+    Returns
+    -------
+    overlap_x : numpy.ndarray, shape (V_x,), bool
+        ``pair.overlap_x``, else the vertices of ``x`` that some vertex of ``y`` maps to.
+    overlap_y : numpy.ndarray, shape (V_y,), bool
+        ``pair.overlap_y``, else ``map_yx >= 0``.
+    """
+    map_yx = ground_truth_map(pair)
+    overlap_x, overlap_y = pair.overlap_x, pair.overlap_y
+    if overlap_x is None:
+        overlap_x = np.zeros(pair.x.n_vertices, dtype=bool)
+        overlap_x[map_yx[map_yx >= 0]] = True
+    if overlap_y is None:
+        overlap_y = map_yx >= 0
+    for name, mask, n in (("overlap_x", overlap_x, pair.x.n_vertices), ("overlap_y", overlap_y, pair.y.n_vertices)):
+        if np.shape(mask) != (n,):
+            raise HeadError(f"pair {pair.name}: {name} must have shape ({n},); found {np.shape(mask)}.")
+    return np.asarray(overlap_x, dtype=bool), np.asarray(overlap_y, dtype=bool)
 
 
 def input_features(mesh: Mesh, descriptor: str, params: dict | None = None) -> np.ndarray:

@@ -11,11 +11,10 @@ from geofeat.adapters.dpfm import (
     DPFMHead,
     farthest_point_sampling,
     ground_truth_fmap,
-    ground_truth_overlaps,
     sample_interpolation,
     weighted_overlap_bce,
 )
-from geofeat.adapters.heads import HeadError, Match, load_head, make_head
+from geofeat.adapters.heads import HeadError, Match, UnusablePair, ground_truth_overlaps, load_head, make_head
 from geofeat.adapters.operators import surface_operators
 from geofeat.datasets.records import ShapePair
 from geofeat.geometry import make_partial
@@ -207,5 +206,5 @@ def test_bad_pairs_raise(pair):
     head = DPFMHead(**SMALL)
     with pytest.raises(HeadError, match="map_yx"):
         head.training_loss(ShapePair(x=pair.x, y=pair.y, map_yx=pair.map_yx[:-1]))
-    with pytest.raises(HeadError, match="no ground-truth"):
+    with pytest.raises(UnusablePair, match="no correspondence"):
         head.training_loss(ShapePair(x=pair.x, y=pair.y, map_yx=np.full(pair.y.n_vertices, -1)))

@@ -11,14 +11,13 @@ from geofeat.adapters.echomatch import (
     EchoMatchConfig,
     EchoMatchHead,
     correspondence_reflection,
-    ground_truth_overlaps,
     pointmap_matrix,
     reflection_features,
     round_trip_error,
     sampled_reflection,
     spatial_neighbours,
 )
-from geofeat.adapters.heads import HeadError, load_head, make_head
+from geofeat.adapters.heads import HeadError, ground_truth_overlaps, load_head, make_head
 from geofeat.datasets.records import ShapePair
 from geofeat.geometry import make_partial
 from geofeat.metrics import overlap_iou
