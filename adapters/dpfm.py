@@ -617,6 +617,14 @@ class DPFMHead(LearnedHead):
             loss = loss + c.w_nce * _nce_loss(out.feat_x, out.feat_y, map_yx, c.nce_pairs, c.nce_temperature, self._rng)
         return loss
 
+    def overlap_probabilities(self, pair: ShapePair) -> tuple[np.ndarray, np.ndarray]:
+        """Predicted overlap probabilities ``(x (V_x,), y (V_y,))`` float32 (network in eval mode, no gradients)."""
+        self._ensure_model(pair.x).eval()
+        with torch.no_grad():
+            out = self.forward(pair)
+        return (torch.sigmoid(out.overlap_logits_x).cpu().numpy().astype(np.float32),
+                torch.sigmoid(out.overlap_logits_y).cpu().numpy().astype(np.float32))  # fmt: skip
+
     def predict(self, pair: ShapePair) -> Match:
         """Point map y -> x and thresholded overlaps of both shapes."""
         c = self.config
@@ -632,7 +640,7 @@ class DPFMHead(LearnedHead):
             fx = F.normalize(out.feat_x, p=2, dim=-1).cpu().numpy()
             fy = F.normalize(out.feat_y, p=2, dim=-1).cpu().numpy()
             map_yx = nearest_neighbors(fx, fy, device=self.device)
-        logit = math.log(c.overlap_threshold / (1.0 - c.overlap_threshold))
-        overlap_x = (out.overlap_logits_x > logit).cpu().numpy()
-        overlap_y = (out.overlap_logits_y > logit).cpu().numpy()
-        return Match(np.asarray(map_yx, dtype=np.int64), overlap_y.astype(bool), overlap_x.astype(bool))
+        prob_x = torch.sigmoid(out.overlap_logits_x).cpu().numpy().astype(np.float32)
+        prob_y = torch.sigmoid(out.overlap_logits_y).cpu().numpy().astype(np.float32)
+        threshold = c.overlap_threshold
+        return Match(np.asarray(map_yx, dtype=np.int64), prob_y > threshold, prob_x > threshold, prob_y, prob_x)

@@ -706,14 +706,17 @@ class EchoMatchHead(LearnedHead):
         """
         out, _, _ = self.network_outputs(pair)
         threshold = self.config.overlap_threshold
-        overlap_x = torch.sigmoid(out.overlap_logits_x) > threshold
-        overlap_y = torch.sigmoid(out.overlap_logits_y) > threshold
+        prob_x, prob_y = torch.sigmoid(out.overlap_logits_x), torch.sigmoid(out.overlap_logits_y)
+        overlap_x, overlap_y = prob_x > threshold, prob_y > threshold
         fx, fy = F.normalize(out.feat_x, dim=-1), F.normalize(out.feat_y, dim=-1)
         candidates = torch.arange(fx.shape[0], device=fx.device)
         if self.config.restrict_to_overlap and bool(overlap_x.any()):
             candidates = torch.nonzero(overlap_x).squeeze(1)
         map_yx = candidates[_nearest(fx[candidates], fy)]
-        return Match(map_yx.cpu().numpy().astype(np.int64), overlap_y.cpu().numpy(), overlap_x.cpu().numpy())
+        return Match(
+            map_yx.cpu().numpy().astype(np.int64), overlap_y.cpu().numpy(), overlap_x.cpu().numpy(),
+            prob_y.cpu().numpy().astype(np.float32), prob_x.cpu().numpy().astype(np.float32),
+        )  # fmt: skip
 
 
 def _nearest(fx: torch.Tensor, fy: torch.Tensor, block: int = 4096) -> torch.Tensor:

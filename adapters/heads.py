@@ -141,11 +141,16 @@ class Match(NamedTuple):
         Vertices of ``y`` predicted to have a counterpart (all True for heads without overlap prediction).
     overlap_x : numpy.ndarray, shape (V_x,), bool, or None
         Vertices of ``x`` predicted to have a counterpart, where the head predicts it.
+    overlap_prob_y : numpy.ndarray, shape (V_y,), float32, or None
+    overlap_prob_x : numpy.ndarray, shape (V_x,), float32, or None
+        The overlap probabilities behind the masks, from heads that predict them.
     """
 
     map_yx: np.ndarray
     overlap_y: np.ndarray
     overlap_x: np.ndarray | None = None
+    overlap_prob_y: np.ndarray | None = None
+    overlap_prob_x: np.ndarray | None = None
 
 
 def ground_truth_map(pair: ShapePair) -> np.ndarray:

@@ -132,7 +132,9 @@ def evaluate_pair(pair, match: Match) -> dict:
     """Per-pair metrics; ``errors`` is the array of per-vertex geodesic errors.
 
     The overlap IoU is the mean over the shapes whose ground-truth overlap the dataset gives; a
-    head that predicts no overlap for a shape counts as predicting all of it.
+    head that predicts no overlap for a shape counts as predicting all of it. Heads that give
+    overlap probabilities also get their ROC AUC, averaged over the shapes whose ground truth
+    holds both classes.
     """
     dist_x = geodesic_matrix(pair.x, method="dijkstra", normalize=True)
     predicted = match.map_yx
@@ -147,6 +149,14 @@ def evaluate_pair(pair, match: Match) -> dict:
     ]
     if ious:
         record["iou"] = float(np.mean(ious))
+    aucs = [
+        metrics.overlap_auc(scores, truth)
+        for scores, truth in ((match.overlap_prob_y, pair.overlap_y), (match.overlap_prob_x, pair.overlap_x))
+        if scores is not None and truth is not None
+    ]
+    aucs = [auc for auc in aucs if auc is not None]
+    if aucs:
+        record["overlap_auc"] = float(np.mean(aucs))
     return record
 
 
@@ -167,9 +177,10 @@ def summarize(records: list[dict]) -> dict:
         weights = np.array([r["n_evaluated"] for r in with_chirality], dtype=float)
         values = np.array([r["chirality_accuracy"] for r in with_chirality])
         summary["chirality_accuracy"] = float((weights * values).sum() / weights.sum())
-    with_iou = [r for r in records if "iou" in r]
-    if with_iou:
-        summary["miou"] = float(np.mean([r["iou"] for r in with_iou]))
+    for key, name in (("iou", "miou"), ("overlap_auc", "overlap_auc")):
+        values = [r[key] for r in records if key in r]
+        if values:
+            summary[name] = float(np.mean(values))
     return summary
 
 
@@ -279,6 +290,7 @@ def main(argv=None) -> int:
         ("geodesic_error", "geodesic error x100", ".2f"),
         ("pck_auc", "PCK AUC", ".3f"),
         ("miou", "mIoU", ".3f"),
+        ("overlap_auc", "overlap AUC", ".3f"),
         ("chirality_accuracy", "chirality acc.", ".3f"),
     ]
     table = markdown_table([result], columns)

@@ -26,6 +26,7 @@ COLUMNS = [
     ("geodesic_error", "geodesic error x100", ".2f"),
     ("pck_auc", "PCK AUC", ".3f"),
     ("miou", "mIoU", ".3f"),
+    ("overlap_auc", "overlap AUC", ".3f"),
     ("chirality_accuracy", "chirality acc.", ".3f"),
     ("train_steps", "training steps", "d"),
     ("seconds", "time (s)", ".0f"),

@@ -23,6 +23,7 @@ import logging
 from collections.abc import Iterable
 
 import numpy as np
+from scipy.stats import rankdata
 
 from geofeat.errors import MetricError
 
@@ -334,3 +335,36 @@ def chirality_accuracy(map_pred_yx, map_gt_yx, map_gt_sym_yx, dist_x, eval_mask=
     scores = np.where(to_true < to_mirror, 1.0, np.where(to_true > to_mirror, 0.0, 0.5))
     scores[pred < 0] = 0.0
     return float(scores.mean())
+
+
+def overlap_auc(scores, gt_mask) -> float | None:
+    """Area under the ROC curve of predicted overlap scores against a ground-truth mask.
+
+    The probability that a random overlapping vertex scores higher than a random
+    non-overlapping one (ties count half): 1 is a perfect ranking, 0.5 chance. It does not
+    depend on a threshold, unlike `overlap_iou`.
+
+    Parameters
+    ----------
+    scores : array_like of float, shape (V,)
+        Predicted overlap probabilities (or any increasing score).
+    gt_mask : array_like of bool, shape (V,)
+
+    Returns
+    -------
+    float or None
+        None when the ground truth holds one class only (the ranking is undefined).
+    """
+    gt = np.asarray(gt_mask)
+    if gt.ndim != 1:
+        raise MetricError(f"gt_mask must be a 1-D boolean array, shape (V,); found shape {gt.shape}.")
+    gt = _as_mask(gt, gt.shape[0], "gt_mask")
+    values = np.asarray(scores, dtype=np.float64)
+    if values.shape != gt.shape or not np.isfinite(values).all():
+        raise MetricError(f"scores must be finite numbers of shape {gt.shape}; found shape {values.shape}.")
+    n_pos = int(gt.sum())
+    n_neg = gt.size - n_pos
+    if n_pos == 0 or n_neg == 0:
+        return None
+    ranks = rankdata(values)  # average ranks: ties count half
+    return float((ranks[gt].sum() - n_pos * (n_pos + 1) / 2) / (n_pos * n_neg))

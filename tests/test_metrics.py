@@ -11,6 +11,7 @@ from geofeat.metrics import (
     geodesic_errors,
     mean_geodesic_error,
     mean_iou,
+    overlap_auc,
     overlap_iou,
     pck_auc,
     pck_curve,
@@ -150,3 +151,17 @@ def test_invalid_metric_arguments_raise_clear_errors():
     with pytest.raises(MetricError, match="map_gt_sym_yx"):
         chirality_accuracy(IDENTITY, IDENTITY, MIRROR[:3], PATH)
     assert issubclass(MetricError, GeofeatError)
+
+
+def test_overlap_auc_is_the_roc_area_with_ties_counting_half():
+    from sklearn.metrics import roc_auc_score
+
+    rng = np.random.default_rng(3)
+    scores = rng.random(400).round(1)  # many ties
+    truth = rng.random(400) < scores
+    assert overlap_auc(scores, truth) == pytest.approx(roc_auc_score(truth, scores), abs=1e-12)
+    assert overlap_auc(truth.astype(float), truth) == 1.0
+    assert overlap_auc(-truth.astype(float), truth) == 0.0
+    assert overlap_auc(scores, np.ones(400, dtype=bool)) is None
+    with pytest.raises(MetricError, match="shape"):
+        overlap_auc(scores[:-1], truth)

@@ -103,15 +103,19 @@ def load_run_module():
     return module
 
 
-def test_miou_averages_every_shape_with_ground_truth_and_counts_no_prediction_as_all():
+def test_overlap_metrics_average_every_shape_with_ground_truth():
     bench = load_run_module()
     pair = load_dataset("synthetic_cuts")[0]  # P2F: the ground truth overlap of the full shape x
     assert pair.overlap_y.all() and 0 < pair.overlap_x.mean() < 1
     all_y = np.ones(pair.y.n_vertices, dtype=bool)
     no_prediction = bench.evaluate_pair(pair, Match(pair.map_yx, all_y))
     assert no_prediction["iou"] == pytest.approx((1.0 + pair.overlap_x.mean()) / 2)
-    exact = bench.evaluate_pair(pair, Match(pair.map_yx, all_y, pair.overlap_x.copy()))
-    assert exact["iou"] == 1.0
+    assert "overlap_auc" not in no_prediction  # no probabilities, no ranking
+    scores = pair.overlap_x + np.random.default_rng(0).uniform(0, 0.5, pair.x.n_vertices)  # ranks the truth perfectly
+    exact = bench.evaluate_pair(pair, Match(pair.map_yx, all_y, pair.overlap_x.copy(), None, scores))
+    assert exact["iou"] == 1.0 and exact["overlap_auc"] == 1.0  # only x has both classes
+    summary = bench.summarize([no_prediction, exact])
+    assert summary["overlap_auc"] == 1.0 and summary["miou"] == pytest.approx((no_prediction["iou"] + 1.0) / 2)
 
 
 def test_summary_tells_the_test_time_adaptation_apart(tmp_path):
