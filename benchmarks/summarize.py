@@ -35,7 +35,7 @@ COLUMNS = [
 
 def matcher_label(row: dict) -> str:
     """The pipeline name, with its test-time adaptation where the head has that setting."""
-    config = row.get("head", {}).get("config", {})
+    config = (row.get("head") or {}).get("config", {})
     if "tta_steps" not in config:
         return row["pipeline"]
     steps = config["tta_steps"]

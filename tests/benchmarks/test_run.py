@@ -122,7 +122,7 @@ def test_summary_tells_the_test_time_adaptation_apart(tmp_path):
     curve = {"pck_thresholds": [0.0, 0.25], "pck": [0.1, 0.9]}
     base = {"dataset": "faust_r_cuts", "descriptor": "wks", "date": "2026-11-21", "n_pairs": 2, "geodesic_error": 50.0}
     runs = {
-        "nn": {**base, "pipeline": "nn"},
+        "nn": {**base, "pipeline": "nn", "head": None},
         "tta": {**base, "pipeline": "ulrssm", "train_steps": 12, "head": {"config": {"tta_steps": 5}}},
         "notta": {**base, "pipeline": "ulrssm", "train_steps": 12, "head": {"config": {"tta_steps": 0}}},
     }
