@@ -34,12 +34,14 @@ COLUMNS = [
 
 
 def matcher_label(row: dict) -> str:
-    """The pipeline name, with its test-time adaptation where the head has that setting."""
+    """The pipeline name, with the head settings that tell runs of one trained head apart."""
     config = (row.get("head") or {}).get("config", {})
-    if "tta_steps" not in config:
-        return row["pipeline"]
-    steps = config["tta_steps"]
-    return f"{row['pipeline']}, TTA {steps}" if steps else f"{row['pipeline']}, no TTA"
+    label = row["pipeline"]
+    if "tta_steps" in config:
+        label += f", TTA {config['tta_steps']}" if config["tta_steps"] else ", no TTA"
+    if config.get("pointmap") == "features":
+        label += ", feature map"
+    return label
 
 
 def main(argv=None) -> int:
