@@ -617,14 +617,6 @@ class DPFMHead(LearnedHead):
             loss = loss + c.w_nce * _nce_loss(out.feat_x, out.feat_y, map_yx, c.nce_pairs, c.nce_temperature, self._rng)
         return loss
 
-    def overlap_probabilities(self, pair: ShapePair) -> tuple[np.ndarray, np.ndarray]:
-        """Predicted overlap probabilities ``(x (V_x,), y (V_y,))`` float32 (network in eval mode, no gradients)."""
-        self._ensure_model(pair.x).eval()
-        with torch.no_grad():
-            out = self.forward(pair)
-        return (torch.sigmoid(out.overlap_logits_x).cpu().numpy().astype(np.float32),
-                torch.sigmoid(out.overlap_logits_y).cpu().numpy().astype(np.float32))  # fmt: skip
-
     def predict(self, pair: ShapePair) -> Match:
         """Point map y -> x and thresholded overlaps of both shapes."""
         c = self.config

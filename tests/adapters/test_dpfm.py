@@ -156,10 +156,9 @@ def test_overlap_prediction_learns_on_one_pair(pair):
     # 0.85-0.98 depending on the BLAS thread count (float summation order); all-overlap scores far less
     assert _iou(match.overlap_x, overlap_x) > max(0.75, everything + 0.2)
     assert match.overlap_y.mean() > 0.9
-    # the masks are the probabilities thresholded at overlap_threshold
-    prob_x, prob_y = head.overlap_probabilities(pair)
-    assert prob_x.shape == (pair.x.n_vertices,) and prob_y.shape == (pair.y.n_vertices,)
-    np.testing.assert_array_equal(prob_x > head.config.overlap_threshold, match.overlap_x)
+    # the masks are the probabilities the match carries, thresholded at overlap_threshold
+    assert match.overlap_prob_x.shape == (pair.x.n_vertices,) and match.overlap_prob_y.shape == (pair.y.n_vertices,)
+    np.testing.assert_array_equal(match.overlap_prob_x > head.config.overlap_threshold, match.overlap_x)
 
 
 def test_save_and_load_give_identical_predictions(trained, pair, tmp_path):
