@@ -48,7 +48,16 @@ from geofeat.mesh import Mesh
 from .diffusion_net import DiffusionNet
 from .fmap_layers import regularized_fmap
 from .functional_maps import nearest_neighbors
-from .heads import HeadConfig, HeadError, LearnedHead, Match, ground_truth_map, ground_truth_overlaps
+from .heads import (
+    HeadConfig,
+    HeadError,
+    LearnedHead,
+    Match,
+    check_integers,
+    check_numbers,
+    ground_truth_map,
+    ground_truth_overlaps,
+)
 from .operators import SurfaceOperators
 
 __all__ = [
@@ -172,36 +181,18 @@ class DPFMConfig(HeadConfig):
 def _check_config(c: DPFMConfig) -> None:
     """Raise `HeadError` for any setting outside its range."""
 
-    def integer(name: str, low: int) -> None:
-        value = getattr(c, name)
-        if not isinstance(value, (int, np.integer)) or isinstance(value, bool) or value < low:
-            raise HeadError(f"dpfm: {name} must be an integer >= {low}; found {value!r}.")
-
-    def number(name: str, low: float, high: float = math.inf, low_open: bool = False, high_open: bool = False) -> None:
-        value = getattr(c, name)
-        ok = isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, bool)
-        ok = ok and math.isfinite(value) and (value > low if low_open else value >= low)
-        ok = ok and (value < high if high_open else value <= high)
-        if not ok:
-            lo, hi = "(" if low_open else "[", ")" if high_open else "]"
-            raise HeadError(f"dpfm: {name} must be a number in {lo}{low}, {high}{hi}; found {value!r}.")
-
-    for name in ("width", "n_heads", "n_interpolation", "n_fmap", "nce_pairs", "attention_dim", "n_eig"):
-        integer(name, 1)
-    for name in ("n_blocks", "n_attention_layers"):
-        integer(name, 0)
+    check_integers("dpfm", c, ("width", "n_heads", "n_interpolation", "n_fmap", "nce_pairs", "attention_dim", "n_eig"), 1)
+    check_integers("dpfm", c, ("n_blocks", "n_attention_layers"), 0)
     if c.attention_dim % c.n_heads:
         raise HeadError(f"dpfm: n_heads ({c.n_heads}) must divide attention_dim ({c.attention_dim}).")
     if c.n_fmap > c.n_eig:
         raise HeadError(f"dpfm: n_fmap ({c.n_fmap}) cannot exceed n_eig ({c.n_eig}); raise n_eig or lower n_fmap.")
     if c.max_samples is not None:
-        integer("max_samples", 1)
-    number("sampling_ratio", 0.0, 1.0, low_open=True)
-    number("gamma", 0.0, 1.0, low_open=True)
-    number("overlap_threshold", 0.0, 1.0, low_open=True, high_open=True)
-    number("nce_temperature", 0.0, low_open=True)
-    for name in ("lambda_", "w_fmap", "w_overlap", "w_nce", "single_class_weight"):
-        number(name, 0.0)
+        check_integers("dpfm", c, ("max_samples",), 1)
+    check_numbers("dpfm", c, ("sampling_ratio", "gamma"), 0.0, 1.0, low_open=True)
+    check_numbers("dpfm", c, ("overlap_threshold",), 0.0, 1.0, low_open=True, high_open=True)
+    check_numbers("dpfm", c, ("nce_temperature",), 0.0, low_open=True)
+    check_numbers("dpfm", c, ("lambda_", "w_fmap", "w_overlap", "w_nce", "single_class_weight"), 0.0)
     if c.fmap_features not in FMAP_FEATURES:
         raise HeadError(f"dpfm: fmap_features must be one of {FMAP_FEATURES}; found {c.fmap_features!r}.")
     if c.pointmap not in POINTMAPS:

@@ -56,7 +56,6 @@ plain Adam with optional cosine annealing.
 
 from __future__ import annotations
 
-import math
 import warnings
 from collections import OrderedDict
 from dataclasses import dataclass
@@ -73,7 +72,16 @@ from geofeat.mesh import Mesh
 
 from .diffusion_net import DiffusionNet
 from .fmap_layers import regularized_fmap, resolvent_mask
-from .heads import HeadConfig, HeadError, LearnedHead, Match, ground_truth_map, ground_truth_overlaps
+from .heads import (
+    HeadConfig,
+    HeadError,
+    LearnedHead,
+    Match,
+    check_integers,
+    check_numbers,
+    ground_truth_map,
+    ground_truth_overlaps,
+)
 from .operators import SurfaceOperators
 
 __all__ = [
@@ -173,43 +181,24 @@ class EchoMatchConfig(HeadConfig):
     lr: float = 1e-3
 
     def __post_init__(self) -> None:
-        for name in ("feature_channels", "width", "n_neighbours", "overlap_width", "n_fmap", "n_eig", "epochs"):
-            value = getattr(self, name)
-            if not _is_int(value) or value < 1:
-                raise HeadError(f"echomatch setting {name} must be a positive integer; found {value!r}.")
-        for name in ("n_blocks", "overlap_blocks"):
-            value = getattr(self, name)
-            if not _is_int(value) or value < 0:
-                raise HeadError(f"echomatch setting {name} must be a non-negative integer; found {value!r}.")
+        check_integers(
+            "echomatch", self, ("feature_channels", "width", "n_neighbours", "overlap_width", "n_fmap", "n_eig", "epochs"), 1
+        )
+        check_integers("echomatch", self, ("n_blocks", "overlap_blocks"), 0)
         if self.n_fmap > self.n_eig:
             raise HeadError(
                 f"echomatch: n_fmap={self.n_fmap} eigenpairs for the functional map, but the operators have only "
                 f"n_eig={self.n_eig}; raise n_eig or lower n_fmap."
             )
-        for name in ("fmap_lambda", "gt_fmap_lambda", "w_fmap", "w_overlap", "w_nce_self", "w_nce_cross"):
-            value = getattr(self, name)
-            if not _is_real(value) or not value >= 0 or not math.isfinite(value):
-                raise HeadError(f"echomatch setting {name} must be a finite number >= 0; found {value!r}.")
-        for name in ("temperature_init", "nce_temperature", "lr"):
-            value = getattr(self, name)
-            if not _is_real(value) or not value > 0 or not math.isfinite(value):
-                raise HeadError(f"echomatch setting {name} must be a finite number > 0; found {value!r}.")
-        if not _is_real(self.fmap_gamma) or not 0 < self.fmap_gamma <= 1:
-            raise HeadError(f"echomatch setting fmap_gamma must lie in (0, 1]; found {self.fmap_gamma!r}.")
-        if not _is_real(self.dropout) or not 0 <= self.dropout < 1:
-            raise HeadError(f"echomatch setting dropout must be a probability in [0, 1); found {self.dropout!r}.")
-        if not _is_real(self.overlap_threshold) or not 0 < self.overlap_threshold < 1:
-            raise HeadError(f"echomatch setting overlap_threshold must lie in (0, 1); found {self.overlap_threshold!r}.")
+        check_numbers(
+            "echomatch", self, ("fmap_lambda", "gt_fmap_lambda", "w_fmap", "w_overlap", "w_nce_self", "w_nce_cross"), 0.0
+        )
+        check_numbers("echomatch", self, ("temperature_init", "nce_temperature", "lr"), 0.0, low_open=True)
+        check_numbers("echomatch", self, ("fmap_gamma",), 0.0, 1.0, low_open=True)
+        check_numbers("echomatch", self, ("dropout",), 0.0, 1.0, high_open=True)
+        check_numbers("echomatch", self, ("overlap_threshold",), 0.0, 1.0, low_open=True, high_open=True)
         if self.prune_strategy not in PRUNE_STRATEGIES:
             raise HeadError(f"echomatch setting prune_strategy must be one of {PRUNE_STRATEGIES}; found {self.prune_strategy!r}.")
-
-
-def _is_int(value) -> bool:
-    return isinstance(value, (int, np.integer)) and not isinstance(value, bool)
-
-
-def _is_real(value) -> bool:
-    return isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, bool)
 
 
 # ----------------------------------------------------------------------------- correspondence reflection

@@ -153,6 +153,49 @@ class Match(NamedTuple):
     overlap_prob_x: np.ndarray | None = None
 
 
+def is_integer(value: Any) -> bool:
+    """An int or numpy integer, not a bool."""
+    return isinstance(value, (int, np.integer)) and not isinstance(value, bool)
+
+
+def is_finite_number(value: Any) -> bool:
+    """A finite int, float or numpy number, not a bool."""
+    real = isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, bool)
+    return real and math.isfinite(value)
+
+
+def check_integers(head: str, config: HeadConfig, names: Sequence[str], low: int) -> None:
+    """Raise `HeadError` unless every named setting of ``config`` is an integer ``>= low``."""
+    for name in names:
+        value = getattr(config, name)
+        if not is_integer(value) or value < low:
+            raise HeadError(f"{head}: {name} must be an integer >= {low}; found {value!r}.")
+
+
+def check_numbers(
+    head: str,
+    config: HeadConfig,
+    names: Sequence[str],
+    low: float,
+    high: float = math.inf,
+    low_open: bool = False,
+    high_open: bool = False,
+) -> None:
+    """Raise `HeadError` unless every named setting is a finite number in the interval ``low .. high``.
+
+    ``low_open`` / ``high_open`` exclude the bound itself.
+    """
+    for name in names:
+        value = getattr(config, name)
+        ok = is_finite_number(value) and (value > low if low_open else value >= low)
+        if not (ok and (value < high if high_open else value <= high)):
+            if math.isinf(high):
+                where = f"{'>' if low_open else '>='} {low}"
+            else:
+                where = f"in {'(' if low_open else '['}{low}, {high}{')' if high_open else ']'}"
+            raise HeadError(f"{head}: {name} must be a finite number {where}; found {value!r}.")
+
+
 def ground_truth_map(pair: ShapePair) -> np.ndarray:
     """The ground-truth ``map_yx`` of a training pair, checked.
 

@@ -33,7 +33,6 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-import math
 from dataclasses import dataclass
 from typing import Any
 
@@ -57,7 +56,7 @@ from .fmap_layers import (
     soft_pointmap,
 )
 from .functional_maps import nearest_neighbors
-from .heads import HeadConfig, HeadError, LearnedHead, Match
+from .heads import HeadConfig, HeadError, LearnedHead, Match, check_integers, check_numbers, is_finite_number, is_integer
 from .operators import SurfaceOperators
 
 log = logging.getLogger(__name__)
@@ -227,7 +226,7 @@ class ULRSSMHead(LearnedHead):
         """
         c = self.config
         steps = c.tta_steps if steps is None else steps
-        if not _is_int(steps) or steps < 0:
+        if not is_integer(steps) or steps < 0:
             raise HeadError(f"steps must be a non-negative integer; found {steps!r}.")
         model = self._ensure_model(pair.x)
         model.eval()
@@ -334,41 +333,22 @@ def _numpy(t: torch.Tensor) -> np.ndarray:
     return t.detach().to("cpu").numpy()
 
 
-def _is_int(value: Any) -> bool:
-    return isinstance(value, (int, np.integer)) and not isinstance(value, bool)
-
-
-def _is_number(value: Any) -> bool:
-    return isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, bool) and math.isfinite(value)
-
-
 def _validate(c: ULRSSMConfig) -> None:
     """Raise `HeadError` for a setting out of range."""
-    for name in ("n_eig", "width", "width_out", "n_blocks", "diffusion_eig", "n_fmap"):
-        value = getattr(c, name)
-        if not _is_int(value) or value < 1:
-            raise HeadError(f"ulrssm: {name} must be a positive integer; found {value!r}.")
+    check_integers("ulrssm", c, ("n_eig", "width", "width_out", "n_blocks", "diffusion_eig", "n_fmap"), 1)
     if c.n_fmap > c.n_eig:
         raise HeadError(f"ulrssm: n_fmap ({c.n_fmap}) must be at most n_eig ({c.n_eig}); raise n_eig or lower n_fmap.")
     if c.diffusion_eig > c.n_eig:
         raise HeadError(
             f"ulrssm: diffusion_eig ({c.diffusion_eig}) must be at most n_eig ({c.n_eig}); raise n_eig or lower diffusion_eig."
         )
-    for name in ("temperature", "tta_lr", "lr"):
-        value = getattr(c, name)
-        if not _is_number(value) or value <= 0:
-            raise HeadError(f"ulrssm: {name} must be a finite number > 0; found {value!r}.")
-    for name in ("fmap_lambda", "w_bij", "w_orth", "w_couple", "w_lap"):
-        value = getattr(c, name)
-        if not _is_number(value) or value < 0:
-            raise HeadError(f"ulrssm: {name} must be a finite number >= 0; found {value!r}.")
-    if not _is_number(c.resolvent_gamma) or not 0 < c.resolvent_gamma <= 1:
-        raise HeadError(f"ulrssm: resolvent_gamma must lie in (0, 1]; found {c.resolvent_gamma!r}.")
-    if c.grad_clip is not None and (not _is_number(c.grad_clip) or c.grad_clip <= 0):
-        raise HeadError(f"ulrssm: grad_clip must be a finite number > 0 or None; found {c.grad_clip!r}.")
-    if not _is_int(c.tta_steps) or c.tta_steps < 0:
-        raise HeadError(f"ulrssm: tta_steps must be a non-negative integer; found {c.tta_steps!r}.")
-    if not (isinstance(c.dropout, bool) or (_is_number(c.dropout) and 0 <= c.dropout < 1)):
+    check_numbers("ulrssm", c, ("temperature", "tta_lr", "lr"), 0.0, low_open=True)
+    check_numbers("ulrssm", c, ("fmap_lambda", "w_bij", "w_orth", "w_couple", "w_lap"), 0.0)
+    check_numbers("ulrssm", c, ("resolvent_gamma",), 0.0, 1.0, low_open=True)
+    if c.grad_clip is not None:
+        check_numbers("ulrssm", c, ("grad_clip",), 0.0, low_open=True)
+    check_integers("ulrssm", c, ("tta_steps",), 0)
+    if not (isinstance(c.dropout, bool) or (is_finite_number(c.dropout) and 0 <= c.dropout < 1)):
         raise HeadError(f"ulrssm: dropout must be True, False or a probability in [0, 1); found {c.dropout!r}.")
     if not isinstance(c.refine_fmap, bool):
         raise HeadError(f"ulrssm: refine_fmap must be True or False; found {c.refine_fmap!r}.")

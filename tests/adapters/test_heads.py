@@ -116,3 +116,18 @@ def test_fit_skips_unusable_pairs(caplog):
     losses = head.fit([_pair(0), _pair(1)])
     assert len(losses) == 2  # the bumpy1 pair skipped in both epochs
     assert "skipped a training pair" in caplog.text
+
+
+def test_setting_checks_name_the_setting_and_keep_their_bounds():
+    from geofeat.adapters.heads import check_integers, check_numbers
+
+    config = HeadConfig(n_eig=0, lr=float("inf"))
+    with pytest.raises(HeadError, match="test: n_eig must be an integer >= 1; found 0"):
+        check_integers("test", config, ("epochs", "n_eig"), 1)
+    check_integers("test", config, ("n_eig",), 0)
+    with pytest.raises(HeadError, match="lr must be a finite number >= 0"):
+        check_numbers("test", config, ("lr",), 0.0)
+    config = HeadConfig(lr=1.0)
+    check_numbers("test", config, ("lr",), 0.0, 1.0)
+    with pytest.raises(HeadError, match=r"lr must be a finite number in \(0.0, 1.0\)"):
+        check_numbers("test", config, ("lr",), 0.0, 1.0, low_open=True, high_open=True)
