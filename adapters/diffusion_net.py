@@ -190,11 +190,15 @@ class SpatialGradientFeatures(nn.Module):
 
 
 def _mlp(sizes: Sequence[int], dropout: float) -> nn.Sequential:
-    """Linear layers with ReLU between them (not after the last) and dropout before all but the first."""
+    """Linear layers with ReLU between them (not after the last) and dropout before all but the first.
+
+    The j-th linear layer is always module ``3 * j`` (an `nn.Identity` stands in for the
+    dropout when there is none), so state-dict keys do not depend on the dropout setting.
+    """
     layers: list[nn.Module] = []
     for index, (n_in, n_out) in enumerate(zip(sizes[:-1], sizes[1:], strict=True)):
-        if dropout > 0 and index > 0:
-            layers.append(nn.Dropout(p=dropout))
+        if index > 0:
+            layers.append(nn.Dropout(p=dropout) if dropout > 0 else nn.Identity())
         layers.append(nn.Linear(n_in, n_out))
         if index < len(sizes) - 2:
             layers.append(nn.ReLU())

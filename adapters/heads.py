@@ -16,6 +16,7 @@ are shared.
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import importlib
 import json
@@ -60,6 +61,7 @@ __all__ = [
     "input_features",
     "load_head",
     "make_head",
+    "normalized_mesh",
 ]
 
 CONFIG_FILE = "head_config.json"
@@ -102,6 +104,18 @@ class HeadConfig:
         ``"auto"``: CUDA when present, else CPU.
     progress : bool
         Progress bars.
+    laplacian : {"robust", "cotan"}
+        Laplacian of the surface operators (eigenpairs, mass).
+    operators : {"geofeat", "diffusionnet"}
+        Construction of the DiffusionNet operators (see
+        `geofeat.adapters.operators.surface_operators`); ``"diffusionnet"`` is that of the
+        reference code the released models were trained with.
+    mesh_normalization : {None, "unit_area"}
+        What the head does to every mesh before computing its inputs and operators.
+        ``"unit_area"``: the references' preprocessing: centre at the mean vertex, scale to
+        unit total face area, and round the coordinates to float32 (the references read
+        their meshes as float32). Point maps and overlaps do not depend on it (the vertex
+        order is kept); geodesic errors are computed on the original meshes.
     """
 
     descriptor: str = "wks"
@@ -115,6 +129,9 @@ class HeadConfig:
     seed: int = 0
     device: str = "cpu"
     progress: bool = True
+    laplacian: str = "robust"
+    operators: str = "geofeat"
+    mesh_normalization: str | None = None
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready settings."""
@@ -250,6 +267,37 @@ def ground_truth_overlaps(pair: ShapePair) -> tuple[np.ndarray, np.ndarray]:
     return np.asarray(overlap_x, dtype=bool), np.asarray(overlap_y, dtype=bool)
 
 
+#: Values of `HeadConfig.mesh_normalization`.
+MESH_NORMALIZATIONS = (None, "unit_area")
+
+
+def normalized_mesh(mesh: Mesh, how: str | None) -> Mesh:
+    """The mesh a head computes on (see `HeadConfig.mesh_normalization`).
+
+    Parameters
+    ----------
+    mesh : Mesh
+        Triangle mesh (``"unit_area"`` needs faces with a positive total area).
+    how : {None, "unit_area"}
+        None returns ``mesh`` itself; ``"unit_area"``: vertices minus their mean, divided
+        by the square root of the total face area, rounded to float32.
+
+    Returns
+    -------
+    Mesh
+        Same faces, vertex order and name.
+    """
+    if how is None:
+        return mesh
+    if how != "unit_area":
+        raise HeadError(f"mesh_normalization must be one of {MESH_NORMALIZATIONS}; found {how!r}.")
+    area = mesh.area() if mesh.faces is not None else 0.0
+    if not area > 0:
+        raise HeadError(f"mesh {mesh.name!r} has no surface area: mesh_normalization='unit_area' needs a triangle mesh.")
+    verts = (mesh.verts - mesh.verts.mean(axis=0)) / math.sqrt(area)
+    return Mesh(verts.astype(np.float32).astype(np.float64), mesh.faces, name=mesh.name)
+
+
 def input_features(mesh: Mesh, descriptor: str, params: dict | None = None) -> np.ndarray:
     """Per-vertex input features of a head: a geofeat descriptor, or ``"xyz"`` coordinates.
 
@@ -276,6 +324,8 @@ class Head:
 
     name: ClassVar[str] = ""
     config_class: ClassVar[type[HeadConfig]] = HeadConfig
+    #: Named sets of settings, e.g. ``"reference"``: the conventions of the authors' code.
+    PRESETS: ClassVar[dict[str, dict[str, Any]]] = {}
 
     def __init__(self, config: HeadConfig | None = None, **settings: Any):
         if config is not None and settings:
@@ -289,6 +339,7 @@ class Head:
         if not isinstance(config, self.config_class):
             raise HeadError(f"head {self.name!r} takes a {self.config_class.__name__}; found {type(config).__name__}.")
         self.config = config
+        _check_inputs(config)
         self._inputs: OrderedDict[str, tuple[torch.Tensor, SurfaceOperators]] = OrderedDict()
 
     # -- inputs
@@ -299,8 +350,15 @@ class Head:
         return resolve_device(self.config.device)
 
     def features(self, mesh: Mesh) -> np.ndarray:
-        """Input features of ``mesh`` (V, C) float32."""
+        """Input features of ``mesh`` (V, C) float32, after `HeadConfig.mesh_normalization`."""
+        mesh = normalized_mesh(mesh, self.config.mesh_normalization)
         return input_features(mesh, self.config.descriptor, self.config.descriptor_params)
+
+    def operators(self, mesh: Mesh) -> SurfaceOperators:
+        """Surface operators of ``mesh`` (after `HeadConfig.mesh_normalization`), on the CPU."""
+        c = self.config
+        mesh = normalized_mesh(mesh, c.mesh_normalization)
+        return surface_operators(mesh, c.n_eig, laplacian_kind=c.laplacian, construction=c.operators)
 
     def shape_inputs(self, mesh: Mesh) -> tuple[torch.Tensor, SurfaceOperators]:
         """Input features as a tensor (V, C) and the surface operators, on the head's device (kept for 64 meshes)."""
@@ -309,7 +367,7 @@ class Head:
             self._inputs.move_to_end(key)
             return self._inputs[key]
         feats = torch.as_tensor(self.features(mesh), device=self.device)
-        entry = (feats, surface_operators(mesh, self.config.n_eig).to(self.device))
+        entry = (feats, self.operators(mesh).to(self.device))
         self._inputs[key] = entry
         while len(self._inputs) > 64:
             self._inputs.popitem(last=False)
@@ -458,6 +516,16 @@ class LearnedHead(Head):
         )
         return folder
 
+    def load_state(self, state: dict[str, torch.Tensor], in_channels: int, source: str) -> None:
+        """Build the module for ``in_channels`` and load ``state`` exactly (see `release.check_state`)."""
+        from .release import check_state
+
+        self.in_channels = int(in_channels)
+        model = self.build_model(self.in_channels)
+        check_state(model, state, source)
+        model.load_state_dict(state, strict=True)
+        self.model = model.to(self.device)
+
     def load_weights(self, folder: Path, in_channels: int) -> None:
         """Build the module for ``in_channels`` and load ``weights.safetensors``."""
         from safetensors.torch import load_file
@@ -488,14 +556,58 @@ def head_class(name: str) -> type[Head]:
     return getattr(importlib.import_module(module), cls)
 
 
-def make_head(name: str, **settings: Any) -> Head:
-    """Build the head ``name`` from keyword settings of its configuration."""
-    return head_class(name)(**settings)
+def make_head(name: str, preset: str | None = None, **settings: Any) -> Head:
+    """Build the head ``name`` from keyword settings of its configuration.
+
+    Parameters
+    ----------
+    name : str
+        A key of `HEADS`.
+    preset : str, optional
+        A key of the head's ``PRESETS`` (e.g. ``"reference"``: the authors' conventions);
+        ``settings`` override the preset's values.
+    **settings
+        Fields of the head's configuration.
+    """
+    cls = head_class(name)
+    return cls(**(preset_settings(cls, preset) | settings))
 
 
-def load_head(folder: str | os.PathLike) -> Head:
-    """A head saved by `Head.save`, with its weights for learned heads."""
-    folder = Path(folder)
+def preset_settings(cls: type[Head], preset: str | None) -> dict[str, Any]:
+    """The settings of ``cls.PRESETS[preset]`` (empty for None); `HeadError` for an unknown preset."""
+    if preset is None:
+        return {}
+    if preset not in cls.PRESETS:
+        raise HeadError(f"head {cls.name!r} has no preset {preset!r}; presets: {sorted(cls.PRESETS) or 'none'}.")
+    return copy.deepcopy(cls.PRESETS[preset])
+
+
+def load_head(source: str | os.PathLike, checkpoint: str | os.PathLike | None = None, **settings: Any) -> Head:
+    """A head saved by `Head.save`, or a head built from the authors' release checkpoint.
+
+    Parameters
+    ----------
+    source : str or path-like
+        A folder written by `Head.save`; or, with ``checkpoint``, a head name
+        (``"ulrssm"``, ``"dpfm"``).
+    checkpoint : str or path-like, optional
+        A release checkpoint of the authors' code (a ``torch.save`` file). The head gets its
+        ``"reference"`` preset, its sizes read from the tensors, and the weights through an
+        exact key mapping (see the head's ``release_state``).
+    **settings
+        With ``checkpoint``: settings that override the preset (e.g. ``tta_steps=5``).
+
+    Raises
+    ------
+    HeadError
+        An unreadable file, or a checkpoint with missing, unexpected or wrongly shaped keys
+        (each named).
+    """
+    if checkpoint is not None:
+        return _from_release(str(source), Path(checkpoint), settings)
+    if settings:
+        raise HeadError(f"settings {sorted(settings)} only apply with a release checkpoint; change head.config instead.")
+    folder = Path(source)
     try:
         payload = json.loads((folder / CONFIG_FILE).read_text())
     except (OSError, ValueError) as exc:
@@ -509,6 +621,43 @@ def load_head(folder: str | os.PathLike) -> Head:
             in_channels = int(handle.metadata()["in_channels"])
         head.load_weights(folder, in_channels)
     return head
+
+
+def _from_release(name: str, checkpoint: Path, settings: dict[str, Any]) -> LearnedHead:
+    """`load_head` with a release checkpoint."""
+    cls = head_class(name)
+    release_state = getattr(cls, "release_state", None)
+    if not issubclass(cls, LearnedHead) or release_state is None:
+        raise HeadError(f"head {name!r} cannot load release checkpoints; heads that can: ulrssm, dpfm.")
+    if not checkpoint.is_file():
+        raise HeadError(f"release checkpoint {checkpoint} does not exist.")
+    try:
+        raw = torch.load(checkpoint, map_location="cpu", weights_only=True)
+    except Exception as exc:  # noqa: BLE001 - torch raises many types for unreadable or unsafe files
+        raise HeadError(
+            f"{checkpoint} is not a readable torch checkpoint of tensors ({type(exc).__name__}: {exc}); "
+            "pickled objects other than tensors and dicts are refused for safety."
+        ) from exc
+    if not isinstance(raw, dict):
+        raise HeadError(f"{checkpoint}: expected a dict of tensors; found {type(raw).__name__}.")
+    release = release_state(raw, source=str(checkpoint))
+    head = cls(**(preset_settings(cls, "reference") | release.settings | settings))
+    head.load_state(release.state, release.in_channels, source=str(checkpoint))
+    return head
+
+
+def _check_inputs(config: HeadConfig) -> None:
+    """Raise `HeadError` for an unknown Laplacian, operator construction or mesh normalisation."""
+    from geofeat.geometry.laplacian import LAPLACIANS
+
+    from .operators import CONSTRUCTIONS
+
+    if config.laplacian not in LAPLACIANS:
+        raise HeadError(f"laplacian must be one of {LAPLACIANS}; found {config.laplacian!r}.")
+    if config.operators not in CONSTRUCTIONS:
+        raise HeadError(f"operators must be one of {CONSTRUCTIONS}; found {config.operators!r}.")
+    if config.mesh_normalization not in MESH_NORMALIZATIONS:
+        raise HeadError(f"mesh_normalization must be one of {MESH_NORMALIZATIONS}; found {config.mesh_normalization!r}.")
 
 
 def _unknown(config_class: type[HeadConfig], settings: dict) -> list[str]:

@@ -34,6 +34,12 @@ N_NEIGHBORS_CLOUD = 30
 #: Tikhonov regularisation of the per-vertex least-squares gradient fit, relative to the mean
 #: squared tangent edge length at the vertex (keeps nearly collinear neighbourhoods solvable).
 GRADIENT_REGULARIZATION = 1e-5
+#: Absolute Tikhonov regularisation of the gradient fit in the DiffusionNet reference code
+#: (``construction="diffusionnet"``), in squared length units of the (unit-area) shape.
+REFERENCE_GRADIENT_REGULARIZATION = 1e-5
+#: Operator constructions: ours, and the one of the DiffusionNet reference code (used by the
+#: released ULRSSM, DPFM and EchoMatch models).
+CONSTRUCTIONS = ("geofeat", "diffusionnet")
 #: A normal candidate axis is rejected for the tangent X axis when ``|n . axis|`` reaches this.
 _AXIS_ALIGNMENT_LIMIT = 0.9
 _CACHE_SIZE = 8
@@ -124,7 +130,9 @@ _operator_cache: OrderedDict[tuple, SurfaceOperators] = OrderedDict()
 _operator_lock = threading.Lock()
 
 
-def surface_operators(mesh: Mesh, k: int = 128, laplacian_kind: str = "robust", cache: bool = True) -> SurfaceOperators:
+def surface_operators(
+    mesh: Mesh, k: int = 128, laplacian_kind: str = "robust", cache: bool = True, construction: str = "geofeat"
+) -> SurfaceOperators:
     """Build (or fetch from the in-memory cache) the DiffusionNet operators of a shape.
 
     Parameters
@@ -136,8 +144,16 @@ def surface_operators(mesh: Mesh, k: int = 128, laplacian_kind: str = "robust", 
     laplacian_kind : {"robust", "cotan"}
         Discretisation of the Laplacian, see `geofeat.geometry.laplacian`.
     cache : bool
-        Reuse the operators built before for the same mesh content, ``k`` and Laplacian
-        (a small LRU cache in memory).
+        Reuse the operators built before for the same mesh content, ``k``, Laplacian and
+        construction (a small LRU cache in memory).
+    construction : {"geofeat", "diffusionnet"}
+        ``"geofeat"``: vertex normals weighted by face area and a gradient fit regularised
+        relative to the local edge lengths (scale-free). ``"diffusionnet"``: the choices of
+        the DiffusionNet reference code that the released ULRSSM, DPFM and EchoMatch
+        models were trained with: normals = normalised sum of the *unit* normals of the
+        adjacent faces, and an absolute regularisation `REFERENCE_GRADIENT_REGULARIZATION`
+        (so the operators depend on the scale of the shape: use it on unit-area shapes, as
+        the references do). Use ``laplacian_kind="cotan"`` with it to match them.
 
     Returns
     -------
@@ -150,17 +166,20 @@ def surface_operators(mesh: Mesh, k: int = 128, laplacian_kind: str = "robust", 
     geofeat.SpectralError
         Bad ``k`` or a failed eigensolve.
     geofeat.MeshError
-        Unknown Laplacian kind, or a point cloud with ``kind="cotan"``.
+        Unknown Laplacian kind or construction, or a point cloud with ``kind="cotan"``.
     """
-    key = (mesh.hash, int(k) if isinstance(k, (int, np.integer)) else k, laplacian_kind)
+    if construction not in CONSTRUCTIONS:
+        raise MeshError(f"unknown operator construction {construction!r}; expected one of {CONSTRUCTIONS}.")
+    key = (mesh.hash, int(k) if isinstance(k, (int, np.integer)) else k, laplacian_kind, construction)
     if cache:
         with _operator_lock:
             if key in _operator_cache:
                 _operator_cache.move_to_end(key)
                 return _operator_cache[key]
     basis = spectral_basis(mesh, k, laplacian_kind=laplacian_kind)
-    frames = tangent_frames(vertex_normals(mesh))
-    grad_x, grad_y = gradient_matrices(mesh, frames)
+    reference = construction == "diffusionnet"
+    frames = tangent_frames(vertex_normals(mesh, face_weights="unit" if reference else "area"))
+    grad_x, grad_y = gradient_matrices(mesh, frames, REFERENCE_GRADIENT_REGULARIZATION if reference else None)
     edges = None if mesh.faces is None else _undirected_edges(mesh.faces)
     ops = SurfaceOperators(
         mass=_dense32(basis.mass),
@@ -200,19 +219,22 @@ def _sparse32(matrix: sp.spmatrix) -> torch.Tensor:
 # ----------------------------------------------------------------------------- geometry (float64)
 
 
-def vertex_normals(mesh: Mesh) -> np.ndarray:
+def vertex_normals(mesh: Mesh, face_weights: str = "area") -> np.ndarray:
     """Unit normal at every vertex.
 
     Parameters
     ----------
     mesh : Mesh
         Triangle mesh or point cloud.
+    face_weights : {"area", "unit"}
+        Sum the adjacent face normals weighted by face area, or as unit vectors (the
+        DiffusionNet reference code; degenerate faces then add nothing).
 
     Returns
     -------
     numpy.ndarray, shape (V, 3), float64
-        On a mesh, the area-weighted mean of the adjacent face normals (oriented like the
-        faces). On a point cloud, and on mesh vertices without a usable face normal
+        On a mesh, the normalised sum of the adjacent face normals (oriented like the
+        faces), weighted as ``face_weights`` says. On a point cloud, and on mesh vertices without a usable face normal
         (unreferenced, or normals that cancel), the direction of least variance of the
         `N_NEIGHBORS_CLOUD` nearest points, oriented away from the centroid of the shape.
     """
@@ -221,11 +243,15 @@ def vertex_normals(mesh: Mesh) -> np.ndarray:
     if mesh.faces is not None:
         tri = verts[mesh.faces]
         face_normals = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])  # length = 2 * area
+        if face_weights == "unit":
+            face_normals = face_normals / (np.linalg.norm(face_normals, axis=1, keepdims=True) + 1e-12)
+        elif face_weights != "area":
+            raise MeshError(f"face_weights must be 'area' or 'unit'; found {face_weights!r}.")
         for corner in range(3):
             np.add.at(normals, mesh.faces[:, corner], face_normals)
     lengths = np.linalg.norm(normals, axis=1)
     scale = max(mesh.bbox_diagonal(), 1e-300)
-    missing = lengths <= 1e-12 * scale**2
+    missing = lengths <= (1e-12 if face_weights == "unit" else 1e-12 * scale**2)
     if missing.any():
         normals[missing] = _cloud_normals(verts, np.flatnonzero(missing))
         lengths[missing] = 1.0
@@ -273,7 +299,9 @@ def tangent_frames(normals: np.ndarray) -> np.ndarray:
     return np.stack((basis_x, basis_y, normals), axis=1)
 
 
-def gradient_matrices(mesh: Mesh, frames: np.ndarray) -> tuple[sp.csr_matrix, sp.csr_matrix]:
+def gradient_matrices(
+    mesh: Mesh, frames: np.ndarray, absolute_regularization: float | None = None
+) -> tuple[sp.csr_matrix, sp.csr_matrix]:
     """Least-squares tangent gradient operators.
 
     Parameters
@@ -283,6 +311,9 @@ def gradient_matrices(mesh: Mesh, frames: np.ndarray) -> tuple[sp.csr_matrix, sp
         (neighbours: the `N_NEIGHBORS_CLOUD` nearest points).
     frames : numpy.ndarray, shape (V, 3, 3)
         Per-vertex frames from `tangent_frames`.
+    absolute_regularization : float, optional
+        Use this ``r_i`` at every vertex (the DiffusionNet reference code uses 1e-5)
+        instead of the scale-free default below.
 
     Returns
     -------
@@ -311,7 +342,10 @@ def gradient_matrices(mesh: Mesh, frames: np.ndarray) -> tuple[sp.csr_matrix, sp
     b = np.bincount(tails, weights=tangent[:, 0] * tangent[:, 1], minlength=n)
     c = np.bincount(tails, weights=tangent[:, 1] ** 2, minlength=n)
     count = np.bincount(tails, minlength=n)
-    reg = GRADIENT_REGULARIZATION * (a + c) / np.maximum(count, 1)
+    if absolute_regularization is None:
+        reg = GRADIENT_REGULARIZATION * (a + c) / np.maximum(count, 1)
+    else:
+        reg = np.full(n, float(absolute_regularization))
     a, c = a + reg, c + reg
     det = a * c - b * b
     inv_det = np.divide(1.0, det, out=np.zeros(n), where=det > 0)

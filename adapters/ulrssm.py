@@ -58,6 +58,7 @@ from .fmap_layers import (
 from .functional_maps import nearest_neighbors
 from .heads import HeadConfig, HeadError, LearnedHead, Match, check_integers, check_numbers, is_finite_number, is_integer
 from .operators import SurfaceOperators
+from .release import ReleaseState, diffusionnet_state
 
 log = logging.getLogger(__name__)
 
@@ -154,10 +155,65 @@ class ULRSSMHead(LearnedHead):
 
     name = "ulrssm"
     config_class = ULRSSMConfig
+    #: ``"reference"``: the conventions of the authors' code for FAUST_r / SCAPE_r
+    #: (``options/train/faust_scape.yaml``, ``options/test/faust.yaml``), see `REFERENCE_NOTES`.
+    PRESETS = {
+        "reference": {
+            "descriptor": "wks",
+            "descriptor_params": {"n_eig": 128, "n_descr": 128, "laplacian": "cotan", "normalize": True},
+            "mesh_normalization": "unit_area",
+            "laplacian": "cotan",
+            "operators": "diffusionnet",
+            "n_eig": 200,
+            "diffusion_eig": 128,
+            "n_fmap": 200,
+            "width": 128,
+            "width_out": 256,
+            "n_blocks": 4,
+            "dropout": True,
+            "temperature": 0.07,
+            "fmap_lambda": 100.0,
+            "resolvent_gamma": 0.5,
+            "w_bij": 1.0,
+            "w_orth": 1.0,
+            "w_couple": 1.0,
+            "w_lap": 0.0,
+            "refine_fmap": True,
+            "tta_steps": 0,
+        }
+    }
 
     def __init__(self, config: ULRSSMConfig | None = None, **settings: Any):
         super().__init__(config, **settings)
         _validate(self.config)
+
+    @classmethod
+    def release_state(cls, raw: dict, source: str = "checkpoint") -> ReleaseState:
+        """Translate the authors' checkpoint (``{"networks": {"feature_extractor": state}}``) for this head.
+
+        The sizes (input channels, width, output channels, blocks) come from the tensors;
+        128 input channels mean the reference WKS input (``n_descr`` = the input width), 3
+        mean ``"xyz"`` (the SHREC'16, TOSCA and SMAL checkpoints).
+
+        Raises
+        ------
+        HeadError
+            No ``feature_extractor``, or a missing, unexpected or wrongly shaped key.
+        """
+        networks = raw.get("networks", raw)
+        state = networks.get("feature_extractor") if isinstance(networks, dict) else None
+        if not isinstance(state, dict):
+            raise HeadError(f"{source}: expected the ULRSSM layout {{'networks': {{'feature_extractor': state_dict}}}}.")
+        sizes, ours = diffusionnet_state(state, "ulrssm", what=source)
+        if sizes["mlp_hidden"] != [sizes["width"]] * 2 or not sizes["with_gradient_rotations"]:
+            raise HeadError(f"{source}: block MLPs {sizes['mlp_hidden']} / gradient rotations differ from ULRSSM's DiffusionNet.")
+        settings: dict[str, Any] = {"width": sizes["width"], "width_out": sizes["out_channels"], "n_blocks": sizes["n_blocks"]}
+        if sizes["in_channels"] == 3:
+            settings |= {"descriptor": "xyz", "descriptor_params": {}}
+        else:
+            params = dict(cls.PRESETS["reference"]["descriptor_params"], n_descr=sizes["in_channels"])
+            settings |= {"descriptor": "wks", "descriptor_params": params}
+        return ReleaseState(settings, ours, sizes["in_channels"])
 
     # -- the LearnedHead interface
 

@@ -1,0 +1,179 @@
+"""Release checkpoints of the reference implementations: exact key mappings onto our modules.
+
+The authors of ULRSSM, DPFM and EchoMatch publish ``torch.save`` state dicts of their own
+modules. This module maps their DiffusionNet keys onto `geofeat.adapters.diffusion_net.DiffusionNet`
+and checks a mapped state dict against a module before loading it, so that a checkpoint
+with a renamed, missing, extra or wrongly shaped tensor is refused with the key named,
+never loaded partially.
+
+Facts from the authors' files (key names, read from the released checkpoints):
+
+* ULRSSM and DeepShapeMatchingKit (``style="ulrssm"``): ``first_linear``, ``last_linear``,
+  ``blocks.<i>.diffusion.diffusion_time``, ``blocks.<i>.gradient_features.A_re`` / ``A_im``
+  (bias-free linear maps), ``blocks.<i>.mlp.miniMLP_linear_<j:03d>``.
+* DPFM, i.e. the original DiffusionNet code (``style="dpfm"``): ``first_lin``, ``last_lin``,
+  ``block_<i>.diffusion.diffusion_time``, ``block_<i>.gradient_features.A_re`` / ``A_im``,
+  ``block_<i>.mlp.miniMLP_mlp_layer_<j:03d>``.
+
+Both networks compute what ours computes: a linear lift, blocks of spectral diffusion
+(times clamped at a tiny positive value), gradient features ``tanh(Re(conj(g) (A g)))``,
+a per-vertex MLP on ``[x, diffused, gradient features]`` with a residual, and a linear
+output layer. The sizes (input, width, output, number of blocks, MLP hidden sizes, whether
+gradient rotations are learned) are read from the tensors.
+"""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Mapping
+from typing import Any, NamedTuple
+
+import torch
+
+from .heads import HeadError
+
+__all__ = ["DIFFUSIONNET_STYLES", "ReleaseState", "check_state", "diffusionnet_state"]
+
+#: Key spellings of the reference DiffusionNets: style -> (first, last, block prefix, mlp linear prefix).
+DIFFUSIONNET_STYLES = {
+    "ulrssm": ("first_linear", "last_linear", "blocks.{i}", "miniMLP_linear_{j:03d}"),
+    "dpfm": ("first_lin", "last_lin", "block_{i}", "miniMLP_mlp_layer_{j:03d}"),
+}
+
+
+class ReleaseState(NamedTuple):
+    """A release checkpoint translated for one of our heads.
+
+    Attributes
+    ----------
+    settings : dict
+        Head settings read from the tensors (sizes, input descriptor).
+    state : dict of str to torch.Tensor
+        The state dict of the head's module, in our key names.
+    in_channels : int
+        Input feature width of the module.
+    """
+
+    settings: dict[str, Any]
+    state: dict[str, torch.Tensor]
+    in_channels: int
+
+
+def diffusionnet_state(
+    source: Mapping[str, torch.Tensor], style: str, prefix: str = "", what: str = "checkpoint"
+) -> tuple[dict[str, Any], dict[str, torch.Tensor]]:
+    """Translate a reference DiffusionNet's tensors into the state dict of our `DiffusionNet`.
+
+    Parameters
+    ----------
+    source : mapping of str to torch.Tensor
+        The reference state dict (other modules' keys, outside ``prefix``, are ignored).
+    style : {"ulrssm", "dpfm"}
+        Key spelling, see `DIFFUSIONNET_STYLES`.
+    prefix : str
+        Prefix of the DiffusionNet's keys in ``source`` (e.g. ``"feature_extractor."``).
+    what : str
+        Name of the source in error messages.
+
+    Returns
+    -------
+    sizes : dict
+        ``in_channels``, ``out_channels``, ``width``, ``n_blocks``, ``mlp_hidden`` (list) and
+        ``with_gradient_rotations``: the constructor arguments of our `DiffusionNet`.
+    state : dict of str to torch.Tensor
+        Our keys (``first.*``, ``blocks.<i>.diffusion.time``,
+        ``blocks.<i>.gradient_features.a_re.weight``, ``blocks.<i>.mlp.<3 j>.*`` for the
+        j-th linear layer of the block MLP, ``last.*``).
+
+    Raises
+    ------
+    HeadError
+        Unknown style, a missing first/last layer, blocks numbered with gaps, or a
+        source key under ``prefix`` that the mapping does not use (named).
+    """
+    if style not in DIFFUSIONNET_STYLES:
+        raise HeadError(f"unknown DiffusionNet key style {style!r}; expected one of {sorted(DIFFUSIONNET_STYLES)}.")
+    first, last, block, linear = DIFFUSIONNET_STYLES[style]
+    own = {k[len(prefix) :]: v for k, v in source.items() if k.startswith(prefix)}
+    for layer in (first, last):
+        if f"{layer}.weight" not in own:
+            raise HeadError(f"{what}: missing key {prefix}{layer}.weight (the {style} DiffusionNet's {layer} layer).")
+    block_re = re.compile("^" + re.escape(block).replace(r"\{i\}", r"(\d+)") + r"\.")
+    indices = sorted({int(m.group(1)) for k in own if (m := block_re.match(k))})
+    if indices != list(range(len(indices))):
+        raise HeadError(f"{what}: DiffusionNet blocks must be numbered 0..n-1; found {indices}.")
+    state: dict[str, torch.Tensor] = {}
+    used: set[str] = set()
+
+    def take(ref_key: str, our_key: str) -> torch.Tensor:
+        if ref_key not in own:
+            raise HeadError(f"{what}: missing key {prefix}{ref_key}.")
+        used.add(ref_key)
+        state[our_key] = own[ref_key]
+        return own[ref_key]
+
+    for param in ("weight", "bias"):
+        take(f"{first}.{param}", f"first.{param}")
+        take(f"{last}.{param}", f"last.{param}")
+    rotations = True
+    hidden: list[int] = []
+    for i in indices:
+        b = block.format(i=i)
+        take(f"{b}.diffusion.diffusion_time", f"blocks.{i}.diffusion.time")
+        take(f"{b}.gradient_features.A_re.weight", f"blocks.{i}.gradient_features.a_re.weight")
+        rotations = f"{b}.gradient_features.A_im.weight" in own
+        if rotations:
+            take(f"{b}.gradient_features.A_im.weight", f"blocks.{i}.gradient_features.a_im.weight")
+        n_linear = 0
+        while f"{b}.mlp.{linear.format(j=n_linear)}.weight" in own:
+            n_linear += 1
+        if n_linear == 0:
+            raise HeadError(f"{what}: missing key {prefix}{b}.mlp.{linear.format(j=0)}.weight (block {i} has no MLP).")
+        sizes = []
+        for j in range(n_linear):
+            for param in ("weight", "bias"):
+                take(f"{b}.mlp.{linear.format(j=j)}.{param}", f"blocks.{i}.mlp.{3 * j}.{param}")
+            sizes.append(int(state[f"blocks.{i}.mlp.{3 * j}.weight"].shape[0]))
+        hidden = sizes[:-1]
+    unused = sorted(set(own) - used)
+    if unused:
+        raise HeadError(f"{what}: unexpected key(s) {[prefix + k for k in unused]} in the {style} DiffusionNet.")
+    sizes = {
+        "in_channels": int(own[f"{first}.weight"].shape[1]),
+        "width": int(own[f"{first}.weight"].shape[0]),
+        "out_channels": int(own[f"{last}.weight"].shape[0]),
+        "n_blocks": len(indices),
+        "mlp_hidden": hidden,
+        "with_gradient_rotations": rotations,
+    }
+    return sizes, state
+
+
+def check_state(module: torch.nn.Module, state: Mapping[str, torch.Tensor], what: str) -> None:
+    """Raise `HeadError` unless ``state`` has exactly the keys and shapes of ``module``'s state dict.
+
+    Parameters
+    ----------
+    module : torch.nn.Module
+    state : mapping of str to torch.Tensor
+    what : str
+        Name of the source (a checkpoint path) in the message.
+
+    Raises
+    ------
+    HeadError
+        Naming every missing, unexpected and wrongly shaped key (with both shapes).
+    """
+    expected = module.state_dict()
+    missing = sorted(set(expected) - set(state))
+    unexpected = sorted(set(state) - set(expected))
+    wrong = sorted(
+        f"{k}: {tuple(state[k].shape)} instead of {tuple(expected[k].shape)}"
+        for k in set(expected) & set(state)
+        if tuple(state[k].shape) != tuple(expected[k].shape)
+    )
+    problems = [
+        f"{label} {items}" for label, items in (("missing", missing), ("unexpected", unexpected), ("wrongly shaped", wrong)) if items
+    ]
+    if problems:
+        raise HeadError(f"{what} does not fit {type(module).__name__}: " + "; ".join(problems) + ".")
