@@ -78,6 +78,11 @@ def build_head(args, params: dict) -> Head:
     if args.pipeline in ("nn", "fmap", "fmap_zoomout"):
         zoomout = {"zoomout": True} if args.pipeline == "fmap_zoomout" else {}
         return make_head("fmap" if zoomout else args.pipeline, **settings, **zoomout)
+    if args.checkpoint:
+        return load_head(
+            args.pipeline, checkpoint=args.checkpoint, progress=not args.no_progress,
+            **descriptor_params(args.head_param, what="--head-param"),
+        )  # fmt: skip
     settings |= {"seed": args.seed, "epochs": args.epochs, "max_minutes": args.max_minutes}
     if args.quick:
         settings |= QUICK[args.pipeline] | {"max_minutes": min(args.max_minutes or 0.5, 0.5)}
@@ -91,6 +96,8 @@ def train_head(head: Head, args, out: Path) -> dict:
     The summary is also saved as ``training.json`` in the head folder, so that a report on a
     loaded head still says how it was trained.
     """
+    if args.checkpoint:
+        return {"release_checkpoint": str(args.checkpoint)}
     if args.load:
         record = Path(args.load) / TRAINING_RECORD
         return {"loaded_from": args.load, **(json.loads(record.read_text()) if record.is_file() else {})}
@@ -128,8 +135,13 @@ class _Pairs:
         return self.dataset[i]
 
 
-def evaluate_pair(pair, match: Match) -> dict:
-    """Per-pair metrics; ``errors`` is the array of per-vertex geodesic errors.
+def evaluate_pair(pair, match: Match, protocol: str = "vertices") -> dict:
+    """Per-pair metrics; ``errors`` is the array of geodesic errors of the evaluated points.
+
+    ``protocol="vertices"`` evaluates every vertex of ``y`` with a counterpart (our default);
+    ``"template"`` evaluates the template points of datasets with a common template
+    (FAUST_r, SCAPE_r), as the ULRSSM and DPFM references do
+    (`geofeat.metrics.template_geodesic_errors`).
 
     The overlap IoU is the mean over the shapes whose ground-truth overlap the dataset gives; a
     head that predicts no overlap for a shape counts as predicting all of it. Heads that give
@@ -138,10 +150,19 @@ def evaluate_pair(pair, match: Match) -> dict:
     """
     dist_x = geodesic_matrix(pair.x, method="dijkstra", normalize=True)
     predicted = match.map_yx
-    errors = metrics.geodesic_errors(predicted, pair.map_yx, dist_x)
+    if protocol == "template":
+        if pair.corr_x is None or pair.corr_y is None:
+            raise geofeat.DatasetError(f"pair {pair.name}: --protocol template needs a dataset with template points (faust_r, scape_r)")
+        errors = metrics.template_geodesic_errors(predicted, pair.corr_x, pair.corr_y, dist_x)
+        sym = None
+        if pair.corr_x_sym is not None:
+            sym = (metrics.at_template_points(predicted, pair.corr_y), pair.corr_x, pair.corr_x_sym)
+    else:
+        errors = metrics.geodesic_errors(predicted, pair.map_yx, dist_x)
+        sym = None if pair.map_yx_sym is None else (predicted, pair.map_yx, pair.map_yx_sym)
     record = {"pair": f"{pair.y.name}->{pair.x.name}", "errors": errors, "n_evaluated": int(errors.size)}
-    if pair.map_yx_sym is not None:
-        record["chirality_accuracy"] = metrics.chirality_accuracy(predicted, pair.map_yx, pair.map_yx_sym, dist_x)
+    if sym is not None:
+        record["chirality_accuracy"] = metrics.chirality_accuracy(*sym, dist_x)
     ious = [
         metrics.overlap_iou(np.ones(truth.shape, dtype=bool) if guess is None else guess, truth)
         for guess, truth in ((match.overlap_y, pair.overlap_y), (match.overlap_x, pair.overlap_x))
@@ -202,6 +223,22 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument("--epochs", type=int, default=1, help="learned heads: passes over the training pairs")
     parser.add_argument("--max-minutes", type=float, default=None, help="learned heads: training time budget")
     parser.add_argument("--load", default=None, help="learned heads: a saved head folder instead of training")
+    parser.add_argument(
+        "--checkpoint",
+        default=None,
+        help="ulrssm, dpfm: the authors' release checkpoint (.pth); the head gets its 'reference' preset, no training",
+    )
+    parser.add_argument(
+        "--protocol",
+        default="vertices",
+        choices=("vertices", "template"),
+        help="evaluated points: every vertex with a counterpart, or the template points (the references' FAUST_r/SCAPE_r protocol)",
+    )
+    parser.add_argument(
+        "--pairs",
+        default=None,
+        help="faust_r/scape_r: which pairs: all (ordered), combinations (i < j, as the references), file (test_pairs.txt)",
+    )
     parser.add_argument("--quick", action="store_true", help="smoke run: tiny head, few pairs, under 2 minutes on a CPU")
     parser.add_argument("--data-root", default=os.environ.get("GEOFEAT_DATA", str(HERE.parent.parent / "shared" / "data")))
     parser.add_argument("--split", default="test")
@@ -230,15 +267,22 @@ def main(argv=None) -> int:
     args = parse_args(argv)
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     try:
-        dataset = load_dataset(args.dataset, root=args.data_root, split=args.split, seed=args.seed)
+        if args.checkpoint and args.pipeline not in ("ulrssm", "dpfm"):
+            raise geofeat.GeofeatError(f"--checkpoint loads ulrssm and dpfm release checkpoints, not {args.pipeline}")
+        if args.checkpoint and args.load:
+            raise geofeat.GeofeatError("give --checkpoint or --load, not both")
+        pair_option = {} if args.pairs is None else {"pairs": args.pairs}
+        dataset = load_dataset(args.dataset, root=args.data_root, split=args.split, seed=args.seed, **pair_option)
         params = descriptor_params(args.param)
         head = None
         if args.pipeline in REFERENCE_PIPELINES:
             args.descriptor = "none"  # reference pipelines use no features
         else:
-            if args.descriptor != "xyz":
+            if args.descriptor != "xyz" and not args.checkpoint:
                 make_descriptor(args.descriptor, **params)  # unknown names, parameters and missing extras fail before any work
             head = load_head(args.load) if args.load else build_head(args, params)
+            if args.checkpoint:
+                args.descriptor = head.config.descriptor
             if args.load and args.head_param:  # e.g. --head-param tta_steps=0 on a trained ULRSSM
                 head.config = dataclasses.replace(head.config, **descriptor_params(args.head_param, what="--head-param"))
     except geofeat.GeofeatError as err:
@@ -259,7 +303,7 @@ def main(argv=None) -> int:
             match = reference_match(args.pipeline, pair, seed=args.seed * 100003 + i)
         else:
             match = head.match(pair)
-        records.append(evaluate_pair(pair, match))
+        records.append(evaluate_pair(pair, match, args.protocol))
         if len(pictures) < N_PICTURES:
             pictures.append((pair, match.map_yx, f"{args.descriptor} + {args.pipeline}"))
     seconds = time.perf_counter() - start
@@ -271,6 +315,8 @@ def main(argv=None) -> int:
         "descriptor": args.descriptor,
         "descriptor_params": params,
         "split": args.split,
+        "pairs_option": args.pairs,
+        "protocol": args.protocol,
         "seed": args.seed,
         "date": datetime.date.today().isoformat(),
         "seconds": seconds,

@@ -147,6 +147,59 @@ def geodesic_errors(map_pred_yx, map_gt_yx, dist_x, eval_mask=None, unmatched: s
     return errors
 
 
+def at_template_points(map_pred_yx, corr_y) -> np.ndarray:
+    """The predicted map read at the template points of ``y``.
+
+    Parameters
+    ----------
+    map_pred_yx : array_like of int, shape (V_y,)
+        Predicted map, ``-1`` where nothing was predicted.
+    corr_y : array_like of int, shape (T,)
+        Vertex of ``y`` at each template point, ``-1`` where none.
+
+    Returns
+    -------
+    numpy.ndarray, shape (T,), int64
+        ``map_pred_yx[corr_y[t]]``, ``-1`` where ``corr_y[t]`` is ``-1``.
+    """
+    pred = _as_index_map(map_pred_yx, "map_pred_yx")
+    corr_y = _as_index_map(corr_y, "corr_y")
+    _check_range(corr_y, pred.size, "corr_y")
+    return np.where(corr_y >= 0, pred[np.maximum(corr_y, 0)], -1)
+
+
+def template_geodesic_errors(map_pred_yx, corr_x, corr_y, dist_x, unmatched: str = "max") -> np.ndarray:
+    """Geodesic error at every template point: the protocol of the ULRSSM and DPFM references on FAUST_r / SCAPE_r.
+
+    Parameters
+    ----------
+    map_pred_yx : array_like of int, shape (V_y,)
+        Predicted map.
+    corr_x, corr_y : array_like of int, shape (T,)
+        Vertex of ``x`` and of ``y`` at each template point (``-1``: none; such points are
+        not evaluated).
+    dist_x : array_like, shape (V_x, V_x)
+        Geodesic distances on ``x`` (the references: Dijkstra on the edge graph of the
+        unit-area shape, i.e. ``geodesic_matrix(x, "dijkstra", normalize=True)``).
+    unmatched : {"max", "raise"}
+        See `geodesic_errors`.
+
+    Returns
+    -------
+    numpy.ndarray, shape (n_eval,), float64
+        ``dist_x[corr_x[t], map_pred_yx[corr_y[t]]]`` for the evaluated template points.
+        A vertex hit by several template points counts once per point, and vertices hit by
+        none are not evaluated: unlike `geodesic_errors`, which evaluates every vertex of
+        ``y`` that has a counterpart once.
+    """
+    gt = _as_index_map(corr_x, "corr_x")
+    pred = at_template_points(map_pred_yx, corr_y)
+    if gt.shape != pred.shape:
+        raise MetricError(f"corr_x and corr_y must have the same shape (T,); found {gt.shape} and {pred.shape}.")
+    gt = np.where(_as_index_map(corr_y, "corr_y") >= 0, gt, -1)
+    return geodesic_errors(pred, gt, dist_x, unmatched=unmatched)
+
+
 def _worst_case(dist: np.ndarray, sources: np.ndarray) -> np.ndarray:
     """Largest finite distance from each source vertex, shape (len(sources),) float64."""
     rows = np.asarray(dist[sources], dtype=np.float64)

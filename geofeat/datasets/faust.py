@@ -68,7 +68,9 @@ class RemeshedTemplateDataset(PairDataset):
         Which shapes (see the module notes); default ``"test"``.
     pairs : {"all", "file"} or sequence of (str, str)
         ``"all"`` (default): every ordered pair (y, x) of two different shapes of the split.
-        ``"file"``: the pairs listed in ``test_pairs.txt`` (first column y, second column x)
+        ``"combinations"``: every unordered pair once, x the earlier shape and y the later
+        one (the 190 pairs ``i < j`` of the 20 FAUST_r test shapes that the references
+        evaluate). ``"file"``: the pairs listed in ``test_pairs.txt`` (first column y, second column x)
         whose two shapes both belong to the split. Or an explicit list of (y, x) shape names.
     mesh_cache_size : int or None
         See `PairDataset`.
@@ -149,9 +151,14 @@ class RemeshedTemplateDataset(PairDataset):
         if isinstance(pairs, str):
             if pairs == "all":
                 return [_Pair(y, x) for y in self.shape_names for x in self.shape_names if y != x]
+            if pairs == "combinations":
+                names = self.shape_names
+                return [_Pair(names[j], names[i]) for i in range(len(names)) for j in range(i + 1, len(names))]
             if pairs == "file":
                 return self._listed_pairs()
-            raise DatasetError(f"{self.title}: pairs must be 'all', 'file' or a list of (y, x) names; found {pairs!r}.")
+            raise DatasetError(
+                f"{self.title}: pairs must be 'all', 'combinations', 'file' or a list of (y, x) names; found {pairs!r}."
+            )
         chosen = [_Pair(str(y), str(x)) for y, x in pairs]
         unknown = sorted({n for p in chosen for n in (p.y, p.x)} - set(self.shape_names))
         if unknown:
@@ -206,7 +213,10 @@ class RemeshedTemplateDataset(PairDataset):
             map_yx_sym = first_hit_map(template_y, template_x_sym, y.n_vertices)
         elif template_x_sym is not None:
             raise DatasetError(f"{self.title}: {entry.x}.sym.vts has {template_x_sym.size} entries; expected {template_y.size}.")
-        return ShapePair(x=x, y=y, map_yx=map_yx, map_yx_sym=map_yx_sym, protocol="f2f")
+        return ShapePair(
+            x=x, y=y, map_yx=map_yx, map_yx_sym=map_yx_sym, protocol="f2f",
+            corr_x=template_x, corr_y=template_y, corr_x_sym=template_x_sym,
+        )  # fmt: skip
 
 
 class FaustRemeshed(RemeshedTemplateDataset):

@@ -31,6 +31,13 @@ class ShapePair:
         counterpart in ``x`` (``-1`` where undefined), where the data has it.
     protocol : {"p2f", "p2p", "f2f"}
         Which evaluation protocol applies.
+    corr_x, corr_y : numpy.ndarray, shape (T,), int64, or None
+        For datasets with a common template (FAUST_r, SCAPE_r): the vertex of ``x`` and of
+        ``y`` at each of the T template points. The references evaluate geodesic errors at
+        these points (``protocol="template"`` of `geofeat.metrics.template_geodesic_errors`);
+        ``map_yx`` is derived from them.
+    corr_x_sym : numpy.ndarray, shape (T,), int64, or None
+        The vertex of ``x`` at each point of the left-right mirrored template.
     """
 
     x: Mesh
@@ -40,6 +47,9 @@ class ShapePair:
     overlap_y: np.ndarray | None = None
     map_yx_sym: np.ndarray | None = None
     protocol: str = "p2f"
+    corr_x: np.ndarray | None = None
+    corr_y: np.ndarray | None = None
+    corr_x_sym: np.ndarray | None = None
 
     @property
     def name(self) -> str:
