@@ -43,6 +43,7 @@ from .operators import (
 )
 
 __all__ = [
+    "GRADIENT_MIXINGS",
     "GRADIENT_REGULARIZATION",
     "N_NEIGHBORS_CLOUD",
     "OUTPUTS_AT",
@@ -63,6 +64,8 @@ __all__ = [
 
 #: Where `DiffusionNet` can give its outputs (edge and face values average their vertices).
 OUTPUTS_AT = ("vertices", "edges", "faces")
+#: How `SpatialGradientFeatures` mixes the two gradient components (see its notes).
+GRADIENT_MIXINGS = ("complex", "ulrssm")
 #: Dropout probability used inside the block MLPs when ``dropout=True``.
 DEFAULT_DROPOUT = 0.5
 
@@ -164,6 +167,12 @@ class SpatialGradientFeatures(nn.Module):
     with_rotations : bool
         Learn a complex map ``A = A_re + i A_im`` (it can rotate gradients within the
         tangent plane; needs consistently oriented normals). False: a real map ``A``.
+    mixing : {"complex", "ulrssm"}
+        ``"complex"``: ``A g`` is the complex product (DiffusionNet's paper and code, DPFM).
+        ``"ulrssm"``: the variant of the ULRSSM code (and of DeepShapeMatchingKit's
+        ``diffusion_b`` network), whose imaginary part is ``A_re g_x + A_im g_y`` instead of
+        ``A_re g_y + A_im g_x``; its released weights were trained with it. It is not
+        invariant to the choice of the tangent frames.
 
     Notes
     -----
@@ -173,10 +182,13 @@ class SpatialGradientFeatures(nn.Module):
     features do not depend on the choice of the frames' ``X`` axes.
     """
 
-    def __init__(self, channels: int, with_rotations: bool = True) -> None:
+    def __init__(self, channels: int, with_rotations: bool = True, mixing: str = "complex") -> None:
         super().__init__()
+        if mixing not in GRADIENT_MIXINGS:
+            raise DiffusionNetError(f"gradient mixing must be one of {GRADIENT_MIXINGS}; found {mixing!r}.")
         self.channels = channels
         self.with_rotations = with_rotations
+        self.mixing = mixing
         self.a_re = nn.Linear(channels, channels, bias=False)
         self.a_im = nn.Linear(channels, channels, bias=False) if with_rotations else None
 
@@ -185,7 +197,10 @@ class SpatialGradientFeatures(nn.Module):
         mixed_x, mixed_y = self.a_re(grad_x), self.a_re(grad_y)
         if self.a_im is not None:
             mixed_x = mixed_x - self.a_im(grad_y)
-            mixed_y = mixed_y + self.a_im(grad_x)
+            if self.mixing == "ulrssm":
+                mixed_y = self.a_re(grad_x) + self.a_im(grad_y)
+            else:
+                mixed_y = mixed_y + self.a_im(grad_x)
         return torch.tanh(grad_x * mixed_x + grad_y * mixed_y)
 
 
@@ -220,6 +235,8 @@ class DiffusionNetBlock(nn.Module):
         Use the spatial gradient features.
     with_gradient_rotations : bool
         Let the gradient features learn rotations (see `SpatialGradientFeatures`).
+    gradient_mixing : {"complex", "ulrssm"}
+        See `SpatialGradientFeatures`.
     """
 
     def __init__(
@@ -229,11 +246,14 @@ class DiffusionNetBlock(nn.Module):
         dropout: float = 0.0,
         with_gradient_features: bool = True,
         with_gradient_rotations: bool = True,
+        gradient_mixing: str = "complex",
     ) -> None:
         super().__init__()
         self.width = width
         self.diffusion = LearnedDiffusion(width)
-        self.gradient_features = SpatialGradientFeatures(width, with_gradient_rotations) if with_gradient_features else None
+        self.gradient_features = (
+            SpatialGradientFeatures(width, with_gradient_rotations, gradient_mixing) if with_gradient_features else None
+        )
         n_mlp_in = (3 if with_gradient_features else 2) * width
         self.mlp = _mlp([n_mlp_in, *mlp_hidden, width], dropout)
 
@@ -277,6 +297,8 @@ class DiffusionNet(nn.Module):
     with_gradient_rotations : bool
         Learn complex (rotating) gradient maps; set False for shapes without consistently
         oriented normals.
+    gradient_mixing : {"complex", "ulrssm"}
+        See `SpatialGradientFeatures` (``"ulrssm"`` for ULRSSM's released weights).
 
     Raises
     ------
@@ -297,6 +319,7 @@ class DiffusionNet(nn.Module):
         mlp_hidden: Sequence[int] | None = None,
         with_gradient_features: bool = True,
         with_gradient_rotations: bool = True,
+        gradient_mixing: str = "complex",
     ) -> None:
         super().__init__()
         for name, value in (("in_channels", in_channels), ("out_channels", out_channels), ("width", width)):
@@ -319,7 +342,7 @@ class DiffusionNet(nn.Module):
         self.outputs_at = outputs_at
         self.first = nn.Linear(self.in_channels, self.width)
         self.blocks = nn.ModuleList(
-            DiffusionNetBlock(self.width, hidden, self.dropout, with_gradient_features, with_gradient_rotations)
+            DiffusionNetBlock(self.width, hidden, self.dropout, with_gradient_features, with_gradient_rotations, gradient_mixing)
             for _ in range(self.n_blocks)
         )
         self.last = nn.Linear(self.width, self.out_channels)

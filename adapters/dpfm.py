@@ -24,6 +24,34 @@ contrastive (InfoNCE) term on corresponding features. A match converts the funct
 a point map (nearest neighbours of spectral embeddings, or of features with
 ``pointmap="features"``) and thresholds the overlap probabilities.
 
+The authors' released models (``pvnieo/DPFM``, ``dpfm/data/saved_models``) load with
+`DPFMHead.release_state` (``load_head("dpfm", checkpoint=...)``); ``DPFMHead.PRESETS``
+holds the settings of their code. Where that code differs from our defaults:
+
+- input: vertex coordinates centred on their mean and scaled to unit total area, as float32
+  (FAUST_r / SCAPE_r; its SHREC'16 data are used as stored), no augmentation at test;
+  training augments them (``augmentation=True``: random rotation, noise and per-axis scale);
+- operators: cotan Laplacian and DiffusionNet's own operator construction, 128 eigenpairs
+  (``laplacian="cotan"``, ``operators="diffusionnet"``);
+- attention heads: channel ``c`` belongs to head ``c % n_heads`` (``head_layout="interleaved"``;
+  ours takes contiguous blocks of channels);
+- interpolation of the refined features (``interpolation="reference"``): the reference meant
+  the 3 nearest samples, but it reads the ranks of the 130 nearest of a 0.9-fraction
+  farthest-point sample as vertex indices, and picks three of those that are samples in the
+  order of torch's unstable sort (see `reference_sample_interpolation`). The released models
+  were trained with this, so it is reproduced for them; it only touches the refined features
+  (the overlap, and the functional map where ``fmap_features="refined"``);
+- functional map from the DiffusionNet features on FAUST_r, SCAPE_r and SHREC'16 cuts
+  (``fmap_features="extracted"``, the reference's ``robust: False``), refined on holes;
+- ground-truth functional map on FAUST_r: least squares on the template points
+  (``fmap_ground_truth="template_lstsq"``); the overlap loss of a one-class mask weighs 0
+  (``single_class_weight=0``);
+- still different (training only): the reference draws NCE pairs among all vertices of ``y``
+  (its ``-1`` entries then pick the last vertex of ``x``) and its partial ground truth sends
+  vertices without a counterpart to the last vertex of ``x``; ours skips them. Its optimiser
+  is Adam with betas (0.9, 0.99) and step decay; the shared training loop uses torch's default
+  betas.
+
 >>> head = make_head("dpfm", descriptor="xyz", epochs=100)                 # doctest: +SKIP
 >>> head.fit(load_dataset("synthetic_cuts", split="train"))                # doctest: +SKIP
 >>> match = head.match(pair)  # map_yx (V_y,), overlap_y (V_y,), overlap_x (V_x,)  # doctest: +SKIP
@@ -32,7 +60,9 @@ a point map (nearest neighbours of spectral embeddings, or of features with
 from __future__ import annotations
 
 import math
+import re
 from collections import OrderedDict
+from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any, NamedTuple
 
@@ -57,21 +87,31 @@ from .heads import (
     check_numbers,
     ground_truth_map,
     ground_truth_overlaps,
+    normalized_mesh,
 )
 from .operators import SurfaceOperators
+from .release import ReleaseState, diffusionnet_state
 
 __all__ = [
     "FMAP_FEATURES",
+    "FMAP_GROUND_TRUTHS",
+    "HEAD_LAYOUTS",
+    "INTERPOLATIONS",
     "POINTMAPS",
     "CrossAttentionRefiner",
     "DPFMConfig",
     "DPFMHead",
     "DPFMNet",
     "DPFMOutput",
+    "ReferenceCandidates",
     "SampleInterpolation",
+    "augment_xyz",
     "farthest_point_sampling",
     "ground_truth_fmap",
+    "reference_candidates",
+    "reference_sample_interpolation",
     "sample_interpolation",
+    "template_fmap",
     "weighted_overlap_bce",
 ]
 
@@ -79,6 +119,21 @@ __all__ = [
 FMAP_FEATURES = ("refined", "extracted")
 #: How a match turns the prediction into a point map.
 POINTMAPS = ("fmap", "features")
+#: Which channels form an attention head: contiguous blocks (ours) or every ``n_heads``-th channel (the reference).
+HEAD_LAYOUTS = ("contiguous", "interleaved")
+#: How refined features reach every vertex: its nearest samples (ours) or the reference code's choice.
+INTERPOLATIONS = ("nearest", "reference")
+#: Ground-truth functional map of the loss: projection of the point map, or least squares on template points.
+FMAP_GROUND_TRUTHS = ("projection", "template_lstsq")
+#: Reference interpolation: fraction of the vertices in its farthest-point candidate list.
+REFERENCE_CANDIDATE_RATIO = 0.9
+#: Reference interpolation: nearest candidates kept for every vertex.
+REFERENCE_CANDIDATES = 130
+#: Reference augmentation (its training script): maximal rotation about x, y, z in degrees,
+#: noise standard deviation and clip, per-axis scale range.
+AUGMENT_ROTATION_DEGREES = (30.0, 30.0, 60.0)
+AUGMENT_NOISE = (0.01, 0.05)
+AUGMENT_SCALE = (0.9, 1.1)
 #: Added to squared distances before inverting them into interpolation weights (as the reference).
 INTERPOLATION_EPS = 1e-8
 #: Variance floor of the instance normalisation in the message MLPs (torch's InstanceNorm1d default).
@@ -152,6 +207,23 @@ class DPFMConfig(HeadConfig):
         functional map, or of the (L2-normalised) functional-map features.
     overlap_threshold : float
         Probability above which a vertex is predicted to overlap, in (0, 1) (0.5).
+    head_layout : {"contiguous", "interleaved"}
+        Channels of attention head ``h``: the ``h``-th block of ``attention_dim / n_heads``
+        channels, or the channels ``c`` with ``c % n_heads == h`` (the reference's layout,
+        needed by its released weights).
+    interpolation : {"nearest", "reference"}
+        How the refined sample features reach every vertex: its ``n_interpolation`` nearest
+        samples, inverse-squared-distance weighted; or the reference code's choice
+        (`reference_sample_interpolation`, ``n_interpolation`` must be 3), with which its
+        released models were trained.
+    fmap_ground_truth : {"projection", "template_lstsq"}
+        Ground truth of the functional-map loss: `ground_truth_fmap` of ``map_yx``, or
+        `template_fmap`, the least-squares map between the eigenvectors at the template
+        points of the pair (``pair.corr_x``, ``pair.corr_y``), as the reference's FAUST_r /
+        SCAPE_r training.
+    augmentation : bool
+        Train on randomly rotated, noisy and rescaled coordinates (`augment_xyz`, the
+        reference's training augmentation); needs ``descriptor="xyz"``.
     """
 
     width: int = 128
@@ -176,6 +248,10 @@ class DPFMConfig(HeadConfig):
     single_class_weight: float = 0.5
     pointmap: str = "fmap"
     overlap_threshold: float = 0.5
+    head_layout: str = "contiguous"
+    interpolation: str = "nearest"
+    fmap_ground_truth: str = "projection"
+    augmentation: bool = False
 
 
 def _check_config(c: DPFMConfig) -> None:
@@ -197,10 +273,26 @@ def _check_config(c: DPFMConfig) -> None:
         raise HeadError(f"dpfm: fmap_features must be one of {FMAP_FEATURES}; found {c.fmap_features!r}.")
     if c.pointmap not in POINTMAPS:
         raise HeadError(f"dpfm: pointmap must be one of {POINTMAPS}; found {c.pointmap!r}.")
-    if not isinstance(c.dropout, bool) or not isinstance(c.overlap_weighted_fmap, bool):
-        raise HeadError(
-            f"dpfm: dropout and overlap_weighted_fmap must be booleans; found {c.dropout!r}, {c.overlap_weighted_fmap!r}."
-        )
+    for name in ("dropout", "overlap_weighted_fmap", "augmentation"):
+        if not isinstance(getattr(c, name), bool):
+            raise HeadError(f"dpfm: {name} must be a boolean; found {getattr(c, name)!r}.")
+    for name, valid in (
+        ("head_layout", HEAD_LAYOUTS),
+        ("interpolation", INTERPOLATIONS),
+        ("fmap_ground_truth", FMAP_GROUND_TRUTHS),
+    ):
+        if getattr(c, name) not in valid:
+            raise HeadError(f"dpfm: {name} must be one of {valid}; found {getattr(c, name)!r}.")
+    if c.interpolation == "reference":
+        if c.n_interpolation != 3:
+            raise HeadError(f"dpfm: interpolation='reference' averages 3 samples; found n_interpolation={c.n_interpolation}.")
+        if REFERENCE_CANDIDATE_RATIO < c.sampling_ratio < 1 or c.max_samples is not None:
+            raise HeadError(
+                f"dpfm: interpolation='reference' samples a fraction sampling_ratio <= {REFERENCE_CANDIDATE_RATIO} (or 1) "
+                f"of the vertices without max_samples; found sampling_ratio={c.sampling_ratio}, max_samples={c.max_samples}."
+            )
+    if c.augmentation and c.descriptor != "xyz":
+        raise HeadError(f"dpfm: augmentation transforms coordinates; it needs descriptor='xyz', found {c.descriptor!r}.")
 
 
 # ----------------------------------------------------------------------------- sampling
@@ -302,6 +394,150 @@ def sample_interpolation(points, n_samples: int, n_neighbours: int = 3, seed: in
     )
 
 
+class ReferenceCandidates(NamedTuple):
+    """The per-shape sampling record of the DPFM reference code (what its data loader stores).
+
+    Attributes
+    ----------
+    order : torch.Tensor, shape (S,), int64
+        Vertices of a farthest-point sample of ``int(0.9 V)`` points, in the order chosen.
+    ranks : torch.Tensor, shape (V, n), int64
+        For every vertex, the positions in ``order`` of its ``n = min(130, S)`` nearest
+        samples, nearest first.
+    sq_dists : torch.Tensor, shape (V, n), float32
+        Their squared distances, computed in float32 as ``|p|^2 - 2 p.q + |q|^2``.
+    """
+
+    order: torch.Tensor
+    ranks: torch.Tensor
+    sq_dists: torch.Tensor
+
+
+def reference_candidates(points, seed: int = 0, block: int = 1024, order=None) -> ReferenceCandidates:
+    """Candidate samples of a shape as the DPFM reference code prepares them.
+
+    A farthest-point sample of ``int(0.9 V)`` vertices (`farthest_point_sampling`; the
+    reference starts at a random vertex of torch's global generator) and, for every vertex,
+    its 130 nearest samples by float32 squared distance (the reference's expansion, sorted).
+
+    Parameters
+    ----------
+    points : array_like, shape (V, 3)
+        Vertex positions as the reference sees them (FAUST_r: centred, unit area, float32).
+    seed : int
+        Seed of the first sample.
+    block : int
+        Rows of the distance matrix handled at a time (memory bound).
+    order : array_like of int, shape (S,), optional
+        Use this sample order instead of drawing one (e.g. the reference's own).
+
+    Returns
+    -------
+    ReferenceCandidates
+        CPU tensors.
+    """
+    pts = torch.as_tensor(np.asarray(points, dtype=np.float32))
+    n_vertices = pts.shape[0]
+    n_order = int(REFERENCE_CANDIDATE_RATIO * n_vertices)
+    if n_order < 1:
+        raise HeadError(f"reference_candidates: a shape of {n_vertices} vertices has no {REFERENCE_CANDIDATE_RATIO} sample.")
+    if order is None:
+        order = torch.from_numpy(farthest_point_sampling(pts.double().numpy(), n_order, seed))
+    else:
+        order = torch.as_tensor(np.asarray(order, dtype=np.int64))
+    cand = pts[order]
+    cand_sq = cand.square().sum(-1).view(1, -1)
+    n_keep = min(REFERENCE_CANDIDATES, len(order))
+    ranks, dists = [], []
+    for start in range(0, n_vertices, block):
+        rows = pts[start : start + block]
+        d = -2 * rows @ cand.T
+        d += rows.square().sum(-1).view(-1, 1)
+        d += cand_sq
+        d, index = d.sort(dim=-1)
+        ranks.append(index[:, :n_keep].clone())
+        dists.append(d[:, :n_keep].clone())
+    return ReferenceCandidates(order, torch.cat(ranks), torch.cat(dists))
+
+
+def reference_sample_interpolation(candidates: ReferenceCandidates, n_samples: int) -> SampleInterpolation:
+    """The samples and per-vertex interpolation of the DPFM reference code, quirks included.
+
+    The samples are the first ``n_samples`` of ``candidates.order``. The reference meant
+    every vertex to average its 3 nearest samples, but it reads the candidate ranks (positions
+    in ``order``) as vertex indices: a candidate counts when the vertex with the index of its
+    rank is a sample, and that vertex's features are used, weighted by the candidate's
+    inverse squared distance (``1 / (d^2 + 1e-8)``, normalised, float32). Of the counting
+    candidates it takes the first three of ``torch.argsort(counts, descending=True)``, whose
+    order among equal keys is torch's (unstable sort). The released DPFM models were trained
+    with this interpolation.
+
+    Parameters
+    ----------
+    candidates : ReferenceCandidates
+        From `reference_candidates` (or the reference's own ``sample_idx`` record).
+    n_samples : int
+        ``1 <= n_samples <= len(candidates.order)``.
+
+    Returns
+    -------
+    SampleInterpolation
+        CPU tensors; ``neighbours`` index the samples.
+
+    Raises
+    ------
+    HeadError
+        A vertex with fewer than 3 counting candidates, or a weight that is not finite
+        (where the reference itself would index out of range or give NaN).
+    """
+    order, ranks, sq_dists = candidates
+    n_vertices = ranks.shape[0]
+    if not 1 <= n_samples <= len(order):
+        raise HeadError(f"reference_sample_interpolation: n_samples must lie in [1, {len(order)}]; found {n_samples}.")
+    samples = order[:n_samples]
+    counts = torch.from_numpy(np.isin(ranks.numpy(), samples.numpy())).int()
+    pick = torch.argsort(counts.unsqueeze(0), dim=-1, descending=True)[0, :, :3]
+    chosen = torch.gather(ranks, 1, pick)
+    if not bool(torch.gather(counts, 1, pick).all()):
+        raise HeadError("reference_sample_interpolation: a vertex has fewer than 3 counting candidates; sample more vertices.")
+    lookup = torch.arange(max(n_vertices, int(chosen.max()) + 1))
+    lookup[samples] = torch.arange(n_samples)
+    recip = 1.0 / (torch.gather(sq_dists, 1, pick) + INTERPOLATION_EPS)
+    weights = recip / recip.sum(dim=1, keepdim=True)
+    if not bool(torch.isfinite(weights).all()):
+        raise HeadError("reference_sample_interpolation: a squared distance of -1e-8 gives an infinite weight.")
+    return SampleInterpolation(samples.clone(), lookup[chosen], weights.float())
+
+
+def augment_xyz(xyz: torch.Tensor, rng: np.random.Generator) -> torch.Tensor:
+    """Randomly rotated, noisy and rescaled coordinates (the reference's training augmentation).
+
+    Rotation ``R_z R_y R_x`` with angles uniform in +-`AUGMENT_ROTATION_DEGREES`, Gaussian
+    noise of standard deviation ``AUGMENT_NOISE[0]`` clipped to +-``AUGMENT_NOISE[1]``, then a
+    scale per axis uniform in `AUGMENT_SCALE`.
+
+    Parameters
+    ----------
+    xyz : torch.Tensor, shape (V, 3)
+    rng : numpy.random.Generator
+
+    Returns
+    -------
+    torch.Tensor, shape (V, 3), dtype and device of ``xyz``
+    """
+    angles = np.radians([rng.uniform(-a, a) for a in AUGMENT_ROTATION_DEGREES])
+    cx, cy, cz = np.cos(angles)
+    sx, sy, sz = np.sin(angles)
+    rot_x = np.array([[1, 0, 0], [0, cx, -sx], [0, sx, cx]])
+    rot_y = np.array([[cy, 0, sy], [0, 1, 0], [-sy, 0, cy]])
+    rot_z = np.array([[cz, -sz, 0], [sz, cz, 0], [0, 0, 1]])
+    rotation = torch.as_tensor(rot_z @ rot_y @ rot_x, dtype=xyz.dtype, device=xyz.device)
+    std, clip = AUGMENT_NOISE
+    noise = torch.as_tensor(np.clip(std * rng.standard_normal(tuple(xyz.shape)), -clip, clip), dtype=xyz.dtype, device=xyz.device)
+    scale = torch.as_tensor(rng.uniform(*AUGMENT_SCALE, size=3), dtype=xyz.dtype, device=xyz.device)
+    return (xyz @ rotation.T + noise) * scale
+
+
 # ----------------------------------------------------------------------------- network
 
 
@@ -315,27 +551,36 @@ def _instance_norm(h: torch.Tensor) -> torch.Tensor:
 class _MultiHeadAttention(nn.Module):
     """Scaled dot-product attention of queries (N, d) over keys and values (M, d), ``n_heads`` heads."""
 
-    def __init__(self, dim: int, n_heads: int) -> None:
+    def __init__(self, dim: int, n_heads: int, layout: str = "contiguous") -> None:
         super().__init__()
-        self.n_heads, self.head_dim = n_heads, dim // n_heads
+        self.n_heads, self.head_dim, self.layout = n_heads, dim // n_heads, layout
         self.query, self.key, self.value, self.merge = (nn.Linear(dim, dim) for _ in range(4))
 
-    def forward(self, x: torch.Tensor, source: torch.Tensor) -> torch.Tensor:
-        def heads(t: torch.Tensor) -> torch.Tensor:  # (N, d) -> (h, N, d/h)
-            return t.reshape(t.shape[0], self.n_heads, self.head_dim).transpose(0, 1)
+    def _split(self, t: torch.Tensor) -> torch.Tensor:
+        """(N, d) -> (h, N, d/h) in the channel layout of the heads."""
+        if self.layout == "interleaved":  # channel c = i * h + head
+            return t.reshape(t.shape[0], self.head_dim, self.n_heads).permute(2, 0, 1)
+        return t.reshape(t.shape[0], self.n_heads, self.head_dim).transpose(0, 1)
 
-        q, k, v = heads(self.query(x)), heads(self.key(source)), heads(self.value(source))
+    def _merge(self, t: torch.Tensor) -> torch.Tensor:
+        """(h, N, d/h) -> (N, d), the inverse of `_split`."""
+        if self.layout == "interleaved":
+            return t.permute(1, 2, 0).reshape(t.shape[1], -1)
+        return t.transpose(0, 1).reshape(t.shape[1], -1)
+
+    def forward(self, x: torch.Tensor, source: torch.Tensor) -> torch.Tensor:
+        q, k, v = self._split(self.query(x)), self._split(self.key(source)), self._split(self.value(source))
         scores = q @ k.transpose(1, 2) / math.sqrt(self.head_dim)  # (h, N, M)
         out = torch.softmax(scores, dim=-1) @ v  # (h, N, d/h)
-        return self.merge(out.transpose(0, 1).reshape(x.shape[0], -1))
+        return self.merge(self._merge(out))
 
 
 class _AttentionalPropagation(nn.Module):
     """The update of ``x`` from ``source``: an MLP of ``[x, attention(x, source)]`` (add it to ``x``)."""
 
-    def __init__(self, dim: int, n_heads: int) -> None:
+    def __init__(self, dim: int, n_heads: int, layout: str = "contiguous") -> None:
         super().__init__()
-        self.attention = _MultiHeadAttention(dim, n_heads)
+        self.attention = _MultiHeadAttention(dim, n_heads, layout)
         self.hidden = nn.Linear(2 * dim, 2 * dim)
         self.out = nn.Linear(2 * dim, dim)
         nn.init.zeros_(self.out.bias)
@@ -358,12 +603,14 @@ class CrossAttentionRefiner(nn.Module):
         Attention heads (divides ``attention_dim``).
     n_layers : int
         Rounds of cross-attention (one `_AttentionalPropagation` each, shared by both directions).
+    head_layout : {"contiguous", "interleaved"}
+        Channels of each attention head (see `DPFMConfig`).
     """
 
-    def __init__(self, width: int, attention_dim: int, n_heads: int, n_layers: int) -> None:
+    def __init__(self, width: int, attention_dim: int, n_heads: int, n_layers: int, head_layout: str = "contiguous") -> None:
         super().__init__()
         self.first = nn.Linear(width, attention_dim)
-        self.layers = nn.ModuleList(_AttentionalPropagation(attention_dim, n_heads) for _ in range(n_layers))
+        self.layers = nn.ModuleList(_AttentionalPropagation(attention_dim, n_heads, head_layout) for _ in range(n_layers))
         self.last = nn.Linear(attention_dim, width)
 
     def forward(
@@ -432,7 +679,7 @@ class DPFMNet(nn.Module):
         c = config
         self.config = c
         self.extractor = DiffusionNet(in_channels, c.width, width=c.width, n_blocks=c.n_blocks, dropout=c.dropout)
-        self.refiner = CrossAttentionRefiner(c.width, c.attention_dim, c.n_heads, c.n_attention_layers)
+        self.refiner = CrossAttentionRefiner(c.width, c.attention_dim, c.n_heads, c.n_attention_layers, c.head_layout)
         self.overlap = _OverlapPredictor(c.width)
 
     def forward(
@@ -485,6 +732,32 @@ def ground_truth_fmap(map_yx, evecs_x: torch.Tensor, evecs_y: torch.Tensor, mass
     return evecs_y.T @ (mass_y.unsqueeze(-1) * pulled)
 
 
+def template_fmap(evecs_x: torch.Tensor, evecs_y: torch.Tensor, corr_x, corr_y) -> torch.Tensor:
+    """Least-squares functional map between the eigenvectors at corresponding template points.
+
+    ``C_gt = X^T`` with ``X = argmin ||Phi_x[corr_x] X - Phi_y[corr_y]||_F`` (the ground truth
+    of the DPFM reference code on FAUST_r and SCAPE_r).
+
+    Parameters
+    ----------
+    evecs_x : torch.Tensor, shape (V_x, k_x)
+    evecs_y : torch.Tensor, shape (V_y, k_y)
+    corr_x, corr_y : array_like of int, shape (T,)
+        Vertex of ``x`` and of ``y`` at each template point.
+
+    Returns
+    -------
+    torch.Tensor, shape (k_y, k_x)
+    """
+    index_x = torch.as_tensor(np.asarray(corr_x, dtype=np.int64), device=evecs_x.device)
+    index_y = torch.as_tensor(np.asarray(corr_y, dtype=np.int64), device=evecs_y.device)
+    if index_x.shape != index_y.shape or index_x.ndim != 1:
+        raise HeadError(
+            f"template_fmap: corr_x and corr_y must be (T,) arrays of one length; found {tuple(index_x.shape)}, {tuple(index_y.shape)}."
+        )
+    return torch.linalg.lstsq(evecs_x[index_x], evecs_y[index_y]).solution.T
+
+
 def weighted_overlap_bce(logits: torch.Tensor, target: torch.Tensor, single_class_weight: float = 0.5) -> torch.Tensor:
     """Class-weighted binary cross-entropy of overlap predictions (DPFM's weighted BCE).
 
@@ -511,6 +784,19 @@ def weighted_overlap_bce(logits: torch.Tensor, target: torch.Tensor, single_clas
     return (weights * F.binary_cross_entropy_with_logits(logits, target, reduction="none")).mean()
 
 
+def _dpfm_extractor_key(ours: str) -> str:
+    """The reference (original DiffusionNet) name of a key of our `DiffusionNet` state dict."""
+    parts = ours.split(".")
+    if parts[0] in ("first", "last"):
+        return f"{parts[0]}_lin.{parts[1]}"
+    block = f"block_{parts[1]}"
+    if parts[2] == "diffusion":
+        return f"{block}.diffusion.diffusion_time"
+    if parts[2] == "gradient_features":
+        return f"{block}.gradient_features.{'A_re' if parts[3] == 'a_re' else 'A_im'}.weight"
+    return f"{block}.mlp.miniMLP_mlp_layer_{int(parts[3]) // 3:03d}.{parts[4]}"
+
+
 def _nce_loss(feat_x, feat_y, map_yx: np.ndarray, n_pairs: int, temperature: float, rng: np.random.Generator):
     """InfoNCE over corresponding pairs: each chosen ``x`` feature must pick its own ``y`` feature among all chosen."""
     valid = np.flatnonzero(map_yx >= 0)
@@ -534,6 +820,58 @@ class DPFMHead(LearnedHead):
 
     name = "dpfm"
     config_class = DPFMConfig
+    #: Settings of the authors' code. ``"reference"``: FAUST_r / SCAPE_r (``config/faust.yaml``,
+    #: ``config/scape.yaml``, data normalised to unit area, template least-squares ground truth);
+    #: ``"reference_shrec16_cuts"`` / ``"reference_shrec16_holes"``: its SHREC'16 configurations
+    #: (data as stored, no normalisation). The sizes of a release checkpoint come from its tensors.
+    PRESETS = {
+        "reference": {
+            "descriptor": "xyz",
+            "descriptor_params": {},
+            "mesh_normalization": "unit_area",
+            "laplacian": "cotan",
+            "operators": "diffusionnet",
+            "n_eig": 128,
+            "n_fmap": 50,
+            "width": 128,
+            "n_blocks": 4,
+            "dropout": True,
+            "attention_dim": 128,
+            "n_heads": 4,
+            "n_attention_layers": 1,
+            "sampling_ratio": 0.7,
+            "max_samples": None,
+            "n_interpolation": 3,
+            "head_layout": "interleaved",
+            "interpolation": "reference",
+            "lambda_": 100.0,
+            "gamma": 0.5,
+            "fmap_features": "extracted",
+            "overlap_weighted_fmap": False,
+            "w_fmap": 1.0,
+            "w_overlap": 1.0,
+            "w_nce": 0.0,
+            "nce_temperature": 0.07,
+            "nce_pairs": 4096,
+            "single_class_weight": 0.0,
+            "fmap_ground_truth": "template_lstsq",
+            "augmentation": True,
+            "pointmap": "fmap",
+            "lr": 1e-3,
+        },
+    }
+    PRESETS["reference_shrec16_cuts"] = PRESETS["reference"] | {
+        "mesh_normalization": None,
+        "sampling_ratio": 0.4,
+        "fmap_ground_truth": "projection",
+    }
+    PRESETS["reference_shrec16_holes"] = PRESETS["reference_shrec16_cuts"] | {
+        "n_fmap": 30,
+        "sampling_ratio": 0.3,
+        "fmap_features": "refined",
+        "w_nce": 1.0,
+        "nce_pairs": 512,
+    }
 
     def __init__(self, config: DPFMConfig | None = None, **settings: Any):
         super().__init__(config, **settings)
@@ -544,6 +882,111 @@ class DPFMHead(LearnedHead):
     def build_model(self, in_channels: int) -> DPFMNet:
         """`DPFMNet` for ``in_channels`` input features."""
         return DPFMNet(in_channels, self.config)
+
+    @classmethod
+    def release_state(cls, raw: Mapping[str, torch.Tensor], source: str = "checkpoint") -> ReleaseState:
+        """Translate a state dict of the authors' ``DPFMNet`` (``dpfm/data/saved_models/*.pth``) for this head.
+
+        Key mapping (``L`` a layer, ``P`` weight or bias; Conv1d kernel-1 weights (out, in, 1)
+        become Linear weights (out, in)):
+
+        ===========================================================  ==========================================
+        reference                                                     ours
+        ===========================================================  ==========================================
+        ``feature_extractor.*``                                       ``extractor.*`` (`release.diffusionnet_state`, style "dpfm")
+        ``feat_refiner.first_lin.P`` / ``last_lin.P``                  ``refiner.first.P`` / ``refiner.last.P``
+        ``feat_refiner.layers.L.attn.proj.{0,1,2}.P``                  ``refiner.layers.L.attention.{query,key,value}.P``
+        ``feat_refiner.layers.L.attn.merge.P``                         ``refiner.layers.L.attention.merge.P``
+        ``feat_refiner.layers.L.mlp.0.P`` / ``mlp.3.P``                ``refiner.layers.L.hidden.P`` / ``out.P``
+        ``feat_refiner.overlap_predictor.overlap_score_net.{0,2}.P``   ``overlap.net.{0,2}.P``
+        ===========================================================  ==========================================
+
+        The widths, number of blocks, attention width and layers are read from the tensors;
+        the number of attention heads is not stored in them (the reference uses 4, the
+        preset's ``n_heads``), and its head layout is ``"interleaved"``.
+
+        Parameters
+        ----------
+        raw : mapping of str to torch.Tensor
+            The loaded state dict.
+        source : str
+            Name of the checkpoint in error messages.
+
+        Returns
+        -------
+        ReleaseState
+            Settings (sizes, ``descriptor="xyz"``), our state dict, input channels (3).
+
+        Raises
+        ------
+        HeadError
+            A missing, unexpected or wrongly shaped key (the checkpoint's name for it).
+        """
+        if not isinstance(raw, Mapping) or not all(isinstance(v, torch.Tensor) for v in raw.values()):
+            raise HeadError(f"{source}: expected a DPFM state dict (str -> tensor).")
+        extractor_prefix, refiner_prefix = "feature_extractor.", "feat_refiner."
+        outside = sorted(k for k in raw if not k.startswith((extractor_prefix, refiner_prefix)))
+        if outside:
+            raise HeadError(f"{source}: unexpected key(s) {outside} in a DPFM checkpoint.")
+        sizes, extractor = diffusionnet_state(raw, "dpfm", prefix=extractor_prefix, what=source)
+        width = sizes["width"]
+        first = f"{refiner_prefix}first_lin.weight"
+        if first not in raw:
+            raise HeadError(f"{source}: missing key {first}.")
+        attention_dim = int(raw[first].shape[0])
+        layer_re = re.compile(re.escape(refiner_prefix) + r"layers\.(\d+)\.")
+        layers = sorted({int(m.group(1)) for k in raw if (m := layer_re.match(k))})
+        if layers != list(range(len(layers))):
+            raise HeadError(f"{source}: refiner layers must be numbered 0..n-1; found {layers}.")
+        mapping = {"first_lin": "first", "last_lin": "last"}
+        mapping |= {f"overlap_predictor.overlap_score_net.{i}": f"overlap.net.{i}" for i in (0, 2)}
+        for i in layers:
+            ours_l, theirs_l = f"refiner.layers.{i}", f"layers.{i}"
+            for j, name in enumerate(("query", "key", "value")):
+                mapping[f"{theirs_l}.attn.proj.{j}"] = f"{ours_l}.attention.{name}"
+            mapping[f"{theirs_l}.attn.merge"] = f"{ours_l}.attention.merge"
+            mapping[f"{theirs_l}.mlp.0"] = f"{ours_l}.hidden"
+            mapping[f"{theirs_l}.mlp.3"] = f"{ours_l}.out"
+        mapping = {
+            f"{refiner_prefix}{k}.{p}": (v if v.startswith(("refiner.", "overlap.")) else f"refiner.{v}") + f".{p}"
+            for k, v in mapping.items()
+            for p in ("weight", "bias")
+        }
+        settings = {
+            "descriptor": "xyz",
+            "descriptor_params": {},
+            "width": width,
+            "n_blocks": sizes["n_blocks"],
+            "attention_dim": attention_dim,
+            "n_attention_layers": len(layers),
+        }
+        expected = DPFMNet(3, DPFMConfig(**(cls.PRESETS["reference"] | settings))).state_dict()
+        names = {f"extractor.{k}": extractor_prefix + _dpfm_extractor_key(k) for k in extractor}
+        names |= {ours: theirs for theirs, ours in mapping.items()}
+        state = {f"extractor.{k}": v for k, v in extractor.items()}
+        unexpected = sorted(k for k in raw if k.startswith(refiner_prefix) and k not in mapping)
+        for theirs, ours in mapping.items():
+            if theirs in raw:
+                tensor = raw[theirs]
+                if tensor.ndim == 3 and tensor.shape[-1] == 1 and expected[ours].ndim == 2:
+                    tensor = tensor[..., 0]  # Conv1d kernel 1 -> Linear
+                state[ours] = tensor
+        missing = sorted(names.get(k, k) for k in expected if k not in state)
+        unexpected += sorted(names.get(k, k) for k in state if k not in expected)
+        wrong = sorted(
+            f"{names.get(k, k)}: {tuple(raw[names[k]].shape) if names.get(k) in raw else tuple(state[k].shape)} "
+            f"(expected {tuple(expected[k].shape)} for {k})"
+            for k in state
+            if k in expected and tuple(state[k].shape) != tuple(expected[k].shape)
+        )
+        problems = [
+            f"{label} {items}"
+            for label, items in (("missing", missing), ("unexpected", unexpected), ("wrongly shaped", wrong))
+            if items
+        ]
+        if problems:
+            raise HeadError(f"{source} does not fit DPFM: " + "; ".join(problems) + ".")
+        return ReleaseState(settings, {k: v.detach().clone().float().contiguous() for k, v in state.items()}, 3)
 
     # -- per-shape data
 
@@ -560,20 +1003,37 @@ class DPFMHead(LearnedHead):
         if key in self._samples:
             self._samples.move_to_end(key)
             return self._samples[key]
-        points = mesh.verts - mesh.verts.mean(axis=0)
-        area = 0.0
-        if mesh.faces is not None:
-            area = mesh.area() if callable(mesh.area) else mesh.area
-        points = points / (math.sqrt(area) if area > 0 else 1.0)
-        entry = sample_interpolation(points, self.n_samples(mesh.n_vertices), self.config.n_interpolation, self.config.seed)
+        c = self.config
+        if c.mesh_normalization is not None:
+            points = normalized_mesh(mesh, c.mesh_normalization).verts
+        else:
+            points = mesh.verts - mesh.verts.mean(axis=0)
+            area = 0.0
+            if mesh.faces is not None:
+                area = mesh.area() if callable(mesh.area) else mesh.area
+            points = points / (math.sqrt(area) if area > 0 else 1.0)
+        n_samples = self.n_samples(mesh.n_vertices)
+        if c.interpolation == "reference" and n_samples < mesh.n_vertices:
+            entry = reference_sample_interpolation(reference_candidates(points, c.seed), n_samples)
+        else:
+            entry = sample_interpolation(points, n_samples, c.n_interpolation, c.seed)
         entry = entry.to(self.device)
         self._samples[key] = entry
         while len(self._samples) > _SAMPLE_CACHE_SIZE:
             self._samples.popitem(last=False)
         return entry
 
-    def forward(self, pair: ShapePair) -> DPFMOutput:
-        """Run the model on a pair (gradients as the caller sets them)."""
+    def use_samples(self, mesh: Mesh, interpolation: SampleInterpolation) -> None:
+        """Pin the samples and interpolation of ``mesh`` (e.g. the reference code's own record of it)."""
+        if interpolation.neighbours.shape[0] != mesh.n_vertices or interpolation.weights.shape != interpolation.neighbours.shape:
+            raise HeadError(
+                f"dpfm: the interpolation has {interpolation.neighbours.shape[0]} rows; mesh {mesh.name!r} has {mesh.n_vertices} vertices."
+            )
+        self._samples[mesh.hash] = interpolation.to(self.device)
+        self._samples.move_to_end(mesh.hash)
+
+    def forward(self, pair: ShapePair, augment: bool = False) -> DPFMOutput:
+        """Run the model on a pair (gradients as the caller sets them); ``augment`` applies `augment_xyz` to both inputs."""
         model = self._ensure_model(pair.x)
         input_x, ops_x = self.shape_inputs(pair.x)
         input_y, ops_y = self.shape_inputs(pair.y)
@@ -582,6 +1042,8 @@ class DPFMHead(LearnedHead):
                 f"dpfm: the model takes {self.in_channels} input channels; pair {pair.name} has "
                 f"{input_x.shape[1]} (x) and {input_y.shape[1]} (y)."
             )
+        if augment:
+            input_x, input_y = augment_xyz(input_x, self._rng), augment_xyz(input_y, self._rng)
         return model(input_x, input_y, ops_x, ops_y, self.samples(pair.x), self.samples(pair.y))
 
     # -- the interface
@@ -590,12 +1052,23 @@ class DPFMHead(LearnedHead):
         """``w_fmap * ||C - C_gt||^2 + w_overlap * (BCE_x + BCE_y) + w_nce * NCE`` for one pair."""
         c = self.config
         map_yx = ground_truth_map(pair)
-        overlap_x, overlap_y = ground_truth_overlaps(pair)
-        out = self.forward(pair)
+        if pair.protocol == "f2f" and pair.overlap_x is None and pair.overlap_y is None:
+            # full shapes: every vertex has a counterpart, even where a sparse ground truth has none
+            overlap_x, overlap_y = np.ones(pair.x.n_vertices, dtype=bool), np.ones(pair.y.n_vertices, dtype=bool)
+        else:
+            overlap_x, overlap_y = ground_truth_overlaps(pair)
+        out = self.forward(pair, augment=c.augmentation)
         _, ops_x = self.shape_inputs(pair.x)
         _, ops_y = self.shape_inputs(pair.y)
         k = c.n_fmap
-        c_gt = ground_truth_fmap(map_yx, ops_x.evecs[:, :k], ops_y.evecs[:, :k], ops_y.mass)
+        if c.fmap_ground_truth == "template_lstsq":
+            if pair.corr_x is None or pair.corr_y is None:
+                raise HeadError(
+                    f"dpfm: fmap_ground_truth='template_lstsq' needs template correspondences; pair {pair.name} has none."
+                )
+            c_gt = template_fmap(ops_x.evecs[:, :k], ops_y.evecs[:, :k], pair.corr_x, pair.corr_y)
+        else:
+            c_gt = ground_truth_fmap(map_yx, ops_x.evecs[:, :k], ops_y.evecs[:, :k], ops_y.mass)
         loss = c.w_fmap * (out.fmap - c_gt).square().sum()
         device = out.fmap.device
         target_x = torch.as_tensor(overlap_x, device=device)

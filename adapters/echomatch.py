@@ -597,6 +597,41 @@ class EchoMatchHead(LearnedHead):
 
     name = "echomatch"
     config_class = EchoMatchConfig
+    #: ``"reference"``: the conventions of the authors' code (DeepShapeMatchingKit,
+    #: ``options/echo_match/train/echo_match_*_xyz.yaml``): vertex coordinates in, the
+    #: DiffusionNet reference operators on the cotangent Laplacian, 128 eigenpairs for the
+    #: networks and 50 for the functional maps, gradient norm clipped at 1.
+    PRESETS = {
+        "reference": {
+            "descriptor": "xyz",
+            "laplacian": "cotan",
+            "operators": "diffusionnet",
+            "n_eig": 128,
+            "n_fmap": 50,
+            "feature_channels": 128,
+            "width": 128,
+            "n_blocks": 4,
+            "dropout": 0.5,
+            "temperature_init": 0.1,
+            "n_neighbours": 64,
+            "overlap_width": 16,
+            "overlap_blocks": 3,
+            "fmap_lambda": 100.0,
+            "fmap_gamma": 0.5,
+            "gt_fmap_lambda": 1e6,
+            "w_fmap": 1.0,
+            "w_overlap": 1.0,
+            "w_nce_self": 0.1,
+            "w_nce_cross": 0.1,
+            "nce_temperature": 0.07,
+            "prune_strategy": "y",
+            "overlap_threshold": 0.5,
+            "restrict_to_overlap": False,
+            "epochs": 900,
+            "lr": 1e-3,
+            "grad_clip": 1.0,
+        }
+    }
 
     def __init__(self, config: EchoMatchConfig | None = None, **settings):
         super().__init__(config, **settings)

@@ -373,6 +373,29 @@ class Head:
             self._inputs.popitem(last=False)
         return entry
 
+    def use_inputs(self, mesh: Mesh, features: torch.Tensor, operators: SurfaceOperators) -> None:
+        """Use these input features and operators for ``mesh`` instead of computing them.
+
+        For feeding a head exactly the inputs of another implementation (``benchmarks/parity.py``)
+        or inputs computed elsewhere. They are kept like computed ones (64 meshes).
+
+        Parameters
+        ----------
+        mesh : Mesh
+        features : torch.Tensor, shape (V, C)
+        operators : SurfaceOperators
+            With at least ``n_eig`` eigenpairs where the head needs them.
+        """
+        if features.ndim != 2 or features.shape[0] != mesh.n_vertices or operators.n_vertices != mesh.n_vertices:
+            raise HeadError(
+                f"use_inputs: features (V, C) and operators must be of mesh {mesh.name!r} with {mesh.n_vertices} vertices; "
+                f"found features {tuple(features.shape)} and operators of {operators.n_vertices} vertices."
+            )
+        self._inputs[mesh.hash] = (features.to(self.device, torch.float32), operators.to(self.device))
+        self._inputs.move_to_end(mesh.hash)
+        while len(self._inputs) > 64:
+            self._inputs.popitem(last=False)
+
     # -- the interface
 
     def fit(self, pairs: Sequence[ShapePair]) -> list[float]:

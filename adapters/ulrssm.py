@@ -43,7 +43,7 @@ import torch.nn.functional as F
 from geofeat.datasets.records import ShapePair
 from geofeat.mesh import Mesh
 
-from .diffusion_net import DiffusionNet
+from .diffusion_net import GRADIENT_MIXINGS, DiffusionNet
 from .fmap_layers import (
     coupling_loss,
     fmap_bijectivity_loss,
@@ -116,6 +116,10 @@ class ULRSSMConfig(HeadConfig):
         SCAPE test settings use none, 0 here).
     tta_lr : float
         Adam learning rate of the test-time adaptation (reference 1e-3).
+    gradient_mixing : {"complex", "ulrssm"}
+        How DiffusionNet's gradient features mix the two gradient components (see
+        `geofeat.adapters.diffusion_net.SpatialGradientFeatures`): ``"ulrssm"`` is the
+        variant of the reference code, which its released weights need.
     """
 
     n_eig: int = 200
@@ -137,6 +141,7 @@ class ULRSSMConfig(HeadConfig):
     refine_fmap: bool = True
     tta_steps: int = 15
     tta_lr: float = 1e-3
+    gradient_mixing: str = "complex"
 
 
 class ULRSSMHead(LearnedHead):
@@ -180,6 +185,7 @@ class ULRSSMHead(LearnedHead):
             "w_lap": 0.0,
             "refine_fmap": True,
             "tta_steps": 0,
+            "gradient_mixing": "ulrssm",
         }
     }
 
@@ -220,7 +226,9 @@ class ULRSSMHead(LearnedHead):
     def build_model(self, in_channels: int) -> torch.nn.Module:
         """A DiffusionNet from ``in_channels`` to ``width_out`` channels."""
         c = self.config
-        return DiffusionNet(in_channels, c.width_out, width=c.width, n_blocks=c.n_blocks, dropout=c.dropout)
+        return DiffusionNet(
+            in_channels, c.width_out, width=c.width, n_blocks=c.n_blocks, dropout=c.dropout, gradient_mixing=c.gradient_mixing
+        )
 
     def training_loss(self, pair: ShapePair) -> torch.Tensor:
         """The unsupervised loss of one pair (partial variant for ``"p2f"`` and ``"p2p"``), a scalar."""
@@ -406,5 +414,7 @@ def _validate(c: ULRSSMConfig) -> None:
     check_integers("ulrssm", c, ("tta_steps",), 0)
     if not (isinstance(c.dropout, bool) or (is_finite_number(c.dropout) and 0 <= c.dropout < 1)):
         raise HeadError(f"ulrssm: dropout must be True, False or a probability in [0, 1); found {c.dropout!r}.")
+    if c.gradient_mixing not in GRADIENT_MIXINGS:
+        raise HeadError(f"ulrssm: gradient_mixing must be one of {GRADIENT_MIXINGS}; found {c.gradient_mixing!r}.")
     if not isinstance(c.refine_fmap, bool):
         raise HeadError(f"ulrssm: refine_fmap must be True or False; found {c.refine_fmap!r}.")

@@ -1,0 +1,101 @@
+"""Shared pieces of the parity checks (``benchmarks/parity.py``): importing a reference clone, measuring differences.
+
+The reference repositories are imported at run time from the folder the user passes; their
+code is never copied into geofeat. Several of them use the same top-level package names
+(``utils``, ``networks``, ``models``, ``losses``), so `reference_import` forgets those
+modules before and after each use.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import importlib
+import sys
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import NamedTuple
+
+import numpy as np
+import torch
+
+#: Top-level package names of the reference repositories.
+REFERENCE_PACKAGES = ("utils", "networks", "models", "losses", "datasets", "metrics", "diffusion_net", "model", "dpfm")
+
+
+class Stage(NamedTuple):
+    """One row of a parity table: the largest difference between the two implementations at one stage."""
+
+    stage: str
+    max_abs: float
+    scale: float
+    note: str = ""
+
+    @property
+    def relative(self) -> float:
+        """``max_abs / scale`` (the scale is the largest magnitude of the reference's values)."""
+        return self.max_abs / self.scale if self.scale > 0 else self.max_abs
+
+
+def compare(stage: str, ours, theirs, note: str = "") -> Stage:
+    """`Stage` of two arrays or tensors of the same shape (compared in float64)."""
+    a, b = _numpy(ours), _numpy(theirs)
+    if a.shape != b.shape:
+        raise ValueError(f"{stage}: shapes differ, ours {a.shape} vs reference {b.shape}")
+    return Stage(stage, float(np.abs(a - b).max()) if a.size else 0.0, float(np.abs(b).max()) if b.size else 0.0, note)
+
+
+def _numpy(value) -> np.ndarray:
+    if isinstance(value, torch.Tensor):
+        value = value.detach().to("cpu")
+        value = value.to_dense() if value.is_sparse else value
+        return value.double().numpy()
+    return np.asarray(value, dtype=np.float64)
+
+
+def _forget(names: tuple[str, ...]) -> None:
+    for name in list(sys.modules):
+        if name.split(".")[0] in names:
+            del sys.modules[name]
+
+
+@contextlib.contextmanager
+def reference_import(repo: str | Path, subfolder: str = "") -> Iterator[Callable[[str], object]]:
+    """Import modules of a reference clone: ``with reference_import(repo) as load: net = load("networks.x")``.
+
+    Parameters
+    ----------
+    repo : path-like
+        The user's clone of the reference repository.
+    subfolder : str
+        Folder inside the clone that the reference's own imports are relative to.
+    """
+    root = Path(repo).resolve() / subfolder
+    if not root.is_dir():
+        raise SystemExit(f"parity: {root} is not a folder; pass the path of your clone of the reference repository")
+    _forget(REFERENCE_PACKAGES)
+    sys.path.insert(0, str(root))
+    try:
+        yield importlib.import_module
+    finally:
+        sys.path.remove(str(root))
+        _forget(REFERENCE_PACKAGES)
+
+
+def seconds_per_call(fn: Callable[[], object], repeat: int = 3) -> float:
+    """Median wall time of ``repeat`` calls of ``fn`` after one warm-up call."""
+    fn()
+    times = []
+    for _ in range(repeat):
+        start = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - start)
+    return float(np.median(times))
+
+
+def markdown(rows: list[Stage], title: str) -> str:
+    """A Markdown table of `Stage` rows."""
+    lines = [f"### {title}", "", "| stage | max abs diff | reference scale | relative | note |", "|---|---|---|---|---|"]
+    for r in rows:
+        lines.append(f"| {r.stage} | {r.max_abs:.3g} | {r.scale:.3g} | {r.relative:.2e} | {r.note} |")
+    return "\n".join(lines) + "\n"
