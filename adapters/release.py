@@ -88,8 +88,8 @@ def diffusionnet_state(
     Raises
     ------
     HeadError
-        Unknown style, a missing first/last layer, blocks numbered with gaps, or a
-        source key under ``prefix`` that the mapping does not use (named).
+        Unknown style, a missing first/last layer, blocks numbered with gaps, or keys
+        under ``prefix`` missing from or unknown to a DiffusionNet of these sizes (all named).
     """
     if style not in DIFFUSIONNET_STYLES:
         raise HeadError(f"unknown DiffusionNet key style {style!r}; expected one of {sorted(DIFFUSIONNET_STYLES)}.")
@@ -102,42 +102,37 @@ def diffusionnet_state(
     indices = sorted({int(m.group(1)) for k in own if (m := block_re.match(k))})
     if indices != list(range(len(indices))):
         raise HeadError(f"{what}: DiffusionNet blocks must be numbered 0..n-1; found {indices}.")
+    linear_re = re.compile(re.escape(linear).replace(r"\{j:03d\}", r"(\d+)") + r"\.weight$")
+    n_linear = 1 + max((int(m.group(1)) for k in own if (m := linear_re.search(k))), default=-1)
     state: dict[str, torch.Tensor] = {}
-    used: set[str] = set()
+    missing: list[str] = []
 
-    def take(ref_key: str, our_key: str) -> torch.Tensor:
-        if ref_key not in own:
-            raise HeadError(f"{what}: missing key {prefix}{ref_key}.")
-        used.add(ref_key)
-        state[our_key] = own[ref_key]
-        return own[ref_key]
+    def take(ref_key: str, our_key: str) -> None:
+        if ref_key in own:
+            state[our_key] = own[ref_key]
+        else:
+            missing.append(prefix + ref_key)
 
     for param in ("weight", "bias"):
         take(f"{first}.{param}", f"first.{param}")
         take(f"{last}.{param}", f"last.{param}")
-    rotations = True
-    hidden: list[int] = []
+    rotations = any(f"{block.format(i=i)}.gradient_features.A_im.weight" in own for i in indices)
     for i in indices:
         b = block.format(i=i)
         take(f"{b}.diffusion.diffusion_time", f"blocks.{i}.diffusion.time")
         take(f"{b}.gradient_features.A_re.weight", f"blocks.{i}.gradient_features.a_re.weight")
-        rotations = f"{b}.gradient_features.A_im.weight" in own
         if rotations:
             take(f"{b}.gradient_features.A_im.weight", f"blocks.{i}.gradient_features.a_im.weight")
-        n_linear = 0
-        while f"{b}.mlp.{linear.format(j=n_linear)}.weight" in own:
-            n_linear += 1
-        if n_linear == 0:
-            raise HeadError(f"{what}: missing key {prefix}{b}.mlp.{linear.format(j=0)}.weight (block {i} has no MLP).")
-        sizes = []
         for j in range(n_linear):
             for param in ("weight", "bias"):
                 take(f"{b}.mlp.{linear.format(j=j)}.{param}", f"blocks.{i}.mlp.{3 * j}.{param}")
-            sizes.append(int(state[f"blocks.{i}.mlp.{3 * j}.weight"].shape[0]))
-        hidden = sizes[:-1]
-    unused = sorted(set(own) - used)
-    if unused:
-        raise HeadError(f"{what}: unexpected key(s) {[prefix + k for k in unused]} in the {style} DiffusionNet.")
+    unused = sorted(prefix + k for k in set(own) - _reference_keys(first, last, block, linear, indices, n_linear, rotations))
+    if missing or unused or n_linear == 0:
+        problems = [f"{label} {items}" for label, items in (("missing key(s)", missing), ("unexpected key(s)", unused)) if items]
+        if n_linear == 0:
+            problems.append("no block MLP layers")
+        raise HeadError(f"{what}: the {style} DiffusionNet does not map onto ours: " + "; ".join(problems) + ".")
+    hidden = [int(state[f"blocks.0.mlp.{3 * j}.weight"].shape[0]) for j in range(n_linear - 1)] if indices else []
     sizes = {
         "in_channels": int(own[f"{first}.weight"].shape[1]),
         "width": int(own[f"{first}.weight"].shape[0]),
@@ -147,6 +142,18 @@ def diffusionnet_state(
         "with_gradient_rotations": rotations,
     }
     return sizes, state
+
+
+def _reference_keys(first, last, block, linear, indices, n_linear, rotations) -> set[str]:
+    """Every key a reference DiffusionNet of these sizes has."""
+    keys = {f"{layer}.{p}" for layer in (first, last) for p in ("weight", "bias")}
+    for i in indices:
+        b = block.format(i=i)
+        keys |= {f"{b}.diffusion.diffusion_time", f"{b}.gradient_features.A_re.weight"}
+        if rotations:
+            keys.add(f"{b}.gradient_features.A_im.weight")
+        keys |= {f"{b}.mlp.{linear.format(j=j)}.{p}" for j in range(n_linear) for p in ("weight", "bias")}
+    return keys
 
 
 def check_state(module: torch.nn.Module, state: Mapping[str, torch.Tensor], what: str) -> None:

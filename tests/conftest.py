@@ -5,7 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
-from shapes import DATA_ENV, data_root
+from shapes import CHECKPOINTS_ENV, DATA_ENV, checkpoints_root, data_root
 
 import geofeat
 
@@ -17,6 +17,21 @@ def faust_dir() -> Path:
         pytest.fail(
             f"FAUST_r test data not found at {root}. Set {DATA_ENV} to the folder that holds FAUST_r/ "
             "(see the README, section 'Data'). Data-dependent tests fail rather than skip.",
+            pytrace=False,
+        )
+    return root
+
+
+@pytest.fixture(scope="session")
+def release_checkpoints() -> Path:
+    """The folder of the authors' release checkpoints (``ulrssm/faust_scape.pth``, ``dpfm/faust.pth``); fails if absent."""
+    root = checkpoints_root()
+    wanted = [root / "ulrssm" / "faust_scape.pth", root / "dpfm" / "faust.pth"]
+    missing = [str(p) for p in wanted if not p.is_file()]
+    if missing:
+        pytest.fail(
+            f"release checkpoints not found: {missing}. Set {CHECKPOINTS_ENV} to the folder that holds ulrssm/ and dpfm/ "
+            "(see the README, section 'Matching heads'). Checkpoint tests fail rather than skip.",
             pytrace=False,
         )
     return root

@@ -19,6 +19,14 @@ def data_root() -> Path:
     return Path(os.environ.get(DATA_ENV, REPO.parent / "shared" / "data"))
 
 
+CHECKPOINTS_ENV = "GEOFEAT_CHECKPOINTS"
+
+
+def checkpoints_root() -> Path:
+    """``$GEOFEAT_CHECKPOINTS``, else ``../shared/checkpoints`` beside the repository (the authors' release weights)."""
+    return Path(os.environ.get(CHECKPOINTS_ENV, REPO.parent / "shared" / "checkpoints"))
+
+
 def sphere(subdivisions: int = 3, radius: float = 1.0) -> geofeat.Mesh:
     s = trimesh.creation.icosphere(subdivisions=subdivisions, radius=radius)
     return geofeat.Mesh(np.asarray(s.vertices), np.asarray(s.faces), name=f"sphere{subdivisions}")
