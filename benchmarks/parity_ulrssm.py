@@ -126,28 +126,18 @@ def ulrssm_stages(repo: Path, checkpoint: Path, data_root: Path, pair_names=DEFA
         with torch.no_grad():
             feat_ref = {s: net(ref[s]["verts"][None], ref[s]["faces"][None], feats=wks_ref[s][None])[0] for s in ("x", "y")}
             feat_ours = {s: head._embed(m)[0] for s, m in (("x", pair.x), ("y", pair.y))}
-        rows.append(compare("DiffusionNet output x", feat_ours["x"], feat_ref["x"]))
-        rows.append(compare("DiffusionNet output y", feat_ours["y"], feat_ref["y"]))
+        why = "reference net solves its own k=128 eigenpairs inside forward; ours gets the first 128 of k=200"
+        rows.append(compare("DiffusionNet output x", feat_ours["x"], feat_ref["x"], why))
+        rows.append(compare("DiffusionNet output y", feat_ours["y"], feat_ref["y"], why))
 
         k = c.n_fmap
         evecs = {s: ref[s]["evecs"][:, :k] for s in ("x", "y")}
         evecs_trans = {s: (evecs[s] * ref[s]["mass"][:, None]).T for s in ("x", "y")}
         evals = {s: ref[s]["evals"][:k] for s in ("x", "y")}
+        modules = (fmap_network, permutation, fmap_loss)
 
         def reference_loss(fx, fy):
-            fmap_net = fmap_network.RegularizedFMNet(lmbda=c.fmap_lambda, resolvant_gamma=c.resolvent_gamma, bidirectional=True)
-            cxy, cyx = fmap_net(fx[None], fy[None], evals["x"][None], evals["y"][None], evecs_trans["x"][None], evecs_trans["y"][None])
-            terms = fmap_loss.SURFMNetLoss(w_bij=c.w_bij, w_orth=c.w_orth, w_lap=0.0)(cxy, cyx, evals["x"][None], evals["y"][None])
-            sim = permutation.Similarity(tau=c.temperature, hard=False)
-            nx, ny = torch.nn.functional.normalize(fx, dim=-1), torch.nn.functional.normalize(fy, dim=-1)
-            similarity = (nx @ ny.T)[None]
-            pxy, pyx = sim(similarity), sim(similarity.transpose(1, 2))
-            align = fmap_loss.SquaredFrobeniusLoss(loss_weight=c.w_couple)
-            terms["l_align"] = align(cxy, evecs_trans["y"][None] @ (pyx @ evecs["x"][None])) + align(
-                cyx, evecs_trans["x"][None] @ (pxy @ evecs["y"][None])
-            )
-            terms["l_total"] = terms["l_bij"] + terms["l_orth"] + terms["l_align"]
-            return cxy[0], cyx[0], pyx[0], terms
+            return _reference_loss(modules, c, ref, fx, fy, partial=False)
 
         with torch.no_grad():
             cxy_ref, cyx_ref, pyx_ref, terms_ref = reference_loss(feat_ref["x"], feat_ref["y"])
@@ -191,9 +181,71 @@ def ulrssm_stages(repo: Path, checkpoint: Path, data_root: Path, pair_names=DEFA
             loss_ours.backward()
         rows.append(compare("training step: loss", loss_ours, loss_ref))
         rows.append(_gradients(head, net_train))
+        rows += _partial_training_step(head, net, modules, load, data_root)
         if timing:
             timings = _timings(head, pair, net, ref, wks_ref, reference_loss, fmap_util, permutation, evecs, evecs_trans, c)
     return rows, timings
+
+
+def _reference_loss(modules, c, ref, fx, fy, partial: bool):
+    """The reference's training loss of one pair (its ``FMNetModel.feed_data``), from features (V, C).
+
+    Returns ``C_xy``, ``C_yx``, ``P_yx`` and the loss terms (``l_bij``, ``l_orth``, ``l_align``, ``l_total``).
+    """
+    fmap_network, permutation, fmap_loss = modules
+    k = c.n_fmap
+    evecs = {s: ref[s]["evecs"][:, :k] for s in ("x", "y")}
+    evecs_trans = {s: (evecs[s] * ref[s]["mass"][:, None]).T for s in ("x", "y")}
+    evals = {s: ref[s]["evals"][:k] for s in ("x", "y")}
+    fmap_net = fmap_network.RegularizedFMNet(lmbda=c.fmap_lambda, resolvant_gamma=c.resolvent_gamma, bidirectional=True)
+    cxy, cyx = fmap_net(fx[None], fy[None], evals["x"][None], evals["y"][None], evecs_trans["x"][None], evecs_trans["y"][None])
+    if partial:
+        terms = fmap_loss.PartialFmapsLoss(w_bij=c.w_bij, w_orth=c.w_orth)(cxy, cyx, evals["x"][None], evals["y"][None])
+    else:
+        terms = fmap_loss.SURFMNetLoss(w_bij=c.w_bij, w_orth=c.w_orth, w_lap=0.0)(cxy, cyx, evals["x"][None], evals["y"][None])
+    sim = permutation.Similarity(tau=c.temperature, hard=False)
+    nx, ny = torch.nn.functional.normalize(fx, dim=-1), torch.nn.functional.normalize(fy, dim=-1)
+    similarity = (nx @ ny.T)[None]
+    pxy, pyx = sim(similarity), sim(similarity.transpose(1, 2))
+    align = fmap_loss.SquaredFrobeniusLoss(loss_weight=c.w_couple)
+    terms["l_align"] = align(cxy, evecs_trans["y"][None] @ (pyx @ evecs["x"][None]))
+    if not partial:
+        terms["l_align"] = terms["l_align"] + align(cyx, evecs_trans["x"][None] @ (pxy @ evecs["y"][None]))
+    terms["l_total"] = terms["l_bij"] + terms["l_orth"] + terms["l_align"]
+    return cxy[0], cyx[0], pyx[0], terms
+
+
+def _partial_training_step(head: ULRSSMHead, net, modules, load, data_root: Path) -> list[Stage]:
+    """Loss terms and gradients of one training step on a partial pair (the reference's ``partial: true``).
+
+    The pair is the first of ``faust_r_cuts`` (a CUTS partial of one FAUST_r test shape
+    against another full shape), the weights those of the checkpoint, dropout off.
+    """
+    pair = load_dataset("faust_r_cuts", root=data_root, split="test")[0]
+    c = head.config
+    ref = {s: _reference_operators(load, normalized_mesh(m, c.mesh_normalization), c.n_eig) for s, m in (("x", pair.x), ("y", pair.y))}
+    geometry = load("utils.geometry_util")
+    wks = {s: geometry.compute_wks_autoscale(ref[s]["evals"][None, : c.diffusion_eig], ref[s]["evecs"][None, :, : c.diffusion_eig],
+                                             ref[s]["mass"][None])[0] for s in ("x", "y")}  # fmt: skip
+    for s, mesh in (("x", pair.x), ("y", pair.y)):
+        head.use_inputs(mesh, wks[s], _as_ours(ref[s], normalized_mesh(mesh, c.mesh_normalization)))
+    net_train = copy.deepcopy(net).eval()
+    head.model.eval()
+    feats = [net_train(ref[s]["verts"][None], ref[s]["faces"][None], feats=wks[s][None])[0] for s in ("x", "y")]
+    terms_ref = _reference_loss(modules, c, ref, *feats, partial=True)[3]
+    net_train.zero_grad()
+    terms_ref["l_total"].backward()
+    head.model.zero_grad()
+    with torch.enable_grad():
+        terms_ours = head.loss_terms(pair)  # protocol p2f: the partial losses
+        terms_ours["total"].backward()
+    rows = [
+        compare(f"partial pair: loss {ours}", terms_ours[ours].detach(), terms_ref[theirs].detach())
+        for ours, theirs in (("bij", "l_bij"), ("orth", "l_orth"), ("couple", "l_align"), ("total", "l_total"))
+    ]
+    gradients = _gradients(head, net_train)
+    rows.append(gradients._replace(stage="partial pair: gradients (all parameters)"))
+    return rows
 
 
 def _gradients(head: ULRSSMHead, net: torch.nn.Module) -> Stage:
