@@ -106,10 +106,11 @@ class HeadConfig:
         Progress bars.
     laplacian : {"robust", "cotan"}
         Laplacian of the surface operators (eigenpairs, mass).
-    operators : {"geofeat", "diffusionnet"}
+    operators : {"geofeat", "diffusionnet", "ulrssm"}
         Construction of the DiffusionNet operators (see
-        `geofeat.adapters.operators.surface_operators`); ``"diffusionnet"`` is that of the
-        reference code the released models were trained with.
+        `geofeat.adapters.operators.surface_operators`); ``"diffusionnet"`` (DPFM) and
+        ``"ulrssm"`` (ULRSSM, EchoMatch) are those of the reference code the released
+        models were trained with.
     mesh_normalization : {None, "unit_area"}
         What the head does to every mesh before computing its inputs and operators.
         ``"unit_area"``: the references' preprocessing: centre at the mean vertex, scale to

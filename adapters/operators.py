@@ -37,9 +37,14 @@ GRADIENT_REGULARIZATION = 1e-5
 #: Absolute Tikhonov regularisation of the gradient fit in the DiffusionNet reference code
 #: (``construction="diffusionnet"``), in squared length units of the (unit-area) shape.
 REFERENCE_GRADIENT_REGULARIZATION = 1e-5
-#: Operator constructions: ours, and the one of the DiffusionNet reference code (used by the
-#: released ULRSSM, DPFM and EchoMatch models).
-CONSTRUCTIONS = ("geofeat", "diffusionnet")
+#: Operator constructions: ours, and the two variants of the DiffusionNet reference code the
+#: released models were trained with, which differ only in the epsilon added to a vector's
+#: length when face normals and tangent axes are normalised: the original DiffusionNet code
+#: (also in DPFM) uses 1e-6, ULRSSM's copy (also in DeepShapeMatchingKit, EchoMatch) 1e-12.
+#: On a unit-area mesh of 5,000 vertices a face normal's raw length (twice its area) is
+#: about 1e-5 to 1e-4, so 1e-6 makes small faces weigh noticeably less.
+NORMALIZE_EPS = {"diffusionnet": 1e-6, "ulrssm": 1e-12}
+CONSTRUCTIONS = ("geofeat", *NORMALIZE_EPS)
 #: A normal candidate axis is rejected for the tangent X axis when ``|n . axis|`` reaches this.
 _AXIS_ALIGNMENT_LIMIT = 0.9
 _CACHE_SIZE = 8
@@ -146,14 +151,15 @@ def surface_operators(
     cache : bool
         Reuse the operators built before for the same mesh content, ``k``, Laplacian and
         construction (a small LRU cache in memory).
-    construction : {"geofeat", "diffusionnet"}
+    construction : {"geofeat", "diffusionnet", "ulrssm"}
         ``"geofeat"``: vertex normals weighted by face area and a gradient fit regularised
-        relative to the local edge lengths (scale-free). ``"diffusionnet"``: the choices of
-        the DiffusionNet reference code that the released ULRSSM, DPFM and EchoMatch
-        models were trained with: normals = normalised sum of the *unit* normals of the
-        adjacent faces, and an absolute regularisation `REFERENCE_GRADIENT_REGULARIZATION`
-        (so the operators depend on the scale of the shape: use it on unit-area shapes, as
-        the references do). Use ``laplacian_kind="cotan"`` with it to match them.
+        relative to the local edge lengths (scale-free). ``"diffusionnet"`` (the original
+        DiffusionNet code, as in DPFM) and ``"ulrssm"`` (ULRSSM's and
+        DeepShapeMatchingKit's copy): the choices the released models were trained with:
+        normals = normalised sum of the normalised normals of the adjacent faces, and an
+        absolute regularisation `REFERENCE_GRADIENT_REGULARIZATION` (so the operators
+        depend on the scale of the shape: use them on unit-area shapes, as the references
+        do); the two differ in `NORMALIZE_EPS`. Use ``laplacian_kind="cotan"`` with them.
 
     Returns
     -------
@@ -177,9 +183,13 @@ def surface_operators(
                 _operator_cache.move_to_end(key)
                 return _operator_cache[key]
     basis = spectral_basis(mesh, k, laplacian_kind=laplacian_kind)
-    reference = construction == "diffusionnet"
-    frames = tangent_frames(vertex_normals(mesh, face_weights="unit" if reference else "area"))
-    grad_x, grad_y = gradient_matrices(mesh, frames, REFERENCE_GRADIENT_REGULARIZATION if reference else None)
+    eps = NORMALIZE_EPS.get(construction)
+    if eps is None:
+        frames = tangent_frames(vertex_normals(mesh))
+        grad_x, grad_y = gradient_matrices(mesh, frames)
+    else:
+        frames = tangent_frames(vertex_normals(mesh, face_weights="unit", normalize_eps=eps), normalize_eps=eps)
+        grad_x, grad_y = gradient_matrices(mesh, frames, REFERENCE_GRADIENT_REGULARIZATION)
     edges = None if mesh.faces is None else _undirected_edges(mesh.faces)
     ops = SurfaceOperators(
         mass=_dense32(basis.mass),
@@ -219,7 +229,7 @@ def _sparse32(matrix: sp.spmatrix) -> torch.Tensor:
 # ----------------------------------------------------------------------------- geometry (float64)
 
 
-def vertex_normals(mesh: Mesh, face_weights: str = "area") -> np.ndarray:
+def vertex_normals(mesh: Mesh, face_weights: str = "area", normalize_eps: float = 1e-12) -> np.ndarray:
     """Unit normal at every vertex.
 
     Parameters
@@ -227,8 +237,10 @@ def vertex_normals(mesh: Mesh, face_weights: str = "area") -> np.ndarray:
     mesh : Mesh
         Triangle mesh or point cloud.
     face_weights : {"area", "unit"}
-        Sum the adjacent face normals weighted by face area, or as unit vectors (the
+        Sum the adjacent face normals weighted by face area, or normalised (the
         DiffusionNet reference code; degenerate faces then add nothing).
+    normalize_eps : float
+        With ``face_weights="unit"``: a face normal ``n`` counts as ``n / (|n| + normalize_eps)``.
 
     Returns
     -------
@@ -244,7 +256,7 @@ def vertex_normals(mesh: Mesh, face_weights: str = "area") -> np.ndarray:
         tri = verts[mesh.faces]
         face_normals = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])  # length = 2 * area
         if face_weights == "unit":
-            face_normals = face_normals / (np.linalg.norm(face_normals, axis=1, keepdims=True) + 1e-12)
+            face_normals = face_normals / (np.linalg.norm(face_normals, axis=1, keepdims=True) + normalize_eps)
         elif face_weights != "area":
             raise MeshError(f"face_weights must be 'area' or 'unit'; found {face_weights!r}.")
         for corner in range(3):
@@ -273,13 +285,16 @@ def _cloud_normals(verts: np.ndarray, which: np.ndarray) -> np.ndarray:
     return np.where(outward[:, None] < 0, -normals, normals)
 
 
-def tangent_frames(normals: np.ndarray) -> np.ndarray:
+def tangent_frames(normals: np.ndarray, normalize_eps: float = 0.0) -> np.ndarray:
     """An orthonormal tangent basis at every vertex.
 
     Parameters
     ----------
     normals : numpy.ndarray, shape (V, 3)
         Unit normals.
+    normalize_eps : float
+        The projected axis ``a`` becomes ``a / (|a| + normalize_eps)`` (the DiffusionNet
+        reference code adds 1e-6 or 1e-12; 0 makes it exactly unit).
 
     Returns
     -------
@@ -294,7 +309,7 @@ def tangent_frames(normals: np.ndarray) -> np.ndarray:
     axis[~near_x, 0] = 1.0
     axis[near_x, 1] = 1.0
     basis_x = axis - normals * np.einsum("vd,vd->v", axis, normals)[:, None]
-    basis_x /= np.linalg.norm(basis_x, axis=1, keepdims=True)
+    basis_x /= np.linalg.norm(basis_x, axis=1, keepdims=True) + normalize_eps
     basis_y = np.cross(normals, basis_x)
     return np.stack((basis_x, basis_y, normals), axis=1)
 

@@ -168,7 +168,7 @@ class ULRSSMHead(LearnedHead):
             "descriptor_params": {"n_eig": 128, "n_descr": 128, "laplacian": "cotan", "normalize": True},
             "mesh_normalization": "unit_area",
             "laplacian": "cotan",
-            "operators": "diffusionnet",
+            "operators": "ulrssm",
             "n_eig": 200,
             "diffusion_eig": 128,
             "n_fmap": 200,

@@ -50,7 +50,7 @@ def _reference_operators(load, mesh, k: int) -> dict[str, torch.Tensor]:
 
 def _as_ours(ref: dict[str, torch.Tensor], mesh) -> SurfaceOperators:
     """The reference's operators in our record (same tensors)."""
-    ours = surface_operators(mesh, 8, laplacian_kind="cotan", construction="diffusionnet", cache=False)
+    ours = surface_operators(mesh, 8, laplacian_kind="cotan", construction="ulrssm", cache=False)
     return SurfaceOperators(
         mass=ref["mass"].float(), evals=ref["evals"].float(), evecs=ref["evecs"].float(),
         grad_x=ref["gradX"].float().coalesce(), grad_y=ref["gradY"].float().coalesce(), frames=ref["frames"].float(),

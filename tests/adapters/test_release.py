@@ -112,7 +112,7 @@ def test_reference_preset_and_overrides():
     head = make_head("ulrssm", preset="reference", tta_steps=3)
     c = head.config
     assert (c.mesh_normalization, c.operators, c.laplacian, c.n_fmap, c.diffusion_eig, c.gradient_mixing) == (
-        "unit_area", "diffusionnet", "cotan", 200, 128, "ulrssm",
+        "unit_area", "ulrssm", "cotan", 200, 128, "ulrssm",
     )  # fmt: skip
     assert c.descriptor_params == {"n_eig": 128, "n_descr": 128, "laplacian": "cotan", "normalize": True}
     assert c.tta_steps == 3
