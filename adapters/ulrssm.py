@@ -27,6 +27,42 @@ then restored.
 The defaults are the sizes of the paper and of its reference configurations; on a CPU use
 smaller ones (``width``, ``width_out``, ``n_eig``, ``n_fmap``, ``diffusion_eig``,
 ``tta_steps``).
+
+Facts from the authors' code (github.com/dongliangcao/Unsupervised-Learning-of-Robust-Spectral-Shape-Matching,
+``preprocess.py``, ``datasets/shape_dataset.py``, ``networks/diffusion_network.py``,
+``networks/fmap_network.py``, ``losses/fmap_loss.py``, ``models/fmnet_model.py``,
+``utils/geometry_util.py``, ``options/{train,test}/faust*.yaml``), all in the ``"reference"``
+preset (``make_head("ulrssm", preset="reference")``, also what ``load_head("ulrssm",
+checkpoint=...)`` uses):
+
+- data: every shape centred at its mean vertex and scaled to unit total area, then read as
+  float32 (``mesh_normalization="unit_area"``);
+- operators (``operators="ulrssm"``, ``laplacian="cotan"``): cotangent Laplacian and lumped
+  mass (+1e-8 of the mean), 200 eigenpairs for the functional maps, the first 128 for
+  DiffusionNet; normals = sum of normalised face normals; tangent-plane gradients fitted by
+  least squares with an absolute Tikhonov term 1e-5;
+- input: WKS on the 128 DiffusionNet eigenpairs, 128 energies on the log-eigenvalue range
+  (first non-zero to largest, sigma = 7 x range / 128, ends pulled in by 2 sigma), each
+  channel normalised to unit mass-weighted norm (``geofeat.compute(mesh, "wks", n_eig=128,
+  n_descr=128, laplacian="cotan")``);
+- network: DiffusionNet 128 -> 128 x 4 blocks -> 256, dropout 0.5 in the block MLPs, and
+  gradient features in ULRSSM's variant (``gradient_mixing="ulrssm"``, see
+  `SpatialGradientFeatures`);
+- losses: bijectivity + orthogonality (weights 1, 1) of the regularised functional maps
+  (lambda 100, resolvent gamma 0.5), coupling with the soft maps at temperature 0.07
+  (weight 1), no Laplacian term; partial pairs: identity truncated at the rank
+  ``#{lambda_partial < max lambda_full}``, one direction of coupling;
+- test: hard nearest neighbours of the normalised features -> functional map in 200
+  eigenfunctions -> point map by nearest neighbours of ``Phi_x C^T`` among ``Phi_y``; no
+  test-time adaptation for FAUST_r / SCAPE_r, 15 steps for SHREC'16.
+
+Shown equal stage by stage to float32 precision by ``benchmarks/parity_ulrssm.py``, and
+``faust_scape.pth`` gives 1.617 on the 190 FAUST_r test pairs like the reference code.
+Our defaults differ from the preset in: no mesh normalisation, the robust Laplacian and
+our scale-free operator construction, 128 eigenpairs, the complex product in the gradient
+features, and 15 test-time adaptation steps. Not reproduced: the reference's test-time
+adaptation keeps one Adam state across all test pairs (ours starts a fresh Adam per
+pair); training data augmentation (only for xyz input in the reference).
 """
 
 from __future__ import annotations
