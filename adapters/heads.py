@@ -62,6 +62,7 @@ __all__ = [
     "load_head",
     "make_head",
     "normalized_mesh",
+    "normalized_pair",
 ]
 
 CONFIG_FILE = "head_config.json"
@@ -112,11 +113,12 @@ class HeadConfig:
         ``"ulrssm"`` (ULRSSM, EchoMatch) are those of the reference code the released
         models were trained with.
     mesh_normalization : {None, "unit_area"}
-        What the head does to every mesh before computing its inputs and operators.
-        ``"unit_area"``: the references' preprocessing: centre at the mean vertex, scale to
-        unit total face area, and round the coordinates to float32 (the references read
-        their meshes as float32). Point maps and overlaps do not depend on it (the vertex
-        order is kept); geodesic errors are computed on the original meshes.
+        What the head does to every pair before computing inputs and operators (see
+        `normalized_pair`). ``"unit_area"``: the references' preprocessing: full shapes
+        centred at their mean vertex and scaled to unit total face area, a P2F partial
+        shape moved and scaled with its full shape, coordinates rounded to float32 (the
+        references read their meshes as float32). Point maps and overlaps do not depend on
+        it (the vertex order is kept); geodesic errors are computed on the original meshes.
     """
 
     descriptor: str = "wks"
@@ -272,16 +274,18 @@ def ground_truth_overlaps(pair: ShapePair) -> tuple[np.ndarray, np.ndarray]:
 MESH_NORMALIZATIONS = (None, "unit_area")
 
 
-def normalized_mesh(mesh: Mesh, how: str | None) -> Mesh:
-    """The mesh a head computes on (see `HeadConfig.mesh_normalization`).
+def normalized_mesh(mesh: Mesh, how: str | None, frame: Mesh | None = None) -> Mesh:
+    """A mesh moved and scaled as the references' preprocessing does (see `normalized_pair`).
 
     Parameters
     ----------
     mesh : Mesh
-        Triangle mesh (``"unit_area"`` needs faces with a positive total area).
     how : {None, "unit_area"}
-        None returns ``mesh`` itself; ``"unit_area"``: vertices minus their mean, divided
-        by the square root of the total face area, rounded to float32.
+        None returns ``mesh`` itself. ``"unit_area"``: subtract the mean vertex of
+        ``frame`` and divide by the square root of its total face area, then round to
+        float32 (the references read their preprocessed meshes as float32).
+    frame : Mesh, optional
+        The triangle mesh whose mean and area define the transform (default ``mesh``).
 
     Returns
     -------
@@ -292,11 +296,39 @@ def normalized_mesh(mesh: Mesh, how: str | None) -> Mesh:
         return mesh
     if how != "unit_area":
         raise HeadError(f"mesh_normalization must be one of {MESH_NORMALIZATIONS}; found {how!r}.")
-    area = mesh.area() if mesh.faces is not None else 0.0
+    frame = mesh if frame is None else frame
+    area = frame.area() if frame.faces is not None else 0.0
     if not area > 0:
-        raise HeadError(f"mesh {mesh.name!r} has no surface area: mesh_normalization='unit_area' needs a triangle mesh.")
-    verts = (mesh.verts - mesh.verts.mean(axis=0)) / math.sqrt(area)
+        raise HeadError(f"mesh {frame.name!r} has no surface area: mesh_normalization='unit_area' needs a triangle mesh.")
+    verts = (mesh.verts - frame.verts.mean(axis=0)) / math.sqrt(area)
     return Mesh(verts.astype(np.float32).astype(np.float64), mesh.faces, name=mesh.name)
+
+
+def normalized_pair(pair: ShapePair, how: str | None) -> ShapePair:
+    """The pair a head computes on: `HeadConfig.mesh_normalization` applied the way the references' data has it.
+
+    With ``"unit_area"`` every full shape is centred at its mean vertex and scaled to unit
+    area; the partial shape ``y`` of a P2F pair stays in the frame of the full shape ``x``
+    (moved and scaled like it), as in the SHREC'16 data of DPFM and ULRSSM, where a partial
+    shape keeps the coordinates and scale of the full shape it was cut from. The two
+    shapes of a P2P pair are normalised each by itself (the references define no rule).
+
+    Parameters
+    ----------
+    pair : ShapePair
+    how : {None, "unit_area"}
+
+    Returns
+    -------
+    ShapePair
+        ``pair`` itself for None; else the same record with new ``x`` and ``y`` (vertex
+        order, faces, names and ground truth unchanged).
+    """
+    if how is None:
+        return pair
+    x = normalized_mesh(pair.x, how)
+    y = normalized_mesh(pair.y, how, frame=pair.x if pair.protocol == "p2f" else None)
+    return dataclasses.replace(pair, x=x, y=y)
 
 
 def input_features(mesh: Mesh, descriptor: str, params: dict | None = None) -> np.ndarray:
@@ -350,15 +382,21 @@ class Head:
         """Where the head computes."""
         return resolve_device(self.config.device)
 
+    def prepare(self, pair: ShapePair) -> ShapePair:
+        """The pair after `HeadConfig.mesh_normalization` (`normalized_pair`); heads compute on prepared pairs.
+
+        `match` and `fit` prepare every pair once; the other methods that take a pair
+        (``training_loss``, ``predict``, ``loss_terms``...) expect a prepared one.
+        """
+        return normalized_pair(pair, self.config.mesh_normalization)
+
     def features(self, mesh: Mesh) -> np.ndarray:
-        """Input features of ``mesh`` (V, C) float32, after `HeadConfig.mesh_normalization`."""
-        mesh = normalized_mesh(mesh, self.config.mesh_normalization)
+        """Input features (V, C) float32 of a mesh of a prepared pair."""
         return input_features(mesh, self.config.descriptor, self.config.descriptor_params)
 
     def operators(self, mesh: Mesh) -> SurfaceOperators:
-        """Surface operators of ``mesh`` (after `HeadConfig.mesh_normalization`), on the CPU."""
+        """Surface operators of a mesh of a prepared pair, on the CPU."""
         c = self.config
-        mesh = normalized_mesh(mesh, c.mesh_normalization)
         return surface_operators(mesh, c.n_eig, laplacian_kind=c.laplacian, construction=c.operators)
 
     def shape_inputs(self, mesh: Mesh) -> tuple[torch.Tensor, SurfaceOperators]:
@@ -423,6 +461,7 @@ class NearestNeighbourHead(Head):
     name = "nn"
 
     def match(self, pair: ShapePair) -> Match:
+        pair = self.prepare(pair)
         map_yx = matchers.nn_match(self.features(pair.x), self.features(pair.y))
         return Match(map_yx, np.ones(pair.y.n_vertices, dtype=bool))
 
@@ -444,6 +483,7 @@ class FunctionalMapHead(Head):
 
     def match(self, pair: ShapePair) -> Match:
         c = self.config
+        pair = self.prepare(pair)
         map_yx = matchers.fmap_match(
             pair.x, pair.y, self.features(pair.x), self.features(pair.y), k=c.k, zoomout=c.zoomout, k_final=c.k_final,
             n_eig=max(c.n_eig, c.k_final if c.zoomout else c.k),
@@ -500,7 +540,7 @@ class LearnedHead(Head):
                 for index in rng.permutation(len(pairs)):
                     model.train()
                     try:
-                        loss = self.training_loss(pairs[int(index)])
+                        loss = self.training_loss(self.prepare(pairs[int(index)]))
                     except UnusablePair as skipped:
                         log.info("%s: skipped a training pair: %s", self.name, skipped)
                         bar.update(1)
@@ -523,6 +563,8 @@ class LearnedHead(Head):
         return losses
 
     def match(self, pair: ShapePair) -> Match:
+        """`predict` the prepared pair with gradients off and the module in evaluation mode."""
+        pair = self.prepare(pair)
         self._ensure_model(pair.x).eval()
         with torch.no_grad():
             return self.predict(pair)

@@ -35,8 +35,9 @@ Facts from the authors' code (github.com/dongliangcao/Unsupervised-Learning-of-R
 preset (``make_head("ulrssm", preset="reference")``, also what ``load_head("ulrssm",
 checkpoint=...)`` uses):
 
-- data: every shape centred at its mean vertex and scaled to unit total area, then read as
-  float32 (``mesh_normalization="unit_area"``);
+- data: every full shape centred at its mean vertex and scaled to unit total area, a
+  partial shape in the frame of its full shape, read as float32
+  (``mesh_normalization="unit_area"``, see `normalized_pair`);
 - operators (``operators="ulrssm"``, ``laplacian="cotan"``): cotangent Laplacian and lumped
   mass (+1e-8 of the mean), 200 eigenpairs for the functional maps, the first 128 for
   DiffusionNet; normals = sum of normalised face normals; tangent-plane gradients fitted by
@@ -294,13 +295,16 @@ class ULRSSMHead(LearnedHead):
 
     def match(self, pair: ShapePair) -> Match:
         """Predict ``pair``; with ``tta_steps > 0`` after adapting the weights to it, then restore them exactly."""
-        model = self._ensure_model(pair.x)
         if self.config.tta_steps == 0:
             return super().match(pair)
+        pair = self.prepare(pair)
+        model = self._ensure_model(pair.x)
         saved = {name: value.detach().clone() for name, value in model.state_dict().items()}
         try:
-            self.adapt(pair)
-            return super().match(pair)
+            self._adapt(pair, self.config.tta_steps)
+            model.eval()
+            with torch.no_grad():
+                return self.predict(pair)
         finally:
             with torch.no_grad():
                 model.load_state_dict(saved)
@@ -310,12 +314,13 @@ class ULRSSMHead(LearnedHead):
         """Test-time adaptation: Adam steps of the unsupervised loss on ``pair`` alone (weights NOT restored).
 
         The model is in evaluation mode (no dropout), as in the reference, with a fresh Adam
-        (``tta_lr``, no schedule) and the gradient clipped to ``grad_clip``. `match` calls
+        (``tta_lr``, no schedule) and the gradient clipped to ``grad_clip``. `match` does
         this and restores the weights afterwards.
 
         Parameters
         ----------
         pair : ShapePair
+            As given to `match` (it is prepared here).
         steps : int, optional
             Default ``tta_steps``.
 
@@ -324,10 +329,14 @@ class ULRSSMHead(LearnedHead):
         list of float
             The loss before each step.
         """
-        c = self.config
-        steps = c.tta_steps if steps is None else steps
+        steps = self.config.tta_steps if steps is None else steps
         if not is_integer(steps) or steps < 0:
             raise HeadError(f"steps must be a non-negative integer; found {steps!r}.")
+        return self._adapt(self.prepare(pair), steps)
+
+    def _adapt(self, pair: ShapePair, steps: int) -> list[float]:
+        """`adapt` on a prepared pair."""
+        c = self.config
         model = self._ensure_model(pair.x)
         model.eval()
         params = [p for p in model.parameters() if p.requires_grad]

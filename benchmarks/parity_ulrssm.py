@@ -30,7 +30,7 @@ if str(HERE) not in sys.path:
 
 from parity_common import Stage, compare, markdown, reference_import, seconds_per_call  # noqa: E402
 
-from geofeat.adapters.heads import load_head, normalized_mesh  # noqa: E402
+from geofeat.adapters.heads import load_head  # noqa: E402
 from geofeat.adapters.operators import SurfaceOperators, surface_operators  # noqa: E402
 from geofeat.adapters.ulrssm import ULRSSMHead  # noqa: E402
 from geofeat.datasets import load_dataset  # noqa: E402
@@ -85,7 +85,8 @@ def ulrssm_stages(repo: Path, checkpoint: Path, data_root: Path, pair_names=DEFA
     pair = dataset[0]
     head = load_head("ulrssm", checkpoint=checkpoint, progress=False)
     c = head.config
-    mesh_x, mesh_y = (normalized_mesh(m, c.mesh_normalization) for m in (pair.x, pair.y))
+    raw_pair, pair = pair, head.prepare(pair)  # the unit-area meshes both implementations get
+    mesh_x, mesh_y = pair.x, pair.y
     raw = torch.load(checkpoint, map_location="cpu", weights_only=True)
     rows: list[Stage] = []
     timings: dict[str, float] = {}
@@ -116,7 +117,7 @@ def ulrssm_stages(repo: Path, checkpoint: Path, data_root: Path, pair_names=DEFA
 
         # -- from here on both get the reference's operators and input features
         for s, mesh in (("x", pair.x), ("y", pair.y)):
-            head.use_inputs(mesh, wks_ref[s], _as_ours(ref[s], normalized_mesh(mesh, c.mesh_normalization)))
+            head.use_inputs(mesh, wks_ref[s], _as_ours(ref[s], mesh))
         # the reference reads its DiffusionNet operators from a disk cache at test time; give it one
         cache_dir = tempfile.mkdtemp(prefix="ulrssm_ops_")
         net = diffusion.DiffusionNet(in_channels=128, out_channels=256, input_type="wks", cache_dir=cache_dir)
@@ -163,7 +164,7 @@ def ulrssm_stages(repo: Path, checkpoint: Path, data_root: Path, pair_names=DEFA
             pyx_hard = hard((ny @ nx.T)[None])[0]
             cxy_test = evecs_trans["y"] @ (pyx_hard @ evecs["x"])
             p2p_ref = fmap_util.fmap2pointmap(cxy_test, evecs["x"], evecs["y"]).numpy()
-        p2p_ours = head.match(pair).map_yx
+        p2p_ours = head.match(raw_pair).map_yx  # match prepares the pair itself
         same = float((p2p_ours == p2p_ref).mean())
         rows.append(Stage("point map y -> x (fraction of vertices that differ)", 1.0 - same, 1.0))
 
@@ -183,7 +184,7 @@ def ulrssm_stages(repo: Path, checkpoint: Path, data_root: Path, pair_names=DEFA
         rows.append(_gradients(head, net_train))
         rows += _partial_training_step(head, net, modules, load, data_root)
         if timing:
-            timings = _timings(head, pair, net, ref, wks_ref, reference_loss, fmap_util, permutation, evecs, evecs_trans, c)
+            timings = _timings(head, pair, raw_pair, net, ref, wks_ref, reference_loss, fmap_util, permutation, evecs, evecs_trans, c)
     return rows, timings
 
 
@@ -221,14 +222,14 @@ def _partial_training_step(head: ULRSSMHead, net, modules, load, data_root: Path
     The pair is the first of ``faust_r_cuts`` (a CUTS partial of one FAUST_r test shape
     against another full shape), the weights those of the checkpoint, dropout off.
     """
-    pair = load_dataset("faust_r_cuts", root=data_root, split="test")[0]
+    pair = head.prepare(load_dataset("faust_r_cuts", root=data_root, split="test")[0])
     c = head.config
-    ref = {s: _reference_operators(load, normalized_mesh(m, c.mesh_normalization), c.n_eig) for s, m in (("x", pair.x), ("y", pair.y))}
+    ref = {s: _reference_operators(load, m, c.n_eig) for s, m in (("x", pair.x), ("y", pair.y))}
     geometry = load("utils.geometry_util")
     wks = {s: geometry.compute_wks_autoscale(ref[s]["evals"][None, : c.diffusion_eig], ref[s]["evecs"][None, :, : c.diffusion_eig],
                                              ref[s]["mass"][None])[0] for s in ("x", "y")}  # fmt: skip
     for s, mesh in (("x", pair.x), ("y", pair.y)):
-        head.use_inputs(mesh, wks[s], _as_ours(ref[s], normalized_mesh(mesh, c.mesh_normalization)))
+        head.use_inputs(mesh, wks[s], _as_ours(ref[s], mesh))
     net_train = copy.deepcopy(net).eval()
     head.model.eval()
     feats = [net_train(ref[s]["verts"][None], ref[s]["faces"][None], feats=wks[s][None])[0] for s in ("x", "y")]
@@ -262,7 +263,7 @@ def _gradients(head: ULRSSMHead, net: torch.nn.Module) -> Stage:
     return Stage("training step: gradients (all parameters)", worst, scale, f"worst: {where}")
 
 
-def _timings(head, pair, net, ref, wks_ref, reference_loss, fmap_util, permutation, evecs, evecs_trans, c) -> dict[str, float]:
+def _timings(head, pair, raw_pair, net, ref, wks_ref, reference_loss, fmap_util, permutation, evecs, evecs_trans, c) -> dict[str, float]:
     """Seconds per pair: inference (network + point map, inputs ready) and one training step, both implementations."""
     hard = permutation.Similarity(tau=c.temperature, hard=True)
 
@@ -298,7 +299,7 @@ def _timings(head, pair, net, ref, wks_ref, reference_loss, fmap_util, permutati
 
     out = {
         "inference_reference_s": seconds_per_call(reference_inference),
-        "inference_geofeat_s": seconds_per_call(lambda: head.match(pair)),
+        "inference_geofeat_s": seconds_per_call(lambda: head.match(raw_pair)),
         "train_step_reference_s": seconds_per_call(reference_step),
         "train_step_geofeat_s": seconds_per_call(our_step),
     }
