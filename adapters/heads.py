@@ -334,14 +334,29 @@ def normalized_pair(pair: ShapePair, how: str | None) -> ShapePair:
 def input_features(mesh: Mesh, descriptor: str, params: dict | None = None) -> np.ndarray:
     """Per-vertex input features of a head: a geofeat descriptor, or ``"xyz"`` coordinates.
 
+    Parameters
+    ----------
+    mesh : Mesh
+    descriptor : str
+        A registered descriptor name, or ``"xyz"``.
+    params : dict, optional
+        The descriptor's parameters. ``"xyz"`` takes one, ``normalize`` (default True):
+        centre the vertices on their mean and scale them to unit surface area, shape by
+        shape; False: the coordinates as they are (the reference presets, whose pairs are
+        already normalised with a partial shape in the frame of its full shape, see
+        `normalized_pair`).
+
     Returns
     -------
     numpy.ndarray, shape (V, C), float32
-        ``"xyz"``: the vertices centred on their mean and scaled to unit surface area.
     """
     if descriptor == "xyz":
-        if params:
-            raise HeadError(f"descriptor 'xyz' takes no parameters; found {sorted(params)}.")
+        params = dict(params or {})
+        normalize = params.pop("normalize", True)
+        if params or not isinstance(normalize, bool):
+            raise HeadError(f"descriptor 'xyz' takes only normalize=True/False; found {sorted(params) or normalize!r}.")
+        if not normalize:
+            return np.ascontiguousarray(mesh.verts, dtype=np.float32)
         verts = mesh.verts - mesh.verts.mean(axis=0)
         area = mesh.area() if mesh.faces is not None else 0.0
         scale = math.sqrt(area) if area > 0 else 1.0

@@ -251,8 +251,8 @@ class ULRSSMHead(LearnedHead):
         if sizes["mlp_hidden"] != [sizes["width"]] * 2 or not sizes["with_gradient_rotations"]:
             raise HeadError(f"{source}: block MLPs {sizes['mlp_hidden']} / gradient rotations differ from ULRSSM's DiffusionNet.")
         settings: dict[str, Any] = {"width": sizes["width"], "width_out": sizes["out_channels"], "n_blocks": sizes["n_blocks"]}
-        if sizes["in_channels"] == 3:
-            settings |= {"descriptor": "xyz", "descriptor_params": {}}
+        if sizes["in_channels"] == 3:  # coordinates of the prepared pair, as the reference feeds them
+            settings |= {"descriptor": "xyz", "descriptor_params": {"normalize": False}}
         else:
             params = dict(cls.PRESETS["reference"]["descriptor_params"], n_descr=sizes["in_channels"])
             settings |= {"descriptor": "wks", "descriptor_params": params}

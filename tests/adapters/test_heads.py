@@ -48,8 +48,14 @@ def test_fmap_head_settings_and_errors():
         make_head("fmap", colour="red")
     with pytest.raises(HeadError, match="unknown head"):
         make_head("magic")
-    with pytest.raises(HeadError, match="no parameters"):
+    with pytest.raises(HeadError, match="takes only normalize"):
         input_features(bumpy(0, 2), "xyz", {"scale": 2})
+    with pytest.raises(HeadError, match="takes only normalize"):
+        input_features(bumpy(0, 2), "xyz", {"normalize": "false"})
+    mesh = bumpy(0, 2)
+    np.testing.assert_array_equal(input_features(mesh, "xyz", {"normalize": False}), mesh.verts.astype(np.float32))
+    centred = input_features(mesh, "xyz")
+    np.testing.assert_allclose(centred.mean(axis=0), 0.0, atol=1e-6)
 
 
 @dataclass

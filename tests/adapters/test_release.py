@@ -80,7 +80,11 @@ def test_dpfm_style_keys_map_like_ulrssm_style_keys():
     ours = DiffusionNet(3, 5, width=8, n_blocks=2, dropout=True)
     spelled = {}
     for key, value in ours.state_dict().items():  # write our weights in the DPFM spelling, then map them back
-        key = key.replace("first.", "first_lin.").replace("last.", "last_lin.").replace("diffusion.time", "diffusion.diffusion_time")
+        key = (
+            key.replace("first.", "first_lin.")
+            .replace("last.", "last_lin.")
+            .replace("diffusion.time", "diffusion.diffusion_time")
+        )
         key = key.replace("a_re", "A_re").replace("a_im", "A_im")
         for j in range(3):
             key = key.replace(f"mlp.{3 * j}.", f"mlp.miniMLP_mlp_layer_{j:03d}.")
@@ -139,3 +143,18 @@ def test_ulrssm_release_checkpoint_matches_a_faust_r_pair(release_checkpoints, f
     assert error < ULRSSM_PAIR_BOUND
     assert 100 * template_geodesic_errors(np.random.default_rng(0).permutation(pair.x.n_vertices)[: pair.y.n_vertices],
                                           pair.corr_x, pair.corr_y, dist).mean() > 30  # fmt: skip
+
+
+def test_pair_normalisation_keeps_a_partial_in_the_frame_of_its_full_shape(faust_mesh):
+    from geofeat.adapters.heads import normalized_pair
+    from geofeat.datasets.records import ShapePair
+    from geofeat.geometry import make_partial
+
+    part = make_partial(faust_mesh, "cuts", seed=0)
+    map_yx = part.vertex_map.astype(np.int64)
+    p2f = normalized_pair(ShapePair(x=faust_mesh, y=part.mesh, map_yx=map_yx, protocol="p2f"), "unit_area")
+    np.testing.assert_array_equal(p2f.y.verts, p2f.x.verts[part.vertex_map])  # moved and scaled with x
+    assert abs(p2f.x.area() - 1.0) < 1e-6 and p2f.y.area() < 0.95
+    p2p = normalized_pair(ShapePair(x=faust_mesh, y=part.mesh, map_yx=map_yx, protocol="p2p"), "unit_area")
+    assert abs(p2p.y.area() - 1.0) < 1e-6  # two partial shapes: each by itself
+    assert normalized_pair(p2f, None) is p2f
