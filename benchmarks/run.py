@@ -205,6 +205,19 @@ def summarize(records: list[dict]) -> dict:
     return summary
 
 
+def _pair_count(text: str) -> int:
+    """argparse type of ``--limit``: a positive whole number of pairs."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a positive whole number of pairs, found {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(
+            f"expected a positive number of pairs (at least 1), found {value}; leave --limit out for all pairs"
+        )
+    return value
+
+
 def parse_args(argv=None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--pipeline", default="nn", choices=PIPELINES)
@@ -242,7 +255,7 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument("--quick", action="store_true", help="smoke run: tiny head, few pairs, under 2 minutes on a CPU")
     parser.add_argument("--data-root", default=os.environ.get("GEOFEAT_DATA", str(HERE.parent.parent / "shared" / "data")))
     parser.add_argument("--split", default="test")
-    parser.add_argument("--limit", type=int, default=None, help="evaluate the first N pairs only")
+    parser.add_argument("--limit", type=_pair_count, default=None, help="evaluate the first N pairs only (N >= 1)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", default=None)
     parser.add_argument("--no-progress", action="store_true")

@@ -10,7 +10,18 @@ renamed over its final name (``os.replace``, atomic on POSIX and Windows). Reade
 the whole entry or none; a killed writer leaves at most a temporary file, which
 `FeatureCache.verify` and `FeatureCache.clear` sweep away; entries written before are
 never touched. A damaged entry (bad CRC-32 checksum, unreadable file) is detected on read,
-deleted and reported as a miss, so it is recomputed, never returned.
+deleted and reported as a miss, so it is recomputed, never returned. The file is flushed
+and ``fsync``-ed before the rename, and its folder after it, so that a power cut does not
+leave a renamed but empty entry.
+
+Only regular files named ``<key>.h5`` (a 64-digit hex key) in the folder ``<key[:2]>`` are
+entries. Anything else in the store (a folder named ``*.h5``, a stray file) is skipped by
+`FeatureCache.verify` and `FeatureCache.clear`, never counted by `FeatureCache.info` and
+listed by `FeatureCache.other_paths`.
+
+A store on a read-only file system (or without write permission) can still be read; writing
+to it raises `CacheError`, which `geofeat.compute` turns into a warning (default store) or
+passes on (a store the caller named).
 """
 
 from __future__ import annotations
@@ -19,6 +30,8 @@ import hashlib
 import json
 import logging
 import os
+import re
+import tempfile
 import time
 import uuid
 import zlib
@@ -30,12 +43,18 @@ import numpy as np
 
 from geofeat import config
 from geofeat.errors import CacheError
+from geofeat.files import fsync_file, fsync_folder
 
 log = logging.getLogger(__name__)
 
 TMP_PREFIX = ".tmp-"
 #: Temporary files older than this (seconds) are taken for leftovers of killed writers.
 STALE_TMP_SECONDS = 3600.0
+#: File name of an entry: the 64 hex digits of its key and ``.h5``.
+_ENTRY_NAME = re.compile(r"[0-9a-f]{64}\.h5")
+_NOT_WRITABLE_HINT = (
+    "Set GEOFEAT_CACHE_DIR (or call geofeat.set_cache_dir) to a writable folder, or pass cache=False to compute without caching."
+)
 
 
 def cache_key(mesh_hash: str, descriptor: str, params_json: str, version: str, weights_digest: str | None) -> str:
@@ -52,12 +71,13 @@ def _checksum(array: np.ndarray) -> str:
 
 @dataclass(frozen=True)
 class CacheInfo:
-    """Summary of a cache directory."""
+    """Summary of a cache directory; ``other_paths`` are what the store holds that is not an entry or temporary file."""
 
     root: Path
     entries: int
     bytes: int
     temporary_files: int
+    other_paths: tuple[Path, ...] = ()
 
 
 class FeatureCache:
@@ -88,7 +108,7 @@ class FeatureCache:
             The stored array, shape (V, C) float32, checksum verified.
         """
         path = self.path(key)
-        if not path.exists():
+        if not path.is_file():  # absent, or something else under an entry's name (see `other_paths`)
             return None
         problem = None
         try:
@@ -112,14 +132,18 @@ class FeatureCache:
         """Store ``features`` (V, C) under ``key`` atomically; returns the entry's path.
 
         ``meta`` values are saved as string attributes (descriptor name, parameters, ...).
+
+        Raises
+        ------
+        CacheError
+            The store cannot be written (read-only file system, no permission, disk full);
+            nothing is left behind.
         """
         path = self.path(key)
         try:
             path.parent.mkdir(parents=True, exist_ok=True)
         except OSError as err:
-            raise CacheError(
-                f"cannot create cache directory {path.parent}: {err}. Set GEOFEAT_CACHE_DIR to a writable place."
-            ) from err
+            raise CacheError(f"cannot create cache directory {path.parent}: {err}. {_NOT_WRITABLE_HINT}") from err
         tmp = path.parent / f"{TMP_PREFIX}{os.getpid()}-{uuid.uuid4().hex}.h5"
         try:
             with h5py.File(tmp, "w", locking=False) as fh:
@@ -130,33 +154,81 @@ class FeatureCache:
                 for name, value in (meta or {}).items():
                     fh.attrs[name] = "" if value is None else str(value)
                 fh.flush()
-            with open(tmp, "rb+") as raw:
-                os.fsync(raw.fileno())
+            fsync_file(tmp)
             os.replace(tmp, path)
+            fsync_folder(path.parent)
+        except OSError as err:
+            self._remove(tmp)
+            raise CacheError(f"cannot write the cache entry {path}: {err}. {_NOT_WRITABLE_HINT}") from err
         except BaseException:
             self._remove(tmp)
             raise
         return path
 
-    def entries(self) -> list[Path]:
-        """Paths of every complete entry."""
+    def check_writable(self) -> None:
+        """Raise `CacheError` unless a file can be created in the store (created when missing).
+
+        Raises
+        ------
+        CacheError
+            Read-only file system, no permission or no space; the message says how to fix it.
+        """
+        try:
+            self.root.mkdir(parents=True, exist_ok=True)
+            handle, probe = tempfile.mkstemp(prefix=f"{TMP_PREFIX}probe-", dir=self.root)
+            os.close(handle)
+            os.unlink(probe)
+        except OSError as err:
+            raise CacheError(f"the feature cache {self.root} is not writable: {err}. {_NOT_WRITABLE_HINT}") from err
+
+    def _scan(self) -> tuple[list[Path], list[Path], list[Path]]:
+        """One pass over the store: entry files, temporary files and everything else (sorted)."""
+        entries, temporary, other = [], [], []
         if not self.root.is_dir():
-            return []
-        return sorted(p for p in self.root.glob("*/*.h5") if not p.name.startswith(TMP_PREFIX))
+            return entries, temporary, other
+        for folder in self.root.iterdir():
+            if not folder.is_dir() or folder.is_symlink():
+                regular = folder.is_file() and not folder.is_symlink()
+                (temporary if regular and folder.name.startswith(TMP_PREFIX) else other).append(folder)
+                continue
+            for path in folder.iterdir():
+                regular = path.is_file() and not path.is_symlink()
+                if regular and path.name.startswith(TMP_PREFIX):
+                    temporary.append(path)
+                elif regular and _ENTRY_NAME.fullmatch(path.name) and path.name[:2] == folder.name:
+                    entries.append(path)
+                else:
+                    other.append(path)
+        return sorted(entries), sorted(temporary), sorted(other)
+
+    def entries(self) -> list[Path]:
+        """Paths of every complete entry (regular files ``<key[:2]>/<key>.h5``)."""
+        return self._scan()[0]
 
     def temporary_files(self) -> list[Path]:
         """Temporary files of writers still running or killed."""
-        if not self.root.is_dir():
-            return []
-        return sorted(self.root.glob(f"*/{TMP_PREFIX}*"))
+        return self._scan()[1]
+
+    def other_paths(self) -> list[Path]:
+        """What the store holds that is neither an entry nor a temporary file (skipped by `verify` and `clear`)."""
+        return self._scan()[2]
 
     def info(self) -> CacheInfo:
-        """Counts and total size of the store."""
-        entries = self.entries()
-        return CacheInfo(self.root, len(entries), sum(p.stat().st_size for p in entries), len(self.temporary_files()))
+        """Counts and total size of the store (entries only; see ``CacheInfo.other_paths``)."""
+        entries, temporary, other = self._scan()
+        size = 0
+        for path in entries:
+            try:
+                size += path.stat().st_size
+            except FileNotFoundError:  # removed by another process meanwhile
+                pass
+        return CacheInfo(self.root, len(entries), size, len(temporary), tuple(other))
 
     def verify(self, remove: bool = True) -> tuple[int, list[Path]]:
         """Check every entry's checksum.
+
+        Paths that are not entry files (`other_paths`) are skipped. On a read-only store
+        damaged entries are reported but stay (a warning says so).
 
         Parameters
         ----------
@@ -171,7 +243,12 @@ class FeatureCache:
             Entries that did not.
         """
         n_ok, damaged = 0, []
-        for path in self.entries():
+        entries, temporary, other = self._scan()
+        if other:
+            log.warning(
+                "skipped %d path(s) in %s that are not cache entries: %s", len(other), self.root, [str(p) for p in other[:5]]
+            )
+        for path in entries:
             try:
                 with h5py.File(path, "r", locking=False) as fh:
                     good = fh.attrs.get("checksum") == _checksum(fh["features"][()]) and fh.attrs.get("key") == path.stem
@@ -185,21 +262,46 @@ class FeatureCache:
                     self._remove(path)
         if remove:
             now = time.time()
-            for tmp in self.temporary_files():
-                if now - tmp.stat().st_mtime > STALE_TMP_SECONDS:
+            for tmp in temporary:
+                try:
+                    stale = now - tmp.stat().st_mtime > STALE_TMP_SECONDS
+                except FileNotFoundError:
+                    continue
+                if stale:
                     self._remove(tmp)
         return n_ok, damaged
 
     def clear(self) -> int:
-        """Delete every entry and temporary file; returns the number of entries removed."""
-        entries = self.entries()
-        for path in entries + self.temporary_files():
-            self._remove(path)
+        """Delete every entry and temporary file; returns the number of entries removed.
+
+        Paths that are not entry files (`other_paths`) are left where they are.
+
+        Raises
+        ------
+        CacheError
+            A file cannot be deleted (read-only file system, no permission); the message
+            says how many entries were removed before.
+        """
+        entries, temporary, _ = self._scan()
+        for done, path in enumerate(entries + temporary):
+            try:
+                path.unlink()
+            except FileNotFoundError:
+                pass
+            except OSError as err:
+                raise CacheError(
+                    f"cannot clear the feature cache {self.root}: deleting {path} failed ({err}); "
+                    f"{min(done, len(entries))} of {len(entries)} entries were removed before. The store is read-only "
+                    "or not yours: clear it as its owner, or set GEOFEAT_CACHE_DIR to another folder."
+                ) from err
         return len(entries)
 
     @staticmethod
     def _remove(path: Path) -> None:
+        """Delete a file; a failure (read-only store, no permission) is logged, not raised."""
         try:
             path.unlink()
         except FileNotFoundError:
             pass
+        except OSError as err:
+            log.warning("could not delete %s (%s); it stays in the cache", path, err)

@@ -9,29 +9,50 @@ import sys
 import tempfile
 
 from geofeat.cache import FeatureCache
-from geofeat.errors import GeofeatError
+from geofeat.errors import CacheError, GeofeatError
 
 
 def _out(line: str = "") -> None:
     sys.stdout.write(line + "\n")
 
 
+def _report_others(store: FeatureCache, others) -> None:
+    if others:
+        _out(f"skipped {len(others)} path(s) in {store.root} that are not cache entries (left as they are):")
+        for path in others[:20]:
+            _out(f"  not an entry: {path}" + ("/" if path.is_dir() else ""))
+        if len(others) > 20:
+            _out(f"  ... and {len(others) - 20} more")
+
+
 def _cache_command(args: argparse.Namespace) -> int:
     store = FeatureCache(args.dir) if args.dir else FeatureCache()
-    if args.action == "info":
-        info = store.info()
-        _out(f"cache: {info.root}")
-        _out(f"entries: {info.entries}")
-        _out(f"size: {info.bytes / 2**20:.2f} MiB")
-        _out(f"temporary files: {info.temporary_files}")
-    elif args.action == "verify":
-        n_ok, damaged = store.verify(remove=not args.keep)
-        _out(f"{n_ok} entries ok, {len(damaged)} damaged" + ("" if args.keep else " (removed)"))
-        for path in damaged:
-            _out(f"  damaged: {path}")
-        return 1 if damaged and args.keep else 0
-    else:
-        _out(f"removed {store.clear()} entries from {store.root}")
+    try:
+        if args.action == "info":
+            info = store.info()
+            _out(f"cache: {info.root}")
+            _out(f"entries: {info.entries}")
+            _out(f"size: {info.bytes / 2**20:.2f} MiB")
+            _out(f"temporary files: {info.temporary_files}")
+            _report_others(store, info.other_paths)
+        elif args.action == "verify":
+            n_ok, damaged = store.verify(remove=not args.keep)
+            kept = [p for p in damaged if p.exists()] if not args.keep else damaged
+            removed = (
+                "" if args.keep else f" ({len(damaged) - len(kept)} removed" + (f", {len(kept)} could not be)" if kept else ")")
+            )
+            _out(f"{n_ok} entries ok, {len(damaged)} damaged" + (removed if damaged else ""))
+            for path in damaged:
+                _out(f"  damaged: {path}")
+            _report_others(store, store.other_paths())
+            return 1 if damaged and args.keep else 0
+        else:
+            _out(f"removed {store.clear()} entries from {store.root}")
+            _report_others(store, store.other_paths())
+    except CacheError:
+        raise
+    except OSError as err:  # e.g. a store folder that cannot be listed
+        raise CacheError(f"cannot {args.action} the feature cache {store.root}: {err}") from err
     return 0
 
 

@@ -11,6 +11,7 @@ import logging
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import scipy.sparse as sp
@@ -230,6 +231,64 @@ def normalize(mesh: Mesh, center: bool = True) -> Mesh:
         centroid = (face_centers * weights[:, None]).sum(axis=0) / weights.sum()
         verts = verts - centroid
     return Mesh(verts / np.sqrt(area), mesh.faces, name=mesh.name)
+
+
+def as_mesh(obj: Any) -> Mesh:
+    """A `Mesh` from any mesh input geofeat accepts.
+
+    Parameters
+    ----------
+    obj : Mesh, path, (verts, faces) or trimesh object
+        A `Mesh` (returned as is); a ``.off``/``.obj``/``.ply`` path (read with `load_mesh`);
+        a pair ``(verts, faces)`` of arrays, ``faces`` None for a point cloud; a
+        ``trimesh.Trimesh`` or ``trimesh.PointCloud`` (its vertices in the order it holds
+        them: trimesh merges duplicate vertices on load unless ``process=False``).
+
+    Returns
+    -------
+    Mesh
+
+    Raises
+    ------
+    MeshError
+        Anything else (a bare array, a ``trimesh.Scene``, ...); the message lists what is accepted.
+    """
+    if isinstance(obj, Mesh):
+        return obj
+    if isinstance(obj, (str, os.PathLike)):
+        return load_mesh(obj)
+    if isinstance(obj, (tuple, list)) and len(obj) == 2:
+        verts, faces = obj
+        return Mesh(verts, faces)
+    module = type(obj).__module__ or ""
+    if module.split(".")[0] == "trimesh":
+        import trimesh
+
+        if isinstance(obj, trimesh.Trimesh):
+            return Mesh(np.asarray(obj.vertices), np.asarray(obj.faces) if len(obj.faces) else None, name=_trimesh_name(obj))
+        if isinstance(obj, trimesh.PointCloud):
+            return Mesh(np.asarray(obj.vertices), None, name=_trimesh_name(obj))
+        if isinstance(obj, trimesh.Scene):
+            raise MeshError(
+                "found a trimesh.Scene (several geometries); expected one mesh. Merge it first with "
+                "scene.to_geometry() (trimesh >= 4.5) or trimesh.util.concatenate(list(scene.geometry.values())), "
+                "or load the file with trimesh.load(path, force='mesh')."
+            )
+    if isinstance(obj, np.ndarray):
+        found = f"a numpy array of shape {obj.shape}"
+    else:
+        found = f"a {type(obj).__module__}.{type(obj).__qualname__}"
+    raise MeshError(
+        f"cannot use {found} as a mesh; expected a geofeat.Mesh, a .off/.obj/.ply path, a (verts, faces) pair "
+        "(verts (V, 3), faces (F, 3) int or None for a point cloud) or a trimesh.Trimesh / trimesh.PointCloud. "
+        "For a bare vertex array pass geofeat.Mesh(verts) (a point cloud) or (verts, faces)."
+    )
+
+
+def _trimesh_name(obj: Any) -> str:
+    metadata = getattr(obj, "metadata", None) or {}
+    name = metadata.get("file_name") or metadata.get("name") or ""
+    return Path(str(name)).stem if name else ""
 
 
 def load_mesh(path: str | os.PathLike) -> Mesh:

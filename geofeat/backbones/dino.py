@@ -37,6 +37,7 @@ import torch.nn.functional as F
 from geofeat.backbones.convert import convert_official, require_transformers, unwrap_official_checkpoint
 from geofeat.devices import resolve_device
 from geofeat.errors import BackboneError
+from geofeat.files import is_unsafe_pickle_error, load_torch_file, unsafe_pickle_message
 
 if TYPE_CHECKING:
     from transformers import PreTrainedModel
@@ -448,16 +449,30 @@ def _from_pretrained(kind: str, name_or_path: str, source: str) -> PreTrainedMod
         model, info = cls.from_pretrained(name_or_path, config=config, dtype=torch.float32, output_loading_info=True)
     except (OSError, ValueError, RuntimeError) as exc:
         raise BackboneError(f"could not load the {kind} weights from {source}: {exc}") from exc
+    except Exception as exc:  # safetensors' SafetensorError and pickle's UnpicklingError derive from Exception only
+        if is_unsafe_pickle_error(exc):
+            raise BackboneError(unsafe_pickle_message(_weights_file(name_or_path, "pytorch_model*.bin"), exc)) from exc
+        if type(exc).__name__ == "SafetensorError":
+            raise BackboneError(
+                f"could not read the {kind} weights {_weights_file(name_or_path, '*.safetensors')} "
+                f"({' '.join(str(exc).split())}): the file is truncated or damaged (an interrupted download or copy). "
+                "Download or save it again (model.save_pretrained(folder))."
+            ) from exc
+        raise
     _check_loading_info(info, source, strict=False)
     return model
 
 
+def _weights_file(name_or_path: str, pattern: str) -> str:
+    """The weights file of a local model folder matching ``pattern`` (for messages), else the folder or Hub id."""
+    folder = Path(name_or_path)
+    found = sorted(folder.glob(pattern)) if folder.is_dir() else []
+    return str(found[0]) if len(found) == 1 else f"the {pattern} file(s) of {name_or_path}"
+
+
 def _from_official(kind: str, path: Path, overrides: Mapping[str, Any] | None) -> PreTrainedModel:
     """Load an official Meta ``.pth``, convert it and build the transformers model."""
-    try:
-        raw = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as exc:  # pickle, zip and weights-only errors have no common base class
-        raise BackboneError(f"could not read {path} as a PyTorch checkpoint: {exc}") from exc
+    raw = load_torch_file(path, BackboneError, what="an official DINO checkpoint")
     config, state_dict = convert_official(unwrap_official_checkpoint(raw), kind, overrides)
     cls = _model_class(kind, config.model_type)
     model, info = cls.from_pretrained(None, config=config, state_dict=state_dict, dtype=torch.float32, output_loading_info=True)

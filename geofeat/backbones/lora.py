@@ -45,7 +45,7 @@ from torch import Tensor
 
 from geofeat.backbones.dino import DinoBackbone, state_dict_digest
 from geofeat.errors import BackboneError, MissingDependencyError
-from geofeat.files import atomic_write
+from geofeat.files import atomic_write, load_torch_file
 
 logger = logging.getLogger(__name__)
 
@@ -595,10 +595,7 @@ def _read_official(path_or_state_dict: str | os.PathLike | Mapping[str, Any]) ->
     if isinstance(path_or_state_dict, Mapping):
         return path_or_state_dict, "the given state dict"
     path = Path(path_or_state_dict)
-    try:
-        raw = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as exc:  # missing file, pickle, zip and weights-only errors have no common base class
-        raise BackboneError(f"could not read {path} as a PyTorch checkpoint: {exc}") from exc
+    raw = load_torch_file(path, BackboneError, what="a GeoLoRA release checkpoint")
     if not isinstance(raw, Mapping):
         raise BackboneError(f"{path} holds a {type(raw).__name__}, expected a state dict of LoRA tensors")
     return raw, str(path)

@@ -8,6 +8,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
+from geofeat.checks import canonical
 from geofeat.errors import DescriptorError
 from geofeat.mesh import Mesh
 
@@ -18,7 +19,10 @@ class Descriptor:
     A subclass declares its parameters as explicit keyword arguments of ``__init__`` with
     defaults, stores each under the same attribute name and does no I/O there (the
     scikit-learn estimator rule). ``compute`` does the work; calling the descriptor checks
-    and returns a C-contiguous float32 array of shape (V, dim).
+    and returns a C-contiguous float32 array of shape (V, dim) of finite values.
+
+    Parameters are checked at the boundary with `geofeat.checks` (booleans are booleans;
+    NumPy scalars are accepted and stored as the equal Python value).
 
     Class attributes
     ----------------
@@ -45,8 +49,8 @@ class Descriptor:
         return {name: signature.parameters[name].default for name in cls.param_names()}
 
     def get_params(self) -> dict[str, Any]:
-        """Parameters as given (JSON-serialisable); they are part of the cache key."""
-        return {name: getattr(self, name) for name in self.param_names()}
+        """Parameters in their canonical Python form (see `geofeat.checks.canonical`); they are part of the cache key."""
+        return {name: canonical(getattr(self, name)) for name in self.param_names()}
 
     def params_json(self) -> str:
         """Canonical JSON of the parameters (sorted keys, no spaces)."""
@@ -64,10 +68,31 @@ class Descriptor:
         raise NotImplementedError
 
     def __call__(self, mesh: Mesh) -> np.ndarray:
-        """Compute features, shape (V, dim), C-contiguous float32."""
+        """Compute features, shape (V, dim), C-contiguous float32, every value finite.
+
+        Raises
+        ------
+        DescriptorError
+            The output has the wrong shape or holds NaN or infinite values (also after the
+            cast to float32: values beyond its range). Such output is never returned, so it
+            is never cached either.
+        """
         features = np.ascontiguousarray(self.compute(mesh), dtype=np.float32)
         if features.ndim != 2 or features.shape[0] != mesh.n_vertices:
             raise DescriptorError(f"descriptor {self.name!r} returned shape {features.shape}; expected ({mesh.n_vertices}, dim).")
+        finite = np.isfinite(features)
+        if not finite.all():
+            bad_rows = ~finite.all(axis=1)
+            n_nan = int(np.count_nonzero(np.isnan(features)))
+            n_inf = int(features.size - np.count_nonzero(finite) - n_nan)
+            problems = "; ".join(mesh.report()) or "none reported"
+            raise DescriptorError(
+                f"descriptor {self!r} gave non-finite features on mesh {mesh.name or '<unnamed>'!r}: "
+                f"{n_nan} NaN and {n_inf} infinite value(s) in {int(bad_rows.sum())} of {mesh.n_vertices} vertices "
+                f"(first at vertex {int(np.flatnonzero(bad_rows)[0])}); expected finite values. Nothing was cached. "
+                f"Mesh problems: {problems}. Try other parameters (for spectral descriptors a larger n_eig) "
+                "or repair the mesh."
+            )
         return features
 
     def __repr__(self) -> str:

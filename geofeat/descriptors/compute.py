@@ -16,14 +16,19 @@ from tqdm.auto import tqdm
 
 import geofeat
 from geofeat.cache import FeatureCache, cache_key
+from geofeat.checks import canonical
 from geofeat.descriptors.base import Descriptor
 from geofeat.descriptors.registry import make_descriptor
 from geofeat.errors import CacheError, DescriptorError
-from geofeat.mesh import Mesh, load_mesh
+from geofeat.mesh import Mesh, as_mesh
 
 log = logging.getLogger(__name__)
 
 CacheArg = bool | str | os.PathLike | FeatureCache | None
+MeshLike = Mesh | str | os.PathLike | tuple | object
+
+#: Roots of default stores already reported as not writable (warned once per process).
+_UNWRITABLE_WARNED: set[str] = set()
 
 #: Descriptors kept alive between calls, so that a model is loaded once per process, not per mesh.
 _RECENT_DESCRIPTORS: OrderedDict[tuple[str, str], Descriptor] = OrderedDict()
@@ -37,7 +42,7 @@ def reusable_descriptor(name: str, **params) -> Descriptor:
     instance saves that load on every further mesh. Weights files changed on disk during
     the process are not re-read (call `clear_descriptors`).
     """
-    key = (name, json.dumps(params, sort_keys=True, default=str))
+    key = (name, json.dumps(canonical(params), sort_keys=True, default=str))
     descriptor = _RECENT_DESCRIPTORS.pop(key, None)
     if descriptor is None:
         descriptor = make_descriptor(name, **params)
@@ -69,25 +74,41 @@ def resolve_cache(cache: CacheArg) -> FeatureCache | None:
     raise CacheError(f"cache must be True, False, a directory path or a FeatureCache; found {type(cache).__name__}.")
 
 
-def compute(mesh_or_path: Mesh | str | os.PathLike, name: str, cache: CacheArg = True, **params) -> np.ndarray:
+def compute(mesh_or_path: MeshLike, name: str, cache: CacheArg = True, **params) -> np.ndarray:
     """Per-vertex features of a mesh.
 
     Parameters
     ----------
-    mesh_or_path : Mesh or path
-        A `Mesh`, or a ``.off``/``.obj``/``.ply`` file read with `load_mesh`.
+    mesh_or_path : Mesh, path, (verts, faces) or trimesh object
+        A `Mesh`; a ``.off``/``.obj``/``.ply`` file read with `load_mesh`; a pair
+        ``(verts, faces)`` of arrays (``faces`` None for a point cloud); a
+        ``trimesh.Trimesh`` or ``trimesh.PointCloud`` (see `geofeat.mesh.as_mesh`).
     name : str
         Registered descriptor name (see `geofeat.descriptors()`).
     cache : bool, path or FeatureCache
-        Where to look up and store the result; ``False`` computes without caching.
+        Where to look up and store the result; ``False`` computes without caching. When the
+        default store (``True``) cannot be written (a read-only file system), the features
+        are computed without caching and a warning is logged once. A store named here (a
+        path or a `FeatureCache`) that cannot be written raises `CacheError` instead.
     **params
         Descriptor parameters (an unknown one raises an error listing the valid ones).
+        NumPy scalars are accepted; booleans must be booleans.
 
     Returns
     -------
     numpy.ndarray, shape (V, dim), float32, C-contiguous
+        Finite values; non-finite output raises `DescriptorError` and is never cached.
+
+    Raises
+    ------
+    MeshError
+        An input that is not a mesh (the message lists what is accepted) or a malformed one.
+    DescriptorError
+        Unknown descriptor or parameter, bad parameter value, non-finite features.
+    CacheError
+        A store named by ``cache`` cannot be written.
     """
-    mesh = mesh_or_path if isinstance(mesh_or_path, Mesh) else load_mesh(mesh_or_path)
+    mesh = as_mesh(mesh_or_path)
     descriptor = reusable_descriptor(name, **params)
     store = resolve_cache(cache)
     if store is None:
@@ -99,6 +120,9 @@ def compute(mesh_or_path: Mesh | str | os.PathLike, name: str, cache: CacheArg =
     if hit is not None:
         log.debug("cache hit %s for %s on %r", key[:12], descriptor.name, mesh.name)
         return np.ascontiguousarray(hit, dtype=np.float32)
+    explicit = cache is not True
+    if explicit:
+        store.check_writable()  # fail before the work, not after it
     features = descriptor(mesh)
     meta = {
         "mesh_hash": mesh.hash,
@@ -109,12 +133,20 @@ def compute(mesh_or_path: Mesh | str | os.PathLike, name: str, cache: CacheArg =
         "weights_digest": weights,
         "geofeat_version": geofeat.__version__,
     }
-    store.put(key, features, meta)
+    try:
+        store.put(key, features, meta)
+    except CacheError as err:
+        if explicit:
+            raise
+        root = str(store.root)
+        if root not in _UNWRITABLE_WARNED:
+            _UNWRITABLE_WARNED.add(root)
+            log.warning("features are computed without caching (this warning is shown once): %s", err)
     return features
 
 
 def compute_many(
-    meshes_or_paths: Sequence[Mesh | str | os.PathLike],
+    meshes_or_paths: Sequence[MeshLike],
     name: str,
     cache: CacheArg = True,
     n_jobs: int = 1,
@@ -125,8 +157,8 @@ def compute_many(
 
     Parameters
     ----------
-    meshes_or_paths : sequence of Mesh or path
-        The shapes.
+    meshes_or_paths : sequence of Mesh, path, (verts, faces) or trimesh object
+        The shapes (see `compute`).
     name, cache, **params
         As for `compute` (the parameters are checked once, before any work starts).
     n_jobs : int

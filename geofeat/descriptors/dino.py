@@ -6,6 +6,7 @@ back-projection to vertices, in batches of views so that memory stays bounded.
 
 from __future__ import annotations
 
+import os
 from collections.abc import Callable
 from typing import ClassVar
 
@@ -13,11 +14,13 @@ import numpy as np
 import torch
 from tqdm.auto import tqdm
 
+from geofeat.checks import check_boolean, check_choice, check_integer
 from geofeat.descriptors.base import Descriptor
 from geofeat.errors import DescriptorError
 from geofeat.mesh import Mesh
 from geofeat.render import Cameras, make_cameras, render_phong
 from geofeat.render.backproject import BACKPROJECT_MODES, VertexFeatureAccumulator
+from geofeat.render.cameras import CAMERA_LAYOUTS
 
 PixelFeatureFn = Callable[[torch.Tensor, tuple[int, int]], torch.Tensor]
 
@@ -127,17 +130,32 @@ class DinoFeatures(Descriptor):
         )  # fmt: skip
 
     def _store(self, **params) -> None:
-        if not isinstance(params["views"], int) or params["views"] < 1:
-            raise DescriptorError(f"{self.name}: views must be a positive integer; found {params['views']!r}.")
-        if params["backproject"] not in BACKPROJECT_MODES:
+        """Check every parameter by type and range and store it in canonical Python form."""
+        owner = self.name
+        checked = dict(params)
+        for name in ("weights", "checkpoint"):
+            if name in params and params[name] is not None:
+                if not isinstance(params[name], (str, os.PathLike)):
+                    raise DescriptorError(
+                        f"{owner}: {name} must be a path, a Hub id or None; found {params[name]!r} ({type(params[name]).__name__})."
+                    )
+                checked[name] = os.fspath(params[name])  # a pathlib.Path: keep the parameters JSON-serialisable
+        checked["views"] = check_integer(params["views"], "views", owner=owner, low=1)
+        if params["image_size"] is not None:
+            checked["image_size"] = check_integer(params["image_size"], "image_size", owner=owner, low=1)
+        checked["camera_layout"] = check_choice(params["camera_layout"], "camera_layout", CAMERA_LAYOUTS, owner=owner)
+        checked["backproject"] = check_choice(params["backproject"], "backproject", BACKPROJECT_MODES, owner=owner)
+        checked["layer"] = check_integer(params["layer"], "layer", owner=owner)
+        if not isinstance(params["device"], (str, torch.device)):
             raise DescriptorError(
-                f"{self.name}: backproject must be one of {BACKPROJECT_MODES}; found {params['backproject']!r}."
+                f"{owner}: device must be a string such as 'auto', 'cpu' or 'cuda'; found {params['device']!r}."
             )
-        if params["fill"] not in ("nearest", "zero"):
-            raise DescriptorError(f"{self.name}: fill must be 'nearest' or 'zero'; found {params['fill']!r}.")
-        if not isinstance(params["batch_size"], int) or params["batch_size"] < 1:
-            raise DescriptorError(f"{self.name}: batch_size must be a positive integer; found {params['batch_size']!r}.")
-        for name, value in params.items():
+        checked["device"] = str(params["device"])
+        checked["batch_size"] = check_integer(params["batch_size"], "batch_size", owner=owner, low=1)
+        checked["fill"] = check_choice(params["fill"], "fill", ("nearest", "zero"), owner=owner)
+        checked["random_rotation"] = check_boolean(params["random_rotation"], "random_rotation", owner=owner)
+        checked["seed"] = check_integer(params["seed"], "seed", owner=owner, low=0)
+        for name, value in checked.items():
             setattr(self, name, value)
         self._backbone = None
 
@@ -227,8 +245,6 @@ class GeoLoRA(DinoFeatures):
         random_rotation: bool = False,
         seed: int = 0,
     ):
-        if checkpoint is not None and not isinstance(checkpoint, str):
-            checkpoint = str(checkpoint)  # a pathlib.Path: keep the parameters JSON-serialisable
         self._store(
             checkpoint=checkpoint, weights=weights, views=views, image_size=image_size, camera_layout=camera_layout,
             backproject=backproject, layer=layer, device=device, batch_size=batch_size, fill=fill,

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from geofeat.checks import check_boolean, check_choice, check_integer
 from geofeat.descriptors.base import Descriptor
 from geofeat.errors import DescriptorError
 from geofeat.geometry.laplacian import LAPLACIANS
@@ -12,20 +13,22 @@ from geofeat.mesh import Mesh
 
 #: Eigenvalues below this fraction of the largest one count as zero (constant modes).
 ZERO_EIGENVALUE_RTOL = 1e-8
+#: The WKS energy range is empty when the log non-zero eigenvalues span less than this
+#: (repeated eigenvalues of a symmetric shape, to round-off, span about 1e-15).
+WKS_MIN_LOG_RANGE = 1e-8
 
 
-def _check_positive_int(name: str, value, descriptor: str) -> None:
-    if not isinstance(value, (int, np.integer)) or isinstance(value, bool) or value < 1:
-        raise DescriptorError(f"{descriptor}: {name} must be a positive integer; found {value!r}.")
-
-
-def _check_spectral_params(descriptor: str, n_eig, n_descr, laplacian) -> None:
-    _check_positive_int("n_eig", n_eig, descriptor)
-    _check_positive_int("n_descr", n_descr, descriptor)
-    if n_eig < 3:
+def _checked_spectral_params(descriptor: str, n_eig, n_descr, laplacian, normalize) -> dict:
+    """The four parameters checked by type and range, in canonical Python types."""
+    params = {
+        "n_eig": check_integer(n_eig, "n_eig", owner=descriptor, low=1),
+        "n_descr": check_integer(n_descr, "n_descr", owner=descriptor, low=1),
+        "laplacian": check_choice(laplacian, "laplacian", LAPLACIANS, owner=descriptor),
+        "normalize": check_boolean(normalize, "normalize", owner=descriptor),
+    }
+    if params["n_eig"] < 3:
         raise DescriptorError(f"{descriptor}: n_eig must be at least 3 to span a range of scales; found {n_eig}.")
-    if laplacian not in LAPLACIANS:
-        raise DescriptorError(f"{descriptor}: laplacian must be one of {LAPLACIANS}; found {laplacian!r}.")
+    return params
 
 
 def mass_normalize(features: np.ndarray, mass: np.ndarray) -> np.ndarray:
@@ -71,10 +74,21 @@ def wave_kernel_signature(basis: SpectralBasis, n_descr: int) -> np.ndarray:
         ``g_e(lambda) = exp(-(e - log lambda)^2 / (2 sigma^2))`` on log-eigenvalues, energies
         ``e`` evenly spaced on ``[log lambda_min + 2 sigma, log lambda_max - 2 sigma]`` and
         ``sigma = 7 (log lambda_max - log lambda_min) / E``, over the non-zero eigenvalues.
+
+    Raises
+    ------
+    DescriptorError
+        The non-zero eigenvalues are all equal (an empty energy range), or fewer than two.
     """
     evals, evecs = nonzero_spectrum(basis)
     log_evals = np.log(evals)
     e_min, e_max = log_evals.min(), log_evals.max()
+    if not e_max - e_min > WKS_MIN_LOG_RANGE:
+        raise DescriptorError(
+            f"wks: the {evals.size} non-zero eigenvalue(s) among the first {basis.k} are all equal to {evals[0]:.6g} "
+            f"(log range {e_max - e_min:.2g}); the Wave Kernel Signature spaces its energies over their range, so it "
+            "would be undefined (NaN). Symmetric shapes repeat eigenvalues: raise n_eig."
+        )
     sigma = 7.0 * (e_max - e_min) / n_descr
     energies = np.linspace(e_min + 2 * sigma, e_max - 2 * sigma, n_descr)
     coefs = np.exp(-np.square(energies[:, None] - log_evals[None, :]) / (2 * sigma**2))  # (E, K)
@@ -116,11 +130,8 @@ class SpectralSignature(Descriptor):
     signature = None
 
     def _store(self, n_eig: int, n_descr: int, laplacian: str, normalize: bool) -> None:
-        _check_spectral_params(self.name, n_eig, n_descr, laplacian)
-        self.n_eig = n_eig
-        self.n_descr = n_descr
-        self.laplacian = laplacian
-        self.normalize = normalize
+        for name, value in _checked_spectral_params(self.name, n_eig, n_descr, laplacian, normalize).items():
+            setattr(self, name, value)
 
     def compute(self, mesh: Mesh) -> np.ndarray:
         """Signature of shape (V, n_descr), channels mass-normalised when ``normalize``."""

@@ -49,21 +49,46 @@ def laplacian(mesh: Mesh, kind: str = "robust", mollify_factor: float = 1e-5, n_
     -------
     Laplacian
         ``stiffness`` (V, V) csr float64 and ``mass`` (V,) float64.
+
+    Raises
+    ------
+    MeshError
+        An unknown ``kind``; a point cloud of ``n_neighbors`` points or fewer, or one the
+        robust Laplacian cannot triangulate (coincident or collinear points).
     """
     if kind not in LAPLACIANS:
         raise MeshError(f"unknown Laplacian kind {kind!r}; expected one of {LAPLACIANS}.")
     if mesh.faces is None:
         if kind != "robust":
             raise MeshError(f"{mesh.name!r} is a point cloud: only kind='robust' works without faces (got {kind!r}).")
+        if mesh.n_vertices <= n_neighbors:
+            raise MeshError(
+                f"point cloud {mesh.name or '<unnamed>'!r} has {mesh.n_vertices} points; the robust point-cloud Laplacian "
+                f"builds each point's {n_neighbors} nearest neighbours, so it needs at least {n_neighbors + 1} points. "
+                "Sample the surface more densely, or pass the mesh with its faces."
+            )
         import robust_laplacian
 
-        stiffness, mass = robust_laplacian.point_cloud_laplacian(
-            mesh.verts, mollify_factor=mollify_factor, n_neighbors=n_neighbors
-        )
+        try:
+            stiffness, mass = robust_laplacian.point_cloud_laplacian(
+                mesh.verts, mollify_factor=mollify_factor, n_neighbors=n_neighbors
+            )
+        except RuntimeError as err:
+            raise MeshError(
+                f"the robust Laplacian failed on point cloud {mesh.name or '<unnamed>'!r} ({err}); expected points sampling "
+                "a surface. Coincident points or points on a line or curve have no surface to triangulate: remove "
+                "duplicates and check the input."
+            ) from err
     elif kind == "robust":
         import robust_laplacian
 
-        stiffness, mass = robust_laplacian.mesh_laplacian(mesh.verts, mesh.faces, mollify_factor=mollify_factor)
+        try:
+            stiffness, mass = robust_laplacian.mesh_laplacian(mesh.verts, mesh.faces, mollify_factor=mollify_factor)
+        except RuntimeError as err:
+            raise MeshError(
+                f"the robust Laplacian failed on mesh {mesh.name or '<unnamed>'!r} ({err}); see Mesh.report() for its "
+                "problems, or try laplacian='cotan'."
+            ) from err
     else:
         stiffness, mass = _cotan_laplacian(mesh.verts, mesh.faces)
     mass = np.asarray(sp.csr_matrix(mass).diagonal() if sp.issparse(mass) else mass, dtype=np.float64)

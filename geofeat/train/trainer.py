@@ -20,16 +20,28 @@ A run folder holds ``config.json``, ``log.csv`` (one row per step: loss, seconds
 validation error on validation steps) and ``checkpoints/step_NNNNNNN/`` (the adapter as
 ``adapter.safetensors`` + ``adapter_config.json``, loadable by the ``geolora`` descriptor,
 and ``trainer_state.pt`` with the optimizer state). Checkpoints are written to a temporary
-folder and renamed, so an interruption never leaves a half-written one.
+folder ``.step_NNNNNNN.tmp-PID``, every file and the folder ``fsync``-ed, then renamed, so an
+interruption never leaves a half-written one; the log rows up to a checkpoint's step are on
+disk before the checkpoint is.
+
+After a crash (``kill -9``, power cut) a resumed run
+
+* drops the log rows of steps after the checkpoint it resumes from (they are trained again);
+* falls back to the previous checkpoint, with a warning, when the newest one cannot be read
+  (a truncated ``trainer_state.pt`` or adapter); the damaged folder is renamed
+  ``.step_NNNNNNN.damaged``;
+* removes the temporary folders of saves that were killed (their process is gone).
 """
 
 from __future__ import annotations
 
 import contextlib
 import csv
+import json
 import logging
 import math
 import os
+import re
 import shutil
 import signal
 import threading
@@ -46,6 +58,7 @@ from geofeat.backbones import DinoBackbone, load_backbone, sample_patch_features
 from geofeat.backbones.lora import LoraSettings, add_lora, load_adapter, save_adapter
 from geofeat.devices import resolve_device
 from geofeat.errors import TrainingError
+from geofeat.files import atomic_write, fsync_folder, fsync_tree, load_torch_file
 from geofeat.geometry.partial import make_partial
 from geofeat.mesh import Mesh
 from geofeat.metrics import geodesic_errors
@@ -57,12 +70,25 @@ from geofeat.train.shapes import GeodesicStore, load_training_shapes
 
 log = logging.getLogger(__name__)
 
-__all__ = ["PHASES", "GeoLoraTrainer", "StepRecord", "latest_checkpoint", "rotate_about_up"]
+__all__ = [
+    "PHASES",
+    "GeoLoraTrainer",
+    "StepRecord",
+    "complete_checkpoints",
+    "latest_checkpoint",
+    "remove_stale_temporary_folders",
+    "rotate_about_up",
+]
 
 #: Timed phases of a step, in order.
 PHASES = ("geodesics", "partial", "render", "forward", "backproject", "loss", "backward", "optimizer")
 _STATE_FILE = "trainer_state.pt"
 _LOG_COLUMNS = ("step", "elapsed_s", "loss", "n_partials", "val_geodesic_error", *(f"t_{p}" for p in PHASES))
+_TMP_FOLDER = re.compile(r"\.step_\d+\.tmp-(\d+)")
+
+
+class _DamagedCheckpoint(TrainingError):
+    """A checkpoint file that cannot be read (truncated, not written by torch.save); resuming falls back."""
 
 
 def rotate_about_up(mesh: Mesh, angle_degrees: float) -> Mesh:
@@ -82,11 +108,70 @@ def rotate_about_up(mesh: Mesh, angle_degrees: float) -> Mesh:
     return Mesh(mesh.verts @ rotation.T, mesh.faces, mesh.name)
 
 
+def complete_checkpoints(run: str | os.PathLike) -> list[Path]:
+    """The checkpoint folders of a run folder that hold a state file, oldest first.
+
+    Parameters
+    ----------
+    run : str or os.PathLike
+        A run folder (``config.out``).
+
+    Returns
+    -------
+    list of pathlib.Path
+        ``checkpoints/step_NNNNNNN`` folders with a ``trainer_state.pt``, sorted by step.
+    """
+    folder = Path(run) / "checkpoints"
+    if not folder.is_dir():
+        return []
+    return sorted(p for p in folder.glob("step_*") if p.is_dir() and (p / _STATE_FILE).is_file())
+
+
 def latest_checkpoint(run: str | os.PathLike) -> Path | None:
     """The newest complete checkpoint folder of a run folder, or None."""
-    folder = Path(run) / "checkpoints"
-    done = sorted(p for p in folder.glob("step_*") if p.is_dir() and (p / _STATE_FILE).is_file()) if folder.is_dir() else []
+    done = complete_checkpoints(run)
     return done[-1] if done else None
+
+
+def _process_alive(pid: int) -> bool:
+    if pid == os.getpid():
+        return False  # a save of this process is never under way when this is asked
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # someone else's process
+        return True
+    except OSError:
+        return False
+    return True
+
+
+def remove_stale_temporary_folders(run: str | os.PathLike) -> list[Path]:
+    """Delete the ``.step_NNNNNNN.tmp-PID`` folders of checkpoint saves whose process is gone.
+
+    Parameters
+    ----------
+    run : str or os.PathLike
+        A run folder.
+
+    Returns
+    -------
+    list of pathlib.Path
+        The folders removed (a warning names them).
+    """
+    folder = Path(run) / "checkpoints"
+    removed = []
+    if not folder.is_dir():
+        return removed
+    for path in sorted(folder.iterdir()):
+        match = _TMP_FOLDER.fullmatch(path.name)
+        if match and path.is_dir() and not _process_alive(int(match.group(1))):
+            shutil.rmtree(path, ignore_errors=True)
+            removed.append(path)
+    if removed:
+        log.warning("removed %d unfinished checkpoint folder(s) of killed saves: %s", len(removed), [p.name for p in removed])
+    return removed
 
 
 @dataclass
@@ -188,15 +273,17 @@ class GeoLoraTrainer:
     def _lora_settings(self) -> LoraSettings:
         return LoraSettings(rank=self.config.rank, alpha=self.config.alpha, training=self.config.to_dict())
 
-    def _start_or_resume(self) -> None:
-        checkpoint = latest_checkpoint(self.out)
+    def _start_or_resume(self) -> bool:
+        """Start a new run or resume from the newest readable checkpoint; True when resumed."""
+        remove_stale_temporary_folders(self.out)
+        checkpoint, state = self._readable_checkpoint()
         if checkpoint is None:
             torch.manual_seed(self.config.seed)  # LoRA A initialisation
             add_lora(self.backbone, self._lora_settings())
             self._make_optimizer()
             self.out.mkdir(parents=True, exist_ok=True)
             self.config.save(self.out / "config.json")
-            return
+            return False
         saved = TrainConfig.from_file(self.out / "config.json")
         changed = sorted(set(self.config.changes_from(saved)) - RESUMABLE_CHANGES - {"out"})
         if changed:
@@ -206,11 +293,59 @@ class GeoLoraTrainer:
             )
         load_adapter(self.backbone, checkpoint)
         self._make_optimizer()
-        state = torch.load(checkpoint / _STATE_FILE, map_location=self.device, weights_only=True)
         self.optimizer.load_state_dict(state["optimizer"])
         self.step = int(state["step"])
         self.config.save(self.out / "config.json")
         log.info("resumed %s at step %d from %s", self.out, self.step, checkpoint)
+        return True
+
+    def _read_checkpoint(self, folder: Path) -> dict:
+        """The trainer state of a checkpoint folder, after checking that its adapter files can be read.
+
+        Raises
+        ------
+        _DamagedCheckpoint
+            A file is truncated or unreadable, or the state does not fit the folder.
+        TrainingError
+            ``trainer_state.pt`` is a pickle refused for safety.
+        """
+        state = load_torch_file(
+            folder / _STATE_FILE, TrainingError, damaged_error=_DamagedCheckpoint, what="a trainer state",
+            map_location=self.device,
+        )  # fmt: skip
+        if not isinstance(state, dict) or not {"step", "optimizer"} <= set(state):
+            raise _DamagedCheckpoint(f"{folder / _STATE_FILE} lacks 'step' or 'optimizer'; it was not written by the trainer.")
+        expected = int(folder.name.split("_")[-1])
+        if int(state["step"]) != expected:
+            raise _DamagedCheckpoint(f"{folder / _STATE_FILE} is for step {int(state['step'])}, its folder for step {expected}.")
+        try:
+            import safetensors.torch
+
+            safetensors.torch.load_file(str(folder / "adapter.safetensors"))
+            json.loads((folder / "adapter_config.json").read_text())
+        except Exception as exc:  # SafetensorError, OSError, JSONDecodeError have no common base class
+            raise _DamagedCheckpoint(f"the adapter in {folder} cannot be read ({type(exc).__name__}: {exc}).") from exc
+        return state
+
+    def _readable_checkpoint(self) -> tuple[Path | None, dict | None]:
+        """The newest checkpoint whose files can all be read, with its state; damaged newer ones are set aside."""
+        candidates = complete_checkpoints(self.out)
+        for folder in reversed(candidates):
+            try:
+                return folder, self._read_checkpoint(folder)
+            except _DamagedCheckpoint as err:
+                aside = folder.with_name(f".{folder.name}.damaged")
+                shutil.rmtree(aside, ignore_errors=True)
+                os.replace(folder, aside)
+                log.warning(
+                    "checkpoint %s is damaged (%s); moved it to %s and fell back to the previous one", folder, err, aside.name
+                )
+        if candidates:
+            raise TrainingError(
+                f"no checkpoint of {self.out} can be read (all {len(candidates)} were damaged and moved to "
+                f"{self.out / 'checkpoints'}/.step_*.damaged); start again with another out folder."
+            )
+        return None, None
 
     def _make_optimizer(self) -> None:
         params = [p for p in self.backbone.model.parameters() if p.requires_grad]
@@ -223,12 +358,56 @@ class GeoLoraTrainer:
             return final
         tmp = final.with_name(f".{final.name}.tmp-{os.getpid()}")
         shutil.rmtree(tmp, ignore_errors=True)
-        save_adapter(self.backbone, tmp, self._lora_settings(), extra_info={"step": self.step, **(extra or {})})
-        torch.save({"step": self.step, "optimizer": self.optimizer.state_dict()}, tmp / _STATE_FILE)
+        try:
+            save_adapter(self.backbone, tmp, self._lora_settings(), extra_info={"step": self.step, **(extra or {})})
+            torch.save({"step": self.step, "optimizer": self.optimizer.state_dict()}, tmp / _STATE_FILE)
+            fsync_tree(tmp)  # the files and the folder are on disk before the rename makes them the checkpoint
+        except BaseException:
+            shutil.rmtree(tmp, ignore_errors=True)
+            raise
         shutil.rmtree(final, ignore_errors=True)  # an incomplete one (no state file) from a crash
         os.replace(tmp, final)
+        fsync_folder(final.parent)
         log.info("saved checkpoint %s", final)
         return final
+
+    def _truncate_log(self, last_step: int | None) -> None:
+        """Keep the complete rows of ``log.csv`` up to ``last_step`` (None: no row), dropping the rest.
+
+        Rows after the checkpoint a run resumes from were written by the killed process and
+        are written again by the resumed one; a kill can also leave half a row.
+        """
+        path = self.out / "log.csv"
+        if not path.is_file():
+            return
+        with open(path, newline="") as handle:
+            rows = list(csv.DictReader(handle))
+        kept = []
+        for row in rows:
+            try:
+                step = int(row.get("step") or "")
+            except ValueError:
+                continue
+            complete = None not in row and all(row.get(c) is not None for c in _LOG_COLUMNS)
+            if last_step is not None and step <= last_step and complete:
+                kept.append(row)
+        if len(kept) != len(rows) or not rows:
+
+            def write(tmp: Path) -> None:
+                with open(tmp, "w", newline="") as out:
+                    writer = csv.DictWriter(out, fieldnames=_LOG_COLUMNS, extrasaction="ignore")
+                    writer.writeheader()
+                    writer.writerows(kept)
+
+            atomic_write(path, write)
+            where = "a new run" if last_step is None else f"the checkpoint of step {last_step}"
+            log.info("log.csv: dropped %d row(s) written after %s", len(rows) - len(kept), where)
+
+    @staticmethod
+    def _sync_log(handle) -> None:
+        """Put the log rows written so far on disk (before a checkpoint that follows them)."""
+        handle.flush()
+        os.fsync(handle.fileno())
 
     # ------------------------------------------------------------------ features
 
@@ -379,7 +558,8 @@ class GeoLoraTrainer:
         the current step, saves a checkpoint and raises ``KeyboardInterrupt``.
         """
         config = self.config
-        self._start_or_resume()
+        resumed = self._start_or_resume()
+        self._truncate_log(self.step if resumed else None)
         for mesh in tqdm(self.shapes, desc="geodesics", unit="shape", disable=not config.progress):
             self.geodesics.ensure(mesh)
         log_path = self.out / "log.csv"
@@ -389,8 +569,9 @@ class GeoLoraTrainer:
             writer = csv.DictWriter(handle, fieldnames=_LOG_COLUMNS)
             if new_log:
                 writer.writeheader()
-            if self.step == 0:
+            if not resumed:
                 self._validation_row(writer, 0.0)
+                self._sync_log(handle)
                 self.save_checkpoint()
             bar = tqdm(total=config.steps, initial=self.step, desc="GeoLoRA", unit="step", disable=not config.progress)
             with _DeferredInterrupt() as interrupt:
@@ -405,6 +586,7 @@ class GeoLoraTrainer:
                         if not out_of_time:
                             self._validation_row(writer, elapsed)
                     if config.checkpoint_every and self.step % config.checkpoint_every == 0:
+                        self._sync_log(handle)
                         self.save_checkpoint()
                     handle.flush()
                     if out_of_time:
@@ -412,8 +594,10 @@ class GeoLoraTrainer:
                         break
             bar.close()
             if interrupt.requested:
+                self._sync_log(handle)
                 checkpoint = self.save_checkpoint()
                 log.warning("interrupted: stopped after step %d; resume with the same out folder (%s)", self.step, checkpoint)
                 raise KeyboardInterrupt
             self._validation_row(writer, time.perf_counter() - start)
-        return self.save_checkpoint()
+            self._sync_log(handle)
+            return self.save_checkpoint()

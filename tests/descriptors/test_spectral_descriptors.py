@@ -80,9 +80,9 @@ def test_several_components_give_finite_wks():
 @pytest.mark.parametrize(
     "params,match",
     [
-        ({"n_eig": 0}, "n_eig must be a positive integer"),
+        ({"n_eig": 0}, "n_eig must be an integer >= 1"),
         ({"n_eig": 2}, "at least 3"),
-        ({"n_descr": 2.5}, "n_descr must be a positive integer"),
+        ({"n_descr": 2.5}, "n_descr must be an integer >= 1"),
         ({"laplacian": "fem"}, "laplacian must be one of"),
     ],
 )

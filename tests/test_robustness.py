@@ -1,0 +1,850 @@
+"""Robustness table (issue 12): odd, bad or hostile inputs and what each must give.
+
+Every row is one input and its expected outcome: an error type (a `GeofeatError`, with a
+message that says what was expected and how to fix it; or argparse's exit) or equality with
+a reference result computed the ordinary way. Rows cover bad mesh files, parameters at the
+boundary, non-finite features, read-only and odd cache stores, small point clouds, mesh-like
+inputs, damaged and pickle-only weights, killed writers and killed training runs.
+
+A read-only store is simulated (`read_only`): every call that would create, rename or delete
+something below the store raises ``OSError(EROFS)``, as a read-only mount does.
+"""
+
+from __future__ import annotations
+
+import csv
+import errno
+import importlib.util
+import logging
+import multiprocessing as mp
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import h5py
+import numpy as np
+import pytest
+import torch
+import trimesh
+from shapes import REPO, bumpy, sphere
+from test_cache import KILLED_WRITER, _writer
+
+import geofeat
+from geofeat import CacheError, DescriptorError, FeatureCache, GeofeatError, Mesh, MeshError
+from geofeat.backbones import load_backbone
+from geofeat.checks import canonical, check_boolean, check_integer, check_number
+from geofeat.cli import main as cli_main
+from geofeat.descriptors import registry
+from geofeat.descriptors.base import Descriptor
+from geofeat.errors import BackboneError, TrainingError
+
+TESTS = Path(__file__).resolve().parent
+
+
+@dataclass
+class Ctx:
+    """What a row's action gets: a fresh folder, pytest's monkeypatch and log capture, the isolated cache."""
+
+    tmp: Path
+    monkeypatch: pytest.MonkeyPatch
+    caplog: pytest.LogCaptureFixture
+    cache: Path
+
+
+@dataclass(frozen=True)
+class Row:
+    """One input and its expected outcome.
+
+    ``run(ctx)`` is the input. Either it raises ``raises`` (message matching ``match``), or it
+    returns a result equal to ``reference(ctx)`` (arrays: exactly; None: no reference). ``check``
+    then looks at the error or result and the side effects (cache entries, log, files).
+    """
+
+    id: str
+    item: str
+    run: Callable[[Ctx], Any]
+    raises: type[BaseException] | None = None
+    match: str | None = None
+    reference: Callable[[Ctx], Any] | None = None
+    check: Callable[[Ctx, Any], None] | None = None
+
+
+@dataclass(frozen=True)
+class Close:
+    """A reference that is met to a relative tolerance (training losses: float32 sums in another order)."""
+
+    values: list[float]
+    rtol: float = 1e-5
+
+
+def assert_same(result, expected) -> None:
+    if isinstance(expected, Close):
+        np.testing.assert_allclose(result, expected.values, rtol=expected.rtol)
+    elif isinstance(expected, np.ndarray):
+        assert isinstance(result, np.ndarray) and result.dtype == expected.dtype
+        np.testing.assert_array_equal(result, expected)
+    elif isinstance(expected, (list, tuple)) and expected and isinstance(expected[0], np.ndarray):
+        assert len(result) == len(expected)
+        for a, b in zip(result, expected, strict=True):
+            assert_same(a, b)
+    else:
+        assert result == expected
+
+
+# ----------------------------------------------------------------------------- helpers
+
+
+def read_only(ctx: Ctx, root: Path) -> None:
+    """Make every write below ``root`` fail with EROFS, as on a read-only mount (reads still work)."""
+    root = Path(root).resolve()
+
+    def inside(path) -> bool:
+        try:
+            return Path(os.fspath(path)).resolve().is_relative_to(root)
+        except (TypeError, ValueError):
+            return False
+
+    def refuse(path):
+        raise OSError(errno.EROFS, "Read-only file system", os.fspath(path))
+
+    def guard(real, n_paths=1):
+        def wrapped(*args, **kwargs):
+            if any(inside(a) for a in args[:n_paths]):
+                refuse(args[0])
+            return real(*args, **kwargs)
+
+        return wrapped
+
+    write_flags = os.O_WRONLY | os.O_RDWR | os.O_CREAT | os.O_TRUNC | os.O_APPEND
+    real_open = os.open
+
+    def os_open(path, flags, *args, **kwargs):
+        if flags & write_flags and inside(path):
+            refuse(path)
+        return real_open(path, flags, *args, **kwargs)
+
+    patch = ctx.monkeypatch
+    patch.setattr(os, "open", os_open)
+    for name in ("mkdir", "unlink", "remove", "rmdir"):
+        patch.setattr(os, name, guard(getattr(os, name)))
+    for name in ("replace", "rename"):
+        patch.setattr(os, name, guard(getattr(os, name), n_paths=2))
+    real_file = h5py.File
+
+    def h5_file(name, mode="r", *args, **kwargs):
+        if mode != "r" and inside(name):
+            refuse(name)
+        return real_file(name, mode, *args, **kwargs)
+
+    patch.setattr("geofeat.cache.h5py.File", h5_file)
+
+
+def store_with_entries(ctx: Ctx, n: int = 2) -> FeatureCache:
+    store = FeatureCache(ctx.tmp / "store")
+    for seed in range(n):
+        geofeat.compute(bumpy(seed, 2), "hks", cache=store, n_eig=8, n_descr=4)
+    assert len(store.entries()) == n
+    return store
+
+
+def cli(args: list[str]) -> tuple[int, str, str]:
+    """Run ``geofeat`` in this process; returns (exit code, stdout, stderr)."""
+    import contextlib
+    import io
+
+    out, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        code = cli_main(args)
+    return code, out.getvalue(), err.getvalue()
+
+
+def write_off(path: Path, text: str) -> Path:
+    path.write_text(text)
+    return path
+
+
+TRIANGLE = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
+TETRA_FACES = np.array([[0, 1, 2], [0, 1, 3], [0, 2, 3], [1, 2, 3]])
+
+
+def truncated_ply(ctx: Ctx) -> Path:
+    data = trimesh.exchange.ply.export_ply(trimesh.Trimesh(TRIANGLE, TETRA_FACES, process=False))
+    (ctx.tmp / "t.ply").write_bytes(data[:-20])
+    return ctx.tmp / "t.ply"
+
+
+def tetra_off() -> str:
+    rows = [" ".join(map(str, v)) for v in TRIANGLE]
+    return "OFF\n4 4 0\n" + "\n".join(rows) + "\n" + "\n".join("3 " + " ".join(map(str, f)) for f in TETRA_FACES) + "\n"
+
+
+class NaNDescriptor(Descriptor):
+    """A descriptor whose output is NaN on half the vertices (a stand-in for a numerical failure)."""
+
+    name = "nan_for_tests"
+
+    def __init__(self, *, dim: int = 3):
+        self.dim = dim
+
+    def compute(self, mesh: Mesh) -> np.ndarray:
+        out = np.ones((mesh.n_vertices, self.dim))
+        out[::2] = np.nan
+        return out
+
+
+def register_nan_descriptor(ctx: Ctx) -> None:
+    ctx.monkeypatch.setitem(
+        registry._REGISTRY, "nan_for_tests", registry.RegistryEntry("nan_for_tests", "test_robustness:NaNDescriptor")
+    )
+
+
+def no_entries(ctx: Ctx, _=None) -> None:
+    assert FeatureCache().entries() == [] and FeatureCache(ctx.tmp / "store").entries() == []
+
+
+# ---- backbones and pickles
+
+
+def tiny_folder(ctx: Ctx) -> Path:
+    from tiny_models import tiny_dinov3
+
+    folder = ctx.tmp / "v3"
+    tiny_dinov3().save_pretrained(folder)
+    return folder
+
+
+def truncated_safetensors(ctx: Ctx) -> Path:
+    folder = tiny_folder(ctx)
+    weights = folder / "model.safetensors"
+    data = weights.read_bytes()
+    weights.write_bytes(data[: len(data) // 2])
+    return folder
+
+
+class Planted:
+    """Unpickling this (weights_only=False) would create a marker file: proof that a pickle ran code."""
+
+    def __init__(self, marker: Path):
+        self.marker = marker
+
+    def __reduce__(self):
+        return (Path.touch, (self.marker,))
+
+
+def pickle_only_folder(ctx: Ctx) -> Path:
+    from safetensors.torch import load_file
+
+    folder = tiny_folder(ctx)
+    state = load_file(folder / "model.safetensors")
+    (folder / "model.safetensors").unlink()
+    state["planted"] = Planted(ctx.tmp / "ran")
+    torch.save(state, folder / "pytorch_model.bin")
+    return folder
+
+
+def malicious_pth(ctx: Ctx) -> Path:
+    path = ctx.tmp / "dinov3_vits16.pth"
+    torch.save({"blocks.0.attn.qkv.weight": torch.zeros(3, 3), "x": Planted(ctx.tmp / "ran")}, path)
+    return path
+
+
+def nothing_ran(ctx: Ctx, _=None) -> None:
+    assert not (ctx.tmp / "ran").exists()
+
+
+# ---- training runs
+
+
+def train_config(ctx: Ctx, **overrides):
+    from geofeat.train.config import TrainConfig
+
+    settings = dict(
+        data="unused", out=str(ctx.tmp / "run"), image_size=32, backproject="face", steps=4, checkpoint_every=2,
+        validate_every=0, geodesic_cache=str(ctx.tmp / "geodesics"), progress=False, device="cpu",
+    )  # fmt: skip
+    settings.update(overrides)
+    return TrainConfig(**settings)
+
+
+def trainer(ctx: Ctx, **overrides):
+    from tiny_models import tiny_dinov3
+
+    from geofeat.backbones import DinoBackbone
+    from geofeat.train.trainer import GeoLoraTrainer
+
+    return GeoLoraTrainer(
+        train_config(ctx, **overrides), backbone=DinoBackbone(tiny_dinov3(), kind="dinov3"), shapes=[bumpy(s, 2) for s in (0, 1)]
+    )
+
+
+def logged_steps(run: Path) -> list[int]:
+    with open(run / "log.csv", newline="") as handle:
+        return [int(r["step"]) for r in csv.DictReader(handle) if r["loss"]]
+
+
+def logged_losses(run: Path) -> list[float]:
+    with open(run / "log.csv", newline="") as handle:
+        return [float(r["loss"]) for r in csv.DictReader(handle) if r["loss"]]
+
+
+def straight_losses(ctx: Ctx, steps: int) -> Close:
+    """The losses of the same run without interruption."""
+    reference = Ctx(ctx.tmp / "reference", ctx.monkeypatch, ctx.caplog, ctx.cache)
+    trainer(reference, steps=steps).fit()
+    return Close(logged_losses(reference.tmp / "run"))
+
+
+def crash_after_step(ctx: Ctx, crash_step: int, steps: int) -> None:
+    """Run until ``crash_step`` is logged, then die without any clean-up (an exception the trainer does not handle)."""
+    first = trainer(ctx, steps=steps)
+    step = first.train_step
+
+    def dying_step():
+        if first.step == crash_step:
+            raise SystemExit("killed")  # not KeyboardInterrupt: no checkpoint is saved on the way out
+        return step()
+
+    first.train_step = dying_step
+    with pytest.raises(SystemExit):
+        first.fit()
+
+
+def resume_after_crash(ctx: Ctx) -> list[float]:
+    crash_after_step(ctx, crash_step=3, steps=4)  # checkpoints 0 and 2; rows of steps 1..3 written
+    assert logged_steps(ctx.tmp / "run") == [1, 2, 3]
+    trainer(ctx, steps=4).fit()
+    assert logged_steps(ctx.tmp / "run") == [1, 2, 3, 4]  # step 3 once, not twice
+    return logged_losses(ctx.tmp / "run")
+
+
+def resume_from_truncated_state(ctx: Ctx) -> list[float]:
+    trainer(ctx, steps=4).fit()  # checkpoints 0, 2, 4
+    state = ctx.tmp / "run" / "checkpoints" / "step_0000004" / "trainer_state.pt"
+    state.write_bytes(state.read_bytes()[:100])
+    crash_free = trainer(ctx, steps=4)
+    with ctx.caplog.at_level(logging.WARNING, logger="geofeat"):
+        final = crash_free.fit()
+    assert "step_0000004" in ctx.caplog.text and "damaged" in ctx.caplog.text
+    assert final.name == "step_0000004" and (ctx.tmp / "run" / "checkpoints" / ".step_0000004.damaged").is_dir()
+    assert logged_steps(ctx.tmp / "run") == [1, 2, 3, 4]
+    return logged_losses(ctx.tmp / "run")
+
+
+KILLED_SAVE = textwrap.dedent(
+    """
+    import json, os, signal, sys
+    sys.path.insert(0, sys.argv[2])
+    import torch
+    from shapes import bumpy
+    from tiny_models import tiny_dinov3
+    from geofeat.backbones import DinoBackbone
+    from geofeat.train.config import TrainConfig
+    from geofeat.train.trainer import GeoLoraTrainer
+
+    real = torch.save
+
+    def save(obj, f, *args, **kwargs):
+        if isinstance(obj, dict) and obj.get("step") == 2:
+            os.kill(os.getpid(), signal.SIGKILL)  # kill -9 half-way through writing checkpoint 2
+        return real(obj, f, *args, **kwargs)
+
+    torch.save = save
+    config = TrainConfig(**json.loads(sys.argv[1]))
+    GeoLoraTrainer(config, backbone=DinoBackbone(tiny_dinov3(), kind="dinov3"), shapes=[bumpy(s, 2) for s in (0, 1)]).fit()
+    """
+)
+
+
+def resume_after_kill_during_save(ctx: Ctx) -> list[float]:
+    import json
+
+    script = ctx.tmp / "train.py"
+    script.write_text(KILLED_SAVE)
+    config = train_config(ctx, steps=4).to_dict()
+    proc = subprocess.run(
+        [sys.executable, str(script), json.dumps(config), str(TESTS)], cwd=REPO, capture_output=True, timeout=300
+    )
+    assert proc.returncode == -signal.SIGKILL, proc.stderr.decode()[-2000:]
+    folder = ctx.tmp / "run" / "checkpoints"
+    stale = [p.name for p in folder.iterdir() if ".tmp-" in p.name]
+    assert len(stale) == 1 and stale[0].startswith(".step_0000002.tmp-"), stale  # what the kill left
+    with ctx.caplog.at_level(logging.WARNING, logger="geofeat"):
+        trainer(ctx, steps=4).fit()
+    assert "unfinished checkpoint" in ctx.caplog.text
+    assert sorted(p.name for p in folder.iterdir()) == ["step_0000000", "step_0000002", "step_0000004"]
+    assert logged_steps(ctx.tmp / "run") == [1, 2, 3, 4]
+    return logged_losses(ctx.tmp / "run")
+
+
+def pickle_only_trainer_state(ctx: Ctx):
+    trainer(ctx, steps=2).fit()
+    state = ctx.tmp / "run" / "checkpoints" / "step_0000002" / "trainer_state.pt"
+    saved = torch.load(state, weights_only=True)
+    saved["planted"] = Planted(ctx.tmp / "ran")
+    torch.save(saved, state)
+    trainer(ctx, steps=4).fit()
+
+
+# ---- fsync before rename
+
+
+def fsync_log(ctx: Ctx) -> list[tuple[str, str]]:
+    """Record ``("fsync", path)`` and ``("replace", source)`` in call order."""
+    if not Path("/proc/self/fd").is_dir():
+        pytest.skip("needs /proc/self/fd to name synced files")
+    events: list[tuple[str, str]] = []
+    real_fsync, real_replace = os.fsync, os.replace
+
+    def fsync(fd):
+        events.append(("fsync", os.readlink(f"/proc/self/fd/{fd}")))
+        return real_fsync(fd)
+
+    def replace(src, dst, *args, **kwargs):
+        events.append(("replace", os.fspath(src)))
+        return real_replace(src, dst, *args, **kwargs)
+
+    ctx.monkeypatch.setattr(os, "fsync", fsync)
+    ctx.monkeypatch.setattr(os, "replace", replace)
+    return events
+
+
+def synced_before_renamed(events, source: Path, parent: Path) -> set[Path]:
+    """The paths synced before the (last) rename of ``source``; checks that ``parent`` is synced after it."""
+    renames = [i for i, (kind, path) in enumerate(events) if kind == "replace" and Path(path) == Path(source)]
+    assert renames, f"{source} was not renamed: {events}"
+    after = {Path(p) for kind, p in events[renames[-1] :] if kind == "fsync"}
+    assert Path(os.path.realpath(parent)) in after, f"{parent} not synced after the rename: {events}"
+    return {Path(p) for kind, p in events[: renames[-1]] if kind == "fsync"}
+
+
+def checkpoint_is_synced(ctx: Ctx) -> bool:
+    t = trainer(ctx, steps=1)
+    t._start_or_resume()
+    events = fsync_log(ctx)
+    t.step = 7
+    final = t.save_checkpoint()
+    tmp = final.with_name(f".{final.name}.tmp-{os.getpid()}")
+    before = synced_before_renamed(events, tmp, final.parent)
+    real_tmp = Path(os.path.realpath(final.parent)) / tmp.name
+    wanted = {real_tmp / "adapter.safetensors", real_tmp / "adapter_config.json", real_tmp / "trainer_state.pt", real_tmp}
+    assert wanted <= before, (wanted, before)
+    return True
+
+
+def cache_entry_is_synced(ctx: Ctx) -> bool:
+    store = FeatureCache(ctx.tmp / "store")
+    events = fsync_log(ctx)
+    path = store.put("c" * 64, np.ones((3, 2), dtype=np.float32))
+    renamed = next(Path(p) for kind, p in events if kind == "replace")
+    assert Path(os.path.realpath(renamed)) in synced_before_renamed(events, renamed, path.parent)
+    return True
+
+
+def atomic_write_is_synced(ctx: Ctx) -> bool:
+    from geofeat.files import atomic_write
+
+    events = fsync_log(ctx)
+    target = atomic_write(ctx.tmp / "sub" / "a.txt", lambda p: p.write_text("content"))
+    renamed = next(Path(p) for kind, p in events if kind == "replace")
+    assert Path(os.path.realpath(renamed)) in synced_before_renamed(events, renamed, target.parent)
+    return target.read_text() == "content"
+
+
+# ---- cache stores
+
+
+def default_store_read_only(ctx: Ctx):
+    mesh = bumpy(0, 2)
+    read_only(ctx, ctx.cache)
+    with ctx.caplog.at_level(logging.WARNING, logger="geofeat"):
+        first = geofeat.compute(mesh, "hks", n_eig=8, n_descr=4)
+        second = geofeat.compute(bumpy(1, 2), "hks", n_eig=8, n_descr=4)
+    warnings = [r for r in ctx.caplog.records if "computed without caching" in r.getMessage()]
+    assert len(warnings) == 1, ctx.caplog.text  # warned once
+    assert "Read-only file system" in ctx.caplog.text and second.shape[1] == 4
+    return first
+
+
+def warm_store_read_only(ctx: Ctx):
+    mesh = bumpy(0, 2)
+    geofeat.compute(mesh, "hks", n_eig=8, n_descr=4)  # written while writable
+    read_only(ctx, ctx.cache)
+    with ctx.caplog.at_level(logging.WARNING, logger="geofeat"):
+        hit = geofeat.compute(mesh, "hks", n_eig=8, n_descr=4)
+    assert "without caching" not in ctx.caplog.text
+    return hit
+
+
+def explicit_store_read_only(ctx: Ctx):
+    (ctx.tmp / "store").mkdir()
+    read_only(ctx, ctx.tmp / "store")
+    geofeat.compute(bumpy(0, 2), "hks", cache=ctx.tmp / "store", n_eig=8, n_descr=4)
+
+
+def cli_clear_read_only(ctx: Ctx):
+    store = store_with_entries(ctx)
+    read_only(ctx, store.root)
+    code, out, err = cli(["cache", "clear", "--dir", str(store.root)])
+    assert len(store.entries()) == 2
+    return code, "Traceback" in err, err.startswith("geofeat: error: cannot clear the feature cache")
+
+
+def cli_verify_read_only(ctx: Ctx):
+    store = store_with_entries(ctx)
+    store.entries()[0].write_bytes(b"garbage")
+    read_only(ctx, store.root)
+    code, out, err = cli(["cache", "verify", "--dir", str(store.root)])
+    return code, out.splitlines()[0]
+
+
+def odd_store(ctx: Ctx) -> FeatureCache:
+    store = store_with_entries(ctx, 3)
+    key = "ab" + "0" * 62
+    (store.root / "ab" / f"{key}.h5").mkdir(parents=True)  # a folder with an entry's name
+    (store.root / "ab" / f"{key}.h5" / "inside").write_text("x")
+    (store.root / "zz").mkdir()
+    (store.root / "zz" / "notes.h5").write_text("not an entry")  # a file that is not an entry
+    return store
+
+
+def odd_store_info_verify_clear(ctx: Ctx):
+    store = odd_store(ctx)
+    info = store.info()
+    n_ok, damaged = store.verify()
+    code, out, err = cli(["cache", "clear", "--dir", str(store.root)])
+    assert "not an entry" in out and "Traceback" not in err
+    left = sorted(p.relative_to(store.root).as_posix() for p in store.root.rglob("*") if p.is_file())
+    return info.entries, len(info.other_paths), n_ok, damaged, code, left
+
+
+def concurrent_writers(ctx: Ctx):
+    """Three processes write the same four keys (and their own ones) at once (the writer of test_cache)."""
+    root = str(ctx.tmp / "s")
+    with mp.get_context("spawn").Pool(3) as pool:
+        done = pool.starmap(_writer, [(root, w, 6) for w in range(3)])
+    return done, FeatureCache(root).verify(remove=False), FeatureCache(root).temporary_files()
+
+
+# ---- the table
+
+MESH_FILES = [
+    Row("off-empty", "8", lambda c: geofeat.load_mesh(write_off(c.tmp / "e.off", "")), MeshError, "empty OFF file"),
+    Row(
+        "off-truncated",
+        "8",
+        lambda c: geofeat.load_mesh(write_off(c.tmp / "t.off", tetra_off()[:-12])),
+        MeshError,
+        "file ends after",
+    ),
+    Row(
+        "off-nan",
+        "8",
+        lambda c: geofeat.load_mesh(write_off(c.tmp / "n.off", tetra_off().replace("1.0 0.0 0.0", "nan 0.0 0.0"))),
+        MeshError,
+        "NaN or infinite",
+    ),
+    Row(
+        "off-1-based",
+        "8",
+        lambda c: geofeat.load_mesh(write_off(c.tmp / "o.off", "OFF\n3 1 0\n0 0 0\n1 0 0\n0 1 0\n3 1 2 3\n")),
+        MeshError,
+        "1-based indices",
+    ),
+    Row(
+        "off-polygon",
+        "8",
+        lambda c: geofeat.load_mesh(write_off(c.tmp / "q.off", "OFF\n4 1 0\n0 0 0\n1 0 0\n1 1 0\n0 1 0\n4 0 1 2 3\n")),
+        MeshError,
+        "only triangles",
+    ),
+    Row(
+        "obj-1-based-equals-arrays",
+        "8",
+        lambda c: geofeat.load_mesh(write_off(c.tmp / "t.obj", "v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nf 1 2 3\nf 1 2 4\n")).faces,
+        reference=lambda c: np.array([[0, 1, 2], [0, 1, 3]], dtype=np.int64),
+    ),
+    Row("obj-empty", "8", lambda c: geofeat.load_mesh(write_off(c.tmp / "e.obj", "")), MeshError, "empty"),
+    Row("ply-truncated", "8", lambda c: geofeat.load_mesh(truncated_ply(c)), MeshError, "malformed PLY"),
+]
+
+NON_FINITE = [
+    Row(
+        "wks-empty-energy-range",
+        "3",
+        lambda c: geofeat.compute(sphere(2), "wks", n_eig=3, n_descr=4),
+        DescriptorError,
+        "all equal to .*raise n_eig",
+        check=no_entries,
+    ),
+    Row(
+        "nan-features-refused-not-cached",
+        "3",
+        lambda c: register_nan_descriptor(c) or geofeat.compute(bumpy(0, 2), "nan_for_tests"),
+        DescriptorError,
+        r"non-finite features on mesh 'bumpy0': 243 NaN and 0 infinite value\(s\) in 81 of 162 vertices",
+        check=no_entries,
+    ),
+]
+
+PARAMETERS = [
+    Row(
+        "normalize-string",
+        "4",
+        lambda c: geofeat.compute(bumpy(), "wks", normalize="false"),
+        DescriptorError,
+        "normalize must be True or False; found 'false' \\(str\\)",
+    ),
+    Row(
+        "normalize-int",
+        "4",
+        lambda c: geofeat.compute(bumpy(), "hks", normalize=0),
+        DescriptorError,
+        "normalize must be True or False",
+    ),
+    Row(
+        "n-descr-float",
+        "4",
+        lambda c: geofeat.compute(bumpy(), "wks", n_descr=8.0),
+        DescriptorError,
+        "n_descr must be an integer >= 1",
+    ),
+    Row("n-eig-bool", "4", lambda c: geofeat.compute(bumpy(), "wks", n_eig=True), DescriptorError, "n_eig must be an integer"),
+    Row(
+        "numpy-int-equals-int-one-cache-entry",
+        "4",
+        lambda c: [geofeat.compute(bumpy(0, 2), "wks", n_descr=np.int64(8), n_eig=np.int32(16)), len(FeatureCache().entries())],
+        reference=lambda c: [geofeat.compute(bumpy(0, 2), "wks", n_descr=8, n_eig=16), 1],
+    ),
+    Row(
+        "numpy-bool-equals-bool",
+        "4",
+        lambda c: geofeat.compute(bumpy(0, 2), "hks", normalize=np.bool_(False), laplacian=np.str_("cotan")),
+        reference=lambda c: geofeat.compute(bumpy(0, 2), "hks", normalize=False, laplacian="cotan", cache=False),
+    ),
+    Row(
+        "numpy-scalars-canonical",
+        "4",
+        lambda c: [
+            (v, type(v).__name__)
+            for v in (
+                check_integer(np.int64(8), "n"),
+                check_number(np.float32(0.5), "x"),
+                check_boolean(np.bool_(True), "b"),
+                *canonical([np.float32(0.25), np.str_("a"), Path("p")]),
+            )
+        ],
+        reference=lambda c: [(8, "int"), (0.5, "float"), (True, "bool"), (0.25, "float"), ("a", "str"), ("p", "str")],
+    ),
+    Row(
+        "dino-numpy-params-same-key",
+        "4",
+        lambda c: registry.make_descriptor(
+            "dinov3",
+            views=np.int64(4),
+            batch_size=np.int8(2),
+            random_rotation=np.bool_(True),
+            seed=np.uint16(3),
+            weights=Path("w"),
+        ).params_json(),
+        reference=lambda c: registry.make_descriptor(
+            "dinov3", views=4, batch_size=2, random_rotation=True, seed=3, weights="w"
+        ).params_json(),
+    ),
+    Row(
+        "dino-rotation-string",
+        "4",
+        lambda c: registry.make_descriptor("dinov3", random_rotation="no"),
+        DescriptorError,
+        "random_rotation must be True or False",
+    ),
+]
+
+CACHE = [
+    Row(
+        "default-store-read-only-computes-and-warns-once",
+        "5",
+        default_store_read_only,
+        reference=lambda c: geofeat.compute(bumpy(0, 2), "hks", n_eig=8, n_descr=4, cache=False),
+        check=no_entries,
+    ),
+    Row(
+        "read-only-store-still-serves-hits",
+        "5",
+        warm_store_read_only,
+        reference=lambda c: geofeat.compute(bumpy(0, 2), "hks", n_eig=8, n_descr=4, cache=False),
+    ),
+    Row(
+        "explicit-store-read-only",
+        "5",
+        explicit_store_read_only,
+        CacheError,
+        "is not writable: .*Read-only file system.*cache=False",
+    ),
+    Row("cli-clear-read-only", "5", cli_clear_read_only, reference=lambda c: (2, False, True)),
+    Row(
+        "cli-verify-read-only",
+        "5",
+        cli_verify_read_only,
+        reference=lambda c: (0, "1 entries ok, 1 damaged (0 removed, 1 could not be)"),
+    ),
+    Row(
+        "folder-named-h5-skipped",
+        "5",
+        odd_store_info_verify_clear,
+        reference=lambda c: (3, 2, 3, [], 0, ["ab/ab" + "0" * 62 + ".h5/inside", "zz/notes.h5"]),
+    ),
+    Row(
+        "concurrent-writers",
+        "8",
+        concurrent_writers,
+        reference=lambda c: ([6, 6, 6], (4 + 3 * 6, []), []),
+    ),
+]
+
+ERRORS = [
+    Row(
+        "point-cloud-30-points",
+        "6",
+        lambda c: geofeat.compute(Mesh(np.random.default_rng(0).standard_normal((30, 3))), "hks", n_eig=3, n_descr=4),
+        MeshError,
+        "has 30 points; .* needs at least 31 points",
+    ),
+    Row(
+        "point-cloud-coincident",
+        "6",
+        lambda c: geofeat.compute(Mesh(np.ones((40, 3))), "hks", n_eig=3, n_descr=4),
+        MeshError,
+        "robust Laplacian failed on point cloud",
+    ),
+    Row(
+        "point-cloud-31-points-works",
+        "6",
+        lambda c: np.isfinite(
+            geofeat.compute(Mesh(np.random.default_rng(0).standard_normal((31, 3))), "hks", n_eig=3, n_descr=4)
+        ).all(),
+        reference=lambda c: True,
+    ),
+    Row(
+        "bare-array",
+        "6",
+        lambda c: geofeat.compute(np.zeros((10, 3)), "hks"),
+        MeshError,
+        r"cannot use a numpy array of shape \(10, 3\) as a mesh; expected a geofeat.Mesh",
+    ),
+    Row(
+        "verts-faces-pair",
+        "6",
+        lambda c: geofeat.compute((bumpy(0, 2).verts, bumpy(0, 2).faces), "wks", n_descr=8),
+        reference=lambda c: geofeat.compute(bumpy(0, 2), "wks", n_descr=8, cache=False),
+    ),
+    Row(
+        "trimesh-mesh",
+        "6",
+        lambda c: geofeat.compute(trimesh.Trimesh(bumpy(0, 2).verts, bumpy(0, 2).faces, process=False), "wks", n_descr=8),
+        reference=lambda c: geofeat.compute(bumpy(0, 2), "wks", n_descr=8, cache=False),
+    ),
+    Row("trimesh-scene", "6", lambda c: geofeat.compute(trimesh.Scene(), "hks"), MeshError, "trimesh.Scene"),
+    Row(
+        "hf-truncated-safetensors",
+        "6",
+        lambda c: load_backbone(truncated_safetensors(c), kind="dinov3", device="cpu"),
+        BackboneError,
+        "model.safetensors .*truncated or damaged",
+    ),
+    Row(
+        "hf-pickle-only-bin",
+        "6",
+        lambda c: load_backbone(pickle_only_folder(c), kind="dinov3", device="cpu"),
+        BackboneError,
+        "pytorch_model.bin was refused for safety.*safetensors",
+        check=nothing_ran,
+    ),
+    Row(
+        "malicious-official-pth",
+        "6",
+        lambda c: load_backbone(malicious_pth(c), kind="dinov3", device="cpu"),
+        BackboneError,
+        "refused for safety",
+        check=nothing_ran,
+    ),
+    Row(
+        "trainer-state-pickle-only",
+        "6",
+        pickle_only_trainer_state,
+        TrainingError,
+        "trainer_state.pt was refused for safety",
+        check=nothing_ran,
+    ),
+    Row("run-limit-0", "6", lambda c: run_py().parse_args(["--limit", "0"]), SystemExit, "2"),
+    Row("run-limit-negative", "6", lambda c: run_py().parse_args(["--limit", "-1"]), SystemExit, "2"),
+    Row("run-limit-positive", "6", lambda c: run_py().parse_args(["--limit", "3"]).limit, reference=lambda c: 3),
+]
+
+KILLS = [
+    Row("resume-after-crash-no-repeated-rows", "7", resume_after_crash, reference=lambda c: straight_losses(c, 4)),
+    Row("resume-falls-back-from-truncated-state", "7", resume_from_truncated_state, reference=lambda c: straight_losses(c, 4)),
+    Row("kill-9-during-save-stale-folder-removed", "7", resume_after_kill_during_save, reference=lambda c: straight_losses(c, 4)),
+    Row("checkpoint-fsynced-before-rename", "7", checkpoint_is_synced, reference=lambda c: True),
+    Row("cache-entry-fsynced-before-rename", "7", cache_entry_is_synced, reference=lambda c: True),
+    Row("atomic-write-fsynced-before-rename", "7", atomic_write_is_synced, reference=lambda c: True),
+]
+
+ROWS = MESH_FILES + NON_FINITE + PARAMETERS + CACHE + ERRORS + KILLS
+
+
+def run_py():
+    spec = importlib.util.spec_from_file_location("benchmarks_run", REPO / "benchmarks" / "run.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+@pytest.mark.parametrize("row", ROWS, ids=[f"{r.item}-{r.id}" for r in ROWS])
+def test_input(row: Row, tmp_path, monkeypatch, caplog, isolated_cache, capsys):
+    ctx = Ctx(tmp_path, monkeypatch, caplog, isolated_cache)
+    if row.raises is not None:
+        with pytest.raises(row.raises, match=row.match) as info:
+            row.run(ctx)
+        if row.raises is SystemExit:
+            assert "error: argument --limit: expected a positive number of pairs" in capsys.readouterr().err
+        else:
+            assert isinstance(info.value, GeofeatError), type(info.value).__mro__
+        outcome = info.value
+    else:
+        outcome = row.run(ctx)
+        assert_same(outcome, row.reference(ctx))
+    if row.check is not None:
+        row.check(ctx, outcome)
+
+
+def test_every_item_has_rows():
+    assert {r.item for r in ROWS} == {"3", "4", "5", "6", "7", "8"}
+    assert len({r.id for r in ROWS}) == len(ROWS)
+
+
+def test_killed_cache_writer_leaves_the_store_readable(tmp_path):
+    """A writer killed by SIGKILL in the middle of an entry (the script of test_cache) leaves the others intact."""
+    root = tmp_path / "store"
+    store = FeatureCache(root)
+    kept = np.arange(6, dtype=np.float32).reshape(3, 2)
+    store.put("a" * 64, kept)
+    marker, script = tmp_path / "marker", tmp_path / "writer.py"
+    script.write_text(KILLED_WRITER)
+    proc = subprocess.Popen([sys.executable, str(script), str(root), str(marker)], cwd=REPO)
+    try:
+        deadline = time.time() + 60
+        while not marker.exists():
+            assert proc.poll() is None and time.time() < deadline
+            time.sleep(0.05)
+        os.kill(proc.pid, signal.SIGKILL)
+    finally:
+        proc.wait(timeout=30)
+    assert store.get("b" * 64) is None and np.array_equal(store.get("a" * 64), kept)
+    assert store.info().entries == 1 and store.info().other_paths == ()
