@@ -35,10 +35,11 @@ import torch
 from tqdm.auto import tqdm
 
 import geofeat
+from geofeat.checks import canonical, check_integer, check_number
 from geofeat.datasets.records import ShapePair
 from geofeat.devices import resolve_device
 from geofeat.errors import GeofeatError
-from geofeat.files import atomic_write
+from geofeat.files import atomic_write, load_torch_file
 from geofeat.mesh import Mesh
 
 from . import matchers
@@ -173,23 +174,10 @@ class Match(NamedTuple):
     overlap_prob_x: np.ndarray | None = None
 
 
-def is_integer(value: Any) -> bool:
-    """An int or numpy integer, not a bool."""
-    return isinstance(value, (int, np.integer)) and not isinstance(value, bool)
-
-
-def is_finite_number(value: Any) -> bool:
-    """A finite int, float or numpy number, not a bool."""
-    real = isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, bool)
-    return real and math.isfinite(value)
-
-
 def check_integers(head: str, config: HeadConfig, names: Sequence[str], low: int) -> None:
-    """Raise `HeadError` unless every named setting of ``config`` is an integer ``>= low``."""
+    """Raise `HeadError` unless every named setting of ``config`` is an integer ``>= low`` (NumPy integers stored back as int)."""
     for name in names:
-        value = getattr(config, name)
-        if not is_integer(value) or value < low:
-            raise HeadError(f"{head}: {name} must be an integer >= {low}; found {value!r}.")
+        setattr(config, name, check_integer(getattr(config, name), name, owner=head, low=low, error=HeadError))
 
 
 def check_numbers(
@@ -203,17 +191,13 @@ def check_numbers(
 ) -> None:
     """Raise `HeadError` unless every named setting is a finite number in the interval ``low .. high``.
 
-    ``low_open`` / ``high_open`` exclude the bound itself.
+    ``low_open`` / ``high_open`` exclude the bound itself. NumPy scalars are stored back as
+    Python numbers.
     """
     for name in names:
         value = getattr(config, name)
-        ok = is_finite_number(value) and (value > low if low_open else value >= low)
-        if not (ok and (value < high if high_open else value <= high)):
-            if math.isinf(high):
-                where = f"{'>' if low_open else '>='} {low}"
-            else:
-                where = f"in {'(' if low_open else '['}{low}, {high}{')' if high_open else ']'}"
-            raise HeadError(f"{head}: {name} must be a finite number {where}; found {value!r}.")
+        check_number(value, name, owner=head, low=low, high=high, low_open=low_open, high_open=high_open, error=HeadError)
+        setattr(config, name, canonical(value))
 
 
 def ground_truth_map(pair: ShapePair) -> np.ndarray:
@@ -712,13 +696,7 @@ def _from_release(name: str, checkpoint: Path, settings: dict[str, Any]) -> Lear
         raise HeadError(f"head {name!r} cannot load release checkpoints; heads that can: ulrssm, dpfm.")
     if not checkpoint.is_file():
         raise HeadError(f"release checkpoint {checkpoint} does not exist.")
-    try:
-        raw = torch.load(checkpoint, map_location="cpu", weights_only=True)
-    except Exception as exc:  # noqa: BLE001 - torch raises many types for unreadable or unsafe files
-        raise HeadError(
-            f"{checkpoint} is not a readable torch checkpoint of tensors ({type(exc).__name__}: {exc}); "
-            "pickled objects other than tensors and dicts are refused for safety."
-        ) from exc
+    raw = load_torch_file(checkpoint, HeadError, what="a release checkpoint of the authors' code")
     if not isinstance(raw, dict):
         raise HeadError(f"{checkpoint}: expected a dict of tensors; found {type(raw).__name__}.")
     release = release_state(raw, source=str(checkpoint))

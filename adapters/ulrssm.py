@@ -77,6 +77,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from geofeat.checks import is_finite_number, is_integer
 from geofeat.datasets.records import ShapePair
 from geofeat.mesh import Mesh
 
@@ -93,7 +94,7 @@ from .fmap_layers import (
     soft_pointmap,
 )
 from .functional_maps import nearest_neighbors
-from .heads import HeadConfig, HeadError, LearnedHead, Match, check_integers, check_numbers, is_finite_number, is_integer
+from .heads import HeadConfig, HeadError, LearnedHead, Match, check_integers, check_numbers
 from .operators import SurfaceOperators
 from .release import ReleaseState, diffusionnet_state
 
