@@ -237,12 +237,17 @@ def ground_truth_overlaps(pair: ShapePair) -> tuple[np.ndarray, np.ndarray]:
     Returns
     -------
     overlap_x : numpy.ndarray, shape (V_x,), bool
-        ``pair.overlap_x``, else the vertices of ``x`` that some vertex of ``y`` maps to.
+        ``pair.overlap_x``, else the vertices of ``x`` that some vertex of ``y`` maps to;
+        all True for a full-to-full pair without masks (every vertex of a full shape has a
+        counterpart, even where a sparse ground truth such as FAUST_r's template gives
+        none; the DPFM reference does the same).
     overlap_y : numpy.ndarray, shape (V_y,), bool
-        ``pair.overlap_y``, else ``map_yx >= 0``.
+        ``pair.overlap_y``, else ``map_yx >= 0``; all True for a full-to-full pair.
     """
     map_yx = ground_truth_map(pair)
     overlap_x, overlap_y = pair.overlap_x, pair.overlap_y
+    if pair.protocol == "f2f" and overlap_x is None and overlap_y is None:
+        return np.ones(pair.x.n_vertices, dtype=bool), np.ones(pair.y.n_vertices, dtype=bool)
     if overlap_x is None:
         overlap_x = np.zeros(pair.x.n_vertices, dtype=bool)
         overlap_x[map_yx[map_yx >= 0]] = True

@@ -75,7 +75,7 @@ def main(argv=None) -> int:
     if args.dpfm_repo:
         from parity_dpfm import dpfm_stages
 
-        result = dpfm_stages(args.dpfm_repo, args.checkpoints / "dpfm" / "faust.pth", args.data_root)
+        result = dpfm_stages(args.dpfm_repo, args.checkpoints / "dpfm" / "faust.pth", args.data_root, timing=timing)
         rows, times = result if isinstance(result, tuple) else (result, {})
         sections.append(markdown(rows, "DPFM (faust.pth, FAUST_r)") + _times(times))
     if args.dsmk_repo:
