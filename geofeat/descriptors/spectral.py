@@ -11,8 +11,6 @@ from geofeat.geometry.laplacian import LAPLACIANS
 from geofeat.geometry.spectral import SpectralBasis, spectral_basis
 from geofeat.mesh import Mesh
 
-#: Eigenvalues below this fraction of the largest one count as zero (constant modes).
-ZERO_EIGENVALUE_RTOL = 1e-8
 #: The WKS energy range is empty when the log non-zero eigenvalues span less than this
 #: (repeated eigenvalues of a symmetric shape, to round-off, span about 1e-15).
 WKS_MIN_LOG_RANGE = 1e-8
@@ -49,9 +47,9 @@ def mass_normalize(features: np.ndarray, mass: np.ndarray) -> np.ndarray:
 
 
 def nonzero_spectrum(basis: SpectralBasis) -> tuple[np.ndarray, np.ndarray]:
-    """Eigenpairs whose eigenvalue is not numerically zero, shapes (K',) and (V, K')."""
+    """Eigenpairs past the zero modes (`SpectralBasis.n_zero`: one per connected component), shapes (K',) and (V, K')."""
     evals = np.abs(basis.evals)
-    n_zero = int(np.count_nonzero(evals <= ZERO_EIGENVALUE_RTOL * evals.max()))  # a prefix: evals ascend
+    n_zero = basis.n_zero
     if basis.k - n_zero < 2:
         raise DescriptorError(f"only {basis.k - n_zero} non-zero eigenvalue(s) among {basis.k}: raise n_eig.")
     return evals[n_zero:], basis.evecs[:, n_zero:]

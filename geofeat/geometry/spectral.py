@@ -11,7 +11,9 @@ import numpy as np
 import scipy.linalg as la
 import scipy.sparse as sp
 import scipy.sparse.linalg as sla
+from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
+from tqdm.auto import tqdm
 
 from geofeat.errors import SpectralError
 from geofeat.geometry.laplacian import laplacian
@@ -23,6 +25,16 @@ log = logging.getLogger(__name__)
 DENSE_MAX_VERTICES = 8000
 #: Below this many vertices the dense solver is used directly (cheaper than ARPACK).
 DENSE_DIRECT_VERTICES = 400
+#: Requests of more than this fraction of the spectrum go to the dense solver directly
+#: (ARPACK would need a subspace of about the whole space, and fail or crawl).
+SPARSE_MAX_FRACTION = 0.25
+#: Bound on ARPACK's restarts in the first sparse attempt (twice that in the second).
+SPARSE_MAXITER = 300
+#: An eigenvalue times the total area below this counts as zero (non-zero modes of a
+#: surface are of order one and above on this scale; rounding noise is about 1e-10).
+ZERO_EIGENVALUE_TOL = 1e-6
+#: A sparse solve that runs longer than this shows a progress bar (linear solves done).
+PROGRESS_AFTER_SECONDS = 5.0
 _CACHE_SIZE = 8
 
 
@@ -38,11 +50,17 @@ class SpectralBasis:
         Eigenvectors, orthonormal for the mass: ``evecs.T @ (mass[:, None] * evecs) = I``.
     mass : numpy.ndarray, shape (V,), float64
         Lumped vertex areas (zero on unreferenced vertices).
+    n_zero : int
+        How many of the eigenvalues are zero (constant modes): the number of connected
+        components of the solved vertices, or more where an eigenvalue times the total
+        area is below `ZERO_EIGENVALUE_TOL` (scale-free), at most ``k``. Eigenvalues of
+        zero modes are rounding noise (about 1e-10); use this count, not their values.
     """
 
     evals: np.ndarray
     evecs: np.ndarray
     mass: np.ndarray
+    n_zero: int = 0
 
     @property
     def k(self) -> int:
@@ -75,12 +93,10 @@ def spectral_basis(mesh: Mesh, k: int = 128, laplacian_kind: str = "robust", cac
 
     Notes
     -----
-    The solve is in float64, in the standard form ``M^-1/2 L M^-1/2`` (the mass is
-    diagonal) by ARPACK in shift-invert mode with a deterministic start vector. When it
-    fails, the solver retries with a larger shift and more iterations, then falls back to
-    a dense solver for meshes up to `DENSE_MAX_VERTICES` vertices, logging a warning
-    that says what happened. Vertices without mass (unreferenced by any face) get the
-    eigenvector values of their nearest vertex with mass.
+    The solve is in float64 and scale-free (see `solve_eigenpairs`): scaling a mesh by
+    ``s`` divides the eigenvalues by ``s^2`` and the eigenvectors by ``s``, exactly up to
+    rounding. Vertices without mass (unreferenced by any face, or only by faces of zero
+    area) get the eigenvector values of their nearest vertex with mass.
     """
     if not isinstance(k, (int, np.integer)) or isinstance(k, bool) or k < 1:
         raise SpectralError(f"k must be a positive integer number of eigenpairs; found {k!r}.")
@@ -112,7 +128,9 @@ def spectral_basis(mesh: Mesh, k: int = 128, laplacian_kind: str = "robust", cac
     evecs = np.ascontiguousarray(evecs)
     for array in (evals, evecs, mass):
         array.flags.writeable = False  # shared through the cache: nobody may change it in place
-    basis = SpectralBasis(evals, evecs, mass)
+    n_components = connected_components(abs(stiffness) + sp.identity(n_active), directed=False)[0]
+    by_value = int(np.count_nonzero(np.abs(evals) * mass.sum() < ZERO_EIGENVALUE_TOL))
+    basis = SpectralBasis(evals, evecs, mass, n_zero=min(int(k), max(int(n_components), by_value)))
     if cache:
         with _basis_lock:
             _basis_cache[key] = basis
@@ -127,7 +145,9 @@ def clear_basis_cache() -> None:
         _basis_cache.clear()
 
 
-def solve_eigenpairs(stiffness: sp.spmatrix, mass: np.ndarray, k: int, name: str = "") -> tuple[np.ndarray, np.ndarray]:
+def solve_eigenpairs(
+    stiffness: sp.spmatrix, mass: np.ndarray, k: int, name: str = "", progress: bool = True
+) -> tuple[np.ndarray, np.ndarray]:
     """Smallest ``k`` eigenpairs of ``stiffness phi = lambda diag(mass) phi``.
 
     Parameters
@@ -139,55 +159,88 @@ def solve_eigenpairs(stiffness: sp.spmatrix, mass: np.ndarray, k: int, name: str
     k : int
         Number of eigenpairs, ``k < n``.
     name : str
-        Shape name used in log messages.
+        Shape name used in log messages and the progress bar.
+    progress : bool
+        Show a progress bar (linear solves done) when a sparse solve runs for more than
+        `PROGRESS_AFTER_SECONDS`.
 
     Returns
     -------
     evals : numpy.ndarray, shape (k,), float64
     evecs : numpy.ndarray, shape (n, k), float64, mass-orthonormal
+
+    Notes
+    -----
+    The problem is solved scale-free: the mass is divided by its total (the shape's area),
+    which makes the spectrum of a cotangent or robust Laplacian independent of the size
+    of the shape, and the eigenpairs are scaled back at the end. The generalised form is
+    kept (no ``M^-1/2`` scaling, which tiny masses of degenerate faces make ill
+    conditioned). Small meshes and requests of more than `SPARSE_MAX_FRACTION` of the
+    spectrum go to the dense solver directly; otherwise ARPACK in shift-invert mode with a
+    sparse LU factorisation, a deterministic start vector and a bounded number of
+    iterations, retried once with a larger shift and subspace, then the dense solver for
+    meshes up to `DENSE_MAX_VERTICES` vertices.
     """
     n = mass.shape[0]
-    inv_sqrt_mass = 1.0 / np.sqrt(mass)
-    scaling = sp.diags(inv_sqrt_mass)
-    standard = sp.csc_matrix(scaling @ stiffness @ scaling)
-    standard = (standard + standard.T) * 0.5
-    if n <= DENSE_DIRECT_VERTICES:
-        evals, vecs = _dense(standard, k)
+    total = float(mass.sum())
+    if not (np.isfinite(total) and total > 0 and (mass > 0).all()):
+        raise SpectralError(f"{name!r}: the mass must be finite and positive at every solved vertex (total {total!r}).")
+    unit_mass = mass / total
+    stiffness = sp.csc_matrix(stiffness, dtype=np.float64)
+    stiffness = ((stiffness + stiffness.T) * 0.5).tocsc()
+    if n <= DENSE_DIRECT_VERTICES or k > SPARSE_MAX_FRACTION * n:
+        if n > DENSE_MAX_VERTICES:
+            raise SpectralError(
+                f"{name!r}: k={k} eigenpairs of {n} vertices is more than {SPARSE_MAX_FRACTION:.0%} of the spectrum, "
+                f"which needs the dense solver, and the mesh is larger than its limit ({DENSE_MAX_VERTICES} vertices). "
+                "Lower k, or decimate the mesh."
+            )
+        evals, evecs = _dense(stiffness, unit_mass, k)
     else:
-        evals, vecs = _sparse_with_fallbacks(standard, k, name)
+        evals, evecs = _sparse_with_fallbacks(stiffness, unit_mass, k, name, progress)
     order = np.argsort(evals)
-    return evals[order], vecs[:, order] * inv_sqrt_mass[:, None]
+    return evals[order] / total, evecs[:, order] / np.sqrt(total)
 
 
-def _shift_invert(standard: sp.csc_matrix, k: int, sigma: float, ncv: int, maxiter: int | None) -> tuple[np.ndarray, np.ndarray]:
-    n = standard.shape[0]
-    shifted = (standard - sigma * sp.identity(n, format="csc")).tocsc()
+def _shift_invert(
+    stiffness: sp.csc_matrix, mass: np.ndarray, k: int, sigma: float, ncv: int, maxiter: int, bar
+) -> tuple[np.ndarray, np.ndarray]:
+    """ARPACK shift-invert for the generalised problem, counting the linear solves on ``bar``."""
+    n = stiffness.shape[0]
+    mass_matrix = sp.diags(mass).tocsc()
+    shifted = (stiffness - sigma * mass_matrix).tocsc()
     lu = sla.splu(shifted, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
-    op_inv = sla.LinearOperator((n, n), matvec=lu.solve, dtype=np.float64)
+
+    def solve(x: np.ndarray) -> np.ndarray:
+        bar.update(1)
+        return lu.solve(x)
+
+    op_inv = sla.LinearOperator((n, n), matvec=solve, dtype=np.float64)
     start = np.random.default_rng(0).standard_normal(n)
-    return sla.eigsh(standard, k=k, sigma=sigma, which="LM", OPinv=op_inv, v0=start, ncv=ncv, maxiter=maxiter)
+    return sla.eigsh(stiffness, k=k, M=mass_matrix, sigma=sigma, which="LM", OPinv=op_inv, v0=start, ncv=ncv, maxiter=maxiter)
 
 
-def _sparse_with_fallbacks(standard: sp.csc_matrix, k: int, name: str) -> tuple[np.ndarray, np.ndarray]:
-    n = standard.shape[0]
-    scale = float(np.abs(standard.diagonal()).mean())
+def _sparse_with_fallbacks(
+    stiffness: sp.csc_matrix, mass: np.ndarray, k: int, name: str, progress: bool
+) -> tuple[np.ndarray, np.ndarray]:
+    n = stiffness.shape[0]
+    scale = float(stiffness.diagonal().sum())  # sum of diag(L) / sum(mass), the mass summing to one
     attempts = [
-        ("shift-invert, sigma=-1e-6*scale", -1e-6 * scale, min(n - 1, max(k + 32, int(1.6 * k) + 1)), None),
-        (
-            "shift-invert, larger shift sigma=-1e-3*scale and more iterations",
-            -1e-3 * scale,
-            min(n - 1, max(3 * k, k + 64)),
-            50 * n,
-        ),
+        ("shift-invert, sigma=-1e-6*scale", -1e-6 * scale, min(n - 1, max(2 * k + 1, 20)), SPARSE_MAXITER),
+        ("shift-invert, larger shift sigma=-1e-3*scale and subspace", -1e-3 * scale, min(n - 1, 3 * k + 32), 2 * SPARSE_MAXITER),
     ]
     failures = []
     for label, sigma, ncv, maxiter in attempts:
-        try:
-            evals, vecs = _shift_invert(standard, k, sigma, ncv, maxiter)
-        except (RuntimeError, sla.ArpackError, ValueError) as err:
-            failures.append(f"{label}: {type(err).__name__}: {err}")
-            log.warning("eigensolver on %r failed (%s); retrying", name, failures[-1])
-            continue
+        with tqdm(
+            desc=f"eigenpairs of {name or 'mesh'} (k={k}, {n} vertices)", unit="solve", delay=PROGRESS_AFTER_SECONDS,
+            disable=not progress, leave=False,
+        ) as bar:  # fmt: skip
+            try:
+                evals, vecs = _shift_invert(stiffness, mass, k, sigma, ncv, maxiter, bar)
+            except (RuntimeError, sla.ArpackError, ValueError) as err:
+                failures.append(f"{label}: {type(err).__name__}: {err}")
+                log.warning("eigensolver on %r failed (%s); retrying", name, failures[-1])
+                continue
         if np.isfinite(evals).all() and np.isfinite(vecs).all():
             if failures:
                 log.warning("eigensolver on %r succeeded with %s", name, label)
@@ -196,18 +249,20 @@ def _sparse_with_fallbacks(standard: sp.csc_matrix, k: int, name: str) -> tuple[
         log.warning("eigensolver on %r: %s; retrying", name, failures[-1])
     if n <= DENSE_MAX_VERTICES:
         log.warning("eigensolver on %r: sparse solves failed, using the dense solver on %d vertices (slow)", name, n)
-        return _dense(standard, k)
+        return _dense(stiffness, mass, k)
     raise SpectralError(
         f"Laplacian eigenproblem of {name!r} ({n} vertices, k={k}) failed: "
         + "; ".join(failures)
         + f". The mesh is too large for the dense fallback (> {DENSE_MAX_VERTICES} vertices). "
-        "Check it for duplicated or isolated parts, try laplacian='robust', or lower k."
+        "What to try: repair the mesh (remove duplicated vertices, degenerate faces and isolated parts), use "
+        "laplacian='robust' (sound on non-manifold and degenerate meshes), or lower k."
     )
 
 
-def _dense(standard: sp.spmatrix, k: int) -> tuple[np.ndarray, np.ndarray]:
+def _dense(stiffness: sp.spmatrix, mass: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """The first ``k`` eigenpairs of the generalised problem by LAPACK (``O(n^3)``, for small ``n``)."""
     try:
-        return la.eigh(standard.toarray(), subset_by_index=[0, k - 1])
+        return la.eigh(stiffness.toarray(), np.diag(mass), subset_by_index=[0, k - 1])
     except (la.LinAlgError, ValueError) as err:
         raise SpectralError(f"dense Laplacian eigensolver failed: {err}") from err
 

@@ -132,3 +132,61 @@ def test_unreferenced_vertex_gets_nearest_values():
     basis = spectral_basis(mesh, k=10, cache=False)
     assert basis.mass[-1] == 0
     np.testing.assert_array_equal(basis.evecs[-1], basis.evecs[0])
+
+
+@pytest.mark.parametrize("scale", [1e-12, 1e-11, 1e6])
+def test_spectrum_is_scale_free(faust_mesh, scale):
+    """Scaling by s divides eigenvalues by s^2 and eigenvectors by s (WKS was wrong from index 86 at 1e-12)."""
+    ref = spectral_basis(faust_mesh, k=128, cache=False)
+    scaled = spectral_basis(Mesh(faust_mesh.verts * scale, faust_mesh.faces), k=128, cache=False)
+    np.testing.assert_allclose(scaled.evals[1:] * scale**2, ref.evals[1:], rtol=1e-7)
+    inner = np.abs(np.einsum("vk,v,vk->k", scaled.evecs * scale, ref.mass, ref.evecs))
+    np.testing.assert_allclose(inner[:100], 1.0, atol=1e-6)  # the last ones may mix within near-multiple eigenvalues
+
+
+def test_zero_modes_come_from_the_components():
+    """A mesh with as many components as eigenpairs has only zero modes, whatever the rounding noise says."""
+    pieces = [sphere(1).verts + 5.0 * i for i in range(6)]
+    faces = np.vstack([sphere(1).faces + i * len(pieces[0]) for i in range(6)])
+    mesh = Mesh(np.vstack(pieces), faces)
+    basis = spectral_basis(mesh, k=6, cache=False)
+    assert basis.n_zero == 6
+    assert spectral_basis(mesh, k=9, cache=False).n_zero == 6
+    assert spectral_basis(sphere(3), k=9, cache=False).n_zero == 1
+
+
+def test_large_fraction_of_the_spectrum_goes_dense_directly(monkeypatch):
+    mesh = bumpy(1, 3)
+    k = mesh.n_vertices // 2
+
+    def no_sparse(*args, **kwargs):
+        raise AssertionError("ARPACK must not be tried for half of the spectrum")
+
+    monkeypatch.setattr(spectral.sla, "eigsh", no_sparse)
+    basis = spectral_basis(mesh, k=k, cache=False)
+    assert basis.k == k and np.all(np.diff(basis.evals) >= 0)
+
+
+def test_every_sparse_attempt_is_bounded(monkeypatch):
+    seen = []
+    real = sla.eigsh
+
+    def spy(*args, **kwargs):
+        seen.append(kwargs.get("maxiter"))
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(spectral.sla, "eigsh", spy)
+    spectral_basis(bumpy(4, 4), k=20, cache=False)
+    assert seen and all(isinstance(m, int) and 0 < m <= 1000 for m in seen)
+
+
+def test_tiny_masses_of_degenerate_faces_do_not_break_the_solve(faust_mesh):
+    """Zero-area faces give vertices tiny masses; the generalised solve does not scale by M^-1/2."""
+    verts = faust_mesh.verts.copy()
+    faces = faust_mesh.faces.copy()
+    a, b, c = faces[0]
+    verts[c] = verts[a] + 1e-9 * (verts[b] - verts[a])  # flatten one triangle almost to a segment
+    mesh = Mesh(verts, faces)
+    basis = spectral_basis(mesh, k=64, cache=False)
+    ref = spectral_basis(faust_mesh, k=64, cache=False)
+    np.testing.assert_allclose(basis.evals[1:20], ref.evals[1:20], rtol=1e-2)
