@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import logging
 import threading
+import time
 from collections import OrderedDict
 from dataclasses import dataclass
 
@@ -33,6 +34,10 @@ SPARSE_MAXITER = 300
 #: An eigenvalue times the total area below this counts as zero (non-zero modes of a
 #: surface are of order one and above on this scale; rounding noise is about 1e-10).
 ZERO_EIGENVALUE_TOL = 1e-6
+#: Wall-time bound of one sparse attempt, in seconds per 1,000 vertices (at least
+#: `SPARSE_MIN_SECONDS`): a solve that has not converged by then is abandoned as failed.
+SPARSE_SECONDS_PER_1000_VERTICES = 1.5
+SPARSE_MIN_SECONDS = 60.0
 #: A sparse solve that runs longer than this shows a progress bar (linear solves done).
 PROGRESS_AFTER_SECONDS = 5.0
 _CACHE_SIZE = 8
@@ -202,6 +207,10 @@ def solve_eigenpairs(
     return evals[order] / total, evecs[:, order] / np.sqrt(total)
 
 
+class _OutOfTime(Exception):
+    """A sparse attempt ran past its time bound."""
+
+
 def _shift_invert(
     stiffness: sp.csc_matrix, mass: np.ndarray, k: int, sigma: float, ncv: int, maxiter: int, bar
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -211,7 +220,13 @@ def _shift_invert(
     shifted = (stiffness - sigma * mass_matrix).tocsc()
     lu = sla.splu(shifted, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
 
+    deadline = time.monotonic() + max(SPARSE_MIN_SECONDS, SPARSE_SECONDS_PER_1000_VERTICES * n / 1000)
+
     def solve(x: np.ndarray) -> np.ndarray:
+        if time.monotonic() > deadline:
+            raise _OutOfTime(
+                f"no convergence within {max(SPARSE_MIN_SECONDS, SPARSE_SECONDS_PER_1000_VERTICES * n / 1000):.0f} s"
+            )
         bar.update(1)
         return lu.solve(x)
 
@@ -237,7 +252,7 @@ def _sparse_with_fallbacks(
         ) as bar:  # fmt: skip
             try:
                 evals, vecs = _shift_invert(stiffness, mass, k, sigma, ncv, maxiter, bar)
-            except (RuntimeError, sla.ArpackError, ValueError) as err:
+            except (RuntimeError, sla.ArpackError, ValueError, _OutOfTime) as err:
                 failures.append(f"{label}: {type(err).__name__}: {err}")
                 log.warning("eigensolver on %r failed (%s); retrying", name, failures[-1])
                 continue

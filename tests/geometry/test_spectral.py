@@ -190,3 +190,16 @@ def test_tiny_masses_of_degenerate_faces_do_not_break_the_solve(faust_mesh):
     basis = spectral_basis(mesh, k=64, cache=False)
     ref = spectral_basis(faust_mesh, k=64, cache=False)
     np.testing.assert_allclose(basis.evals[1:20], ref.evals[1:20], rtol=1e-2)
+
+
+def test_a_sparse_attempt_past_its_time_bound_is_abandoned(monkeypatch, caplog):
+    monkeypatch.setattr(spectral, "SPARSE_MIN_SECONDS", 0.0)
+    monkeypatch.setattr(spectral, "SPARSE_SECONDS_PER_1000_VERTICES", 0.0)
+    mesh = bumpy(5, 3)
+    with caplog.at_level(logging.WARNING, logger="geofeat"):
+        basis = spectral_basis(mesh, k=10, cache=False)  # both sparse attempts time out; the dense solver answers
+    assert "no convergence within 0 s" in caplog.text and "dense solver" in caplog.text
+    assert basis.k == 10 and np.all(np.diff(basis.evals) >= 0)
+    monkeypatch.setattr(spectral, "DENSE_MAX_VERTICES", 100)
+    with pytest.raises(SpectralError, match="no convergence within 0 s.*laplacian='robust'"):
+        spectral_basis(mesh, k=10, cache=False)
