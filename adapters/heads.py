@@ -698,7 +698,7 @@ def _from_release(name: str, checkpoint: Path, settings: dict[str, Any]) -> Lear
     cls = head_class(name)
     release_state = getattr(cls, "release_state", None)
     if not issubclass(cls, LearnedHead) or release_state is None:
-        raise HeadError(f"head {name!r} cannot load release checkpoints; heads that can: ulrssm, dpfm.")
+        raise HeadError(f"head {name!r} cannot load release checkpoints; heads that can: ulrssm, dpfm, echomatch.")
     if not checkpoint.is_file():
         raise HeadError(f"release checkpoint {checkpoint} does not exist.")
     raw = load_torch_file(checkpoint, HeadError, what="a release checkpoint of the authors' code")

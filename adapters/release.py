@@ -8,10 +8,11 @@ never loaded partially.
 
 Facts from the authors' files (key names, read from the released checkpoints):
 
-* ULRSSM and DeepShapeMatchingKit (``style="ulrssm"``): ``first_linear``, ``last_linear``,
+* ULRSSM and DeepShapeMatchingKit's ``diffusion_b`` network (``style="ulrssm"``): ``first_linear``, ``last_linear``,
   ``blocks.<i>.diffusion.diffusion_time``, ``blocks.<i>.gradient_features.A_re`` / ``A_im``
   (bias-free linear maps), ``blocks.<i>.mlp.miniMLP_linear_<j:03d>``.
-* DPFM, i.e. the original DiffusionNet code (``style="dpfm"``): ``first_lin``, ``last_lin``,
+* DPFM and DeepShapeMatchingKit's ``DiffusionNet_A`` (EchoMatch), i.e. the original
+  DiffusionNet code (``style="dpfm"``): ``first_lin``, ``last_lin``,
   ``block_<i>.diffusion.diffusion_time``, ``block_<i>.gradient_features.A_re`` / ``A_im``,
   ``block_<i>.mlp.miniMLP_mlp_layer_<j:03d>``.
 
