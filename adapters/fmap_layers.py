@@ -188,13 +188,37 @@ def _solve_fmap(a: torch.Tensor, b: torch.Tensor, weights: torch.Tensor, lambda_
     gram = a @ a.transpose(1, 2)  # (B, k_x, k_x)
     rhs = b @ a.transpose(1, 2)  # (B, k_y, k_x)
     systems = gram.unsqueeze(1) + lambda_ * torch.diag_embed(weights)  # (B, k_y, k_x, k_x), symmetric
+    _check_not_singular(a, weights, lambda_)
     try:
         return torch.linalg.solve(systems, rhs.unsqueeze(-1)).squeeze(-1)
-    except torch.linalg.LinAlgError as err:
+    except torch.linalg.LinAlgError as err:  # singular up to rounding, where this kernel notices it
         raise FunctionalMapError(
             f"the functional map system is singular ({err}): the features do not determine C. "
             "Use more feature channels, fewer basis functions or a positive lambda_."
         ) from err
+
+
+def _check_not_singular(a: torch.Tensor, weights: torch.Tensor, lambda_: float) -> None:
+    """Raise `FunctionalMapError` when a row system is singular by construction.
+
+    Row ``i`` solves with ``A A^T + lambda diag(W_i)``, with ``A`` (k_x, p) of rank at most
+    p. Where ``lambda W_i`` is zero, only ``A A^T`` acts, so the system is singular as soon as
+    more such coordinates than feature channels remain (``#{j : lambda W_ij = 0} > p``). This
+    is decided from the shapes and the mask, not from whether a particular LAPACK kernel
+    happens to raise on a matrix that is singular only up to rounding; other numerically
+    singular systems are left to the solver.
+    """
+    n_channels = a.shape[-1]
+    free = (lambda_ * weights <= 0).sum(dim=-1)  # (B, k_y): coordinates without regularisation
+    bad = free > n_channels
+    if bool(bad.any()):
+        rows = torch.nonzero(bad)[:, -1].unique().tolist()
+        raise FunctionalMapError(
+            f"the functional map system is singular for {len(rows)} row(s) of C (first {rows[:5]}): "
+            f"{int(free.max())} of the {a.shape[-2]} basis coefficients are unregularised but the features have only "
+            f"{n_channels} channel(s), so they do not determine C. "
+            "Use more feature channels, fewer basis functions or a positive lambda_."
+        )
 
 
 def regularized_fmap(

@@ -333,3 +333,15 @@ def test_singular_system_raises():
     feat_x, feat_y, *spectral = tiny_problem(p=1)
     with pytest.raises(FunctionalMapError, match="singular"):
         fl.regularized_fmap(feat_x, feat_y, *spectral, lambda_=0.0)
+
+
+def test_singular_system_is_detected_without_the_solver_raising(monkeypatch):
+    """Some LAPACK kernels (Intel, 1 or 2 threads) return a result for this singular system instead of raising."""
+    feat_x, feat_y, *spectral = tiny_problem(p=1)
+
+    def quiet_solve(systems, rhs):
+        return torch.zeros_like(rhs)
+
+    monkeypatch.setattr(fl.torch.linalg, "solve", quiet_solve)
+    with pytest.raises(FunctionalMapError, match="singular for 3 row"):
+        fl.regularized_fmap(feat_x, feat_y, *spectral, lambda_=0.0)
