@@ -26,32 +26,73 @@ Prediction (``predict``): every vertex of ``y`` goes to the vertex of ``x`` with
 similar normalised feature (nearest neighbour), and the overlap probabilities are
 thresholded.
 
-Facts taken from the authors' code (github.com/vikiehm/echo-match, files
-``networks/echo_match_network.py``, ``models/echo_match_model.py``,
+Facts taken from the authors' code (the EchoMatch model of DeepShapeMatchingKit,
+github.com/xieyizheng/DeepShapeMatchingKit: ``models/echo_match_model.py``,
+``networks/echo_match_network.py``, ``networks/diffusion_a_network.py``,
 ``losses/echo_match_loss.py``, ``utils/fmap_util.py``, ``utils/shape_dataset_util.py``,
-``options/echo_match/train/*.yaml``): feature DiffusionNet with 128 output channels and
-width, 4 blocks, dropout 0.5; learned temperature initialised to 0.1; 64 spatial (Euclidean)
-neighbours; overlap DiffusionNet of width 16 with 3 blocks and a sigmoid; functional map on
-50 eigenpairs with ``lambda = 100`` and resolvent ``gamma = 0.5`` (the DiffusionNet operators
-use 128 eigenpairs); ground-truth functional map regularised with ``lambda = 1e6``; loss
-weights fmap 1, overlap 1, self-NCE 0.1, cross-NCE 0.1, NCE temperature 0.07; only the
-features of the second shape (here ``y``) are masked by the ground-truth overlap before the
-functional map while training; Adam, learning rate 1e-3, 900 epochs; overlap threshold 0.5;
-test-time map by nearest neighbour of the normalised features.
+``options/echo_match/train/echo_match_*_xyz.yaml``), all of them the ``"reference"`` preset:
+``xyz`` input; DiffusionNet operators of the cotangent Laplacian with 128 eigenpairs, its
+gradient operator built as in ULRSSM's copy of the DiffusionNet code
+(``operators="ulrssm"``); feature DiffusionNet with 128 output channels and width, 4
+blocks, MLP hidden sizes (128, 128), dropout 0.5, gradient features with rotations;
+learned temperature initialised to 0.1; 64 spatial neighbours from Euclidean distances;
+overlap DiffusionNet of width 16 with 3 blocks and a sigmoid, on the shape's own operators;
+functional map on the first 50 eigenpairs (mass-weighted projections) with ``lambda = 100``
+and resolvent ``gamma = 0.5``; ground-truth functional map regularised with
+``lambda = 1e6`` (unweighted by area); loss weights fmap 1, overlap 1, self-NCE 0.1,
+cross-NCE 0.1, NCE temperature 0.07; only the features of the second shape (here ``y``)
+are masked by the ground-truth overlap before the functional map while training; Adam,
+learning rate 1e-3, gradient norm clipped at 1 before every step, 900 epochs; overlap
+threshold 0.5; test-time map by nearest neighbour of the normalised features.
 
-Our choices (not in the reference): the overlap network outputs logits and the loss uses
-the equivalent ``binary_cross_entropy_with_logits``; the learned temperature is clamped at
-``1e-4`` from below (its gradient passed through, so it can come back); the reflection is
-evaluated only at the neighbours (`sampled_reflection`, same values as gathering the dense
-product, about ``V / k`` times cheaper); ``restrict_to_overlap`` (off by default) limits the
-nearest-neighbour search to the predicted overlap of ``x``. Not reproduced: the reference's step schedule
-(learning rate halved every 100 epochs, Adam betas (0.9, 0.99)) and its random rotation,
-noise and scaling of ``xyz`` inputs while training; the shared loop of `LearnedHead` runs
-plain Adam with optional cosine annealing.
+Parity (``benchmarks/parity_echomatch.py``): fed the same meshes, operators, neighbours
+and random weights (copied with `EchoMatchHead.release_state`), our head and the authors'
+code agree in double precision to about 1e-10 at every stage, from the features to the
+gradients of one training step. In float32 the forward stages agree to a few 1e-6
+(relative; the functional map to about 1e-5), the losses to about 1e-6, and the gradients
+to 5e-5 to 5e-4 of the largest one, the size of the reference's own float32 error (its
+float32 gradients are 5e-4 to 1.5e-3 away from its float64 ones: the functional-map loss
+differentiates through the solve of ill-conditioned regularised normal equations).
 
->>> head = make_head("echomatch", descriptor="xyz", epochs=5)   # doctest: +SKIP
->>> head.fit(train_pairs); match = head.match(pair)            # doctest: +SKIP
->>> match.map_yx, match.overlap_y, match.overlap_x             # doctest: +SKIP
+Where we differ, on purpose:
+
+- ``xyz`` input: the vertices centred on their mean and scaled to unit area (invariant to
+  where and how large a shape is stored); the reference feeds the coordinates as stored,
+  the same numbers on a centred unit-area mesh.
+- spatial neighbours: an exact k-d tree in float64 with the vertex itself first; the
+  reference takes the top-k of float32 ``cdist`` distances, which orders near-equal
+  distances otherwise (0.4 to 2.5 % of the rows on FAUST_r shapes, a handful with another
+  64th neighbour).
+- diffusion times (in `geofeat.adapters.diffusion_net.LearnedDiffusion`): clamped at 0 with
+  the gradient passed through; the reference writes ``max(t, 1e-8)`` into the parameter at
+  every forward. This changes nothing once a time is above 1e-8, but at initialisation (all
+  times 0) the loss differs by about 1e-6 (relative) and gradients by up to 4e-3 of a
+  parameter's largest entry (activations near a ReLU kink flip), and a time pushed below
+  zero by Adam stays below until its gradient brings it back, where the reference resets it
+  to 1e-8.
+- the overlap network outputs logits and the loss is the equivalent
+  ``binary_cross_entropy_with_logits`` (the reference: a sigmoid and ``BCELoss``, whose log
+  is clamped at -100);
+- the ground-truth functional map is solved in float64 (the reference inverts in float32);
+- one ``nce_temperature`` for both NCE terms (the reference's self-NCE hard-codes 0.07,
+  its cross-NCE reads ``nce_t``, default 0.07);
+- the learned temperature is clamped at ``1e-4`` from below (its gradient passed through);
+- the reflection is evaluated only at the neighbours (`sampled_reflection`, the values of
+  gathering the dense product, about ``V / k`` times cheaper);
+- ``restrict_to_overlap`` (off by default) limits the nearest-neighbour search to the
+  predicted overlap of ``x``; the point map is the argmax of cosine similarities (the
+  reference: argmin of distances of the normalised features, the same map up to ties).
+
+Not reproduced: the reference's random rotation (up to 30 degrees about each axis), noise
+(std 0.01, clipped at 0.05) and per-axis scaling (0.9 to 1.1) of ``xyz`` inputs while
+training; its Adam betas (0.9, 0.99) (ours: torch's default (0.9, 0.999); the first step is
+the same) and step schedule (learning rate halved every 100 epochs); skipping a step with a
+NaN loss; its second test-time point map from the functional map of the unpruned features.
+
+>>> head = make_head("echomatch", preset="reference", epochs=5)             # doctest: +SKIP
+>>> head.fit(train_pairs); match = head.match(pair)                        # doctest: +SKIP
+>>> match.map_yx, match.overlap_y, match.overlap_x                         # doctest: +SKIP
+>>> head = load_head("echomatch", checkpoint="echo_match_cp2p24_xyz.pth")  # doctest: +SKIP
 """
 
 from __future__ import annotations
@@ -83,6 +124,7 @@ from .heads import (
     ground_truth_overlaps,
 )
 from .operators import SurfaceOperators
+from .release import ReleaseState, diffusionnet_state
 
 __all__ = [
     "PRUNE_STRATEGIES",
@@ -153,8 +195,9 @@ class EchoMatchConfig(HeadConfig):
     restrict_to_overlap : bool
         Our option: match ``y`` only to vertices of ``x`` predicted to overlap (all of ``x``
         when none is). Off by default, as in the reference.
-    epochs, lr
-        900 and 1e-3, the authors' training settings.
+    epochs, lr, grad_clip
+        900, 1e-3 and 1.0 (gradient norm clipped before every step), the authors' training
+        settings.
     """
 
     feature_channels: int = 128
@@ -179,6 +222,7 @@ class EchoMatchConfig(HeadConfig):
     restrict_to_overlap: bool = False
     epochs: int = 900
     lr: float = 1e-3
+    grad_clip: float | None = 1.0
 
     def __post_init__(self) -> None:
         check_integers(
@@ -420,7 +464,7 @@ def balanced_bce_with_logits(logits: torch.Tensor, target: torch.Tensor) -> torc
     if n_pos == 0 or n_pos == target.numel():
         return loss.mean()
     frac = n_pos / target.numel()
-    weights = torch.where(target > 0.5, 1.0 - frac, frac)
+    weights = torch.where(target > 0.5, target.new_tensor(1.0 - frac), target.new_tensor(frac))  # in the loss's dtype
     return (weights * loss).mean()
 
 
@@ -605,7 +649,7 @@ class EchoMatchHead(LearnedHead):
         "reference": {
             "descriptor": "xyz",
             "laplacian": "cotan",
-            "operators": "diffusionnet",
+            "operators": "ulrssm",
             "n_eig": 128,
             "n_fmap": 50,
             "feature_channels": 128,
@@ -636,6 +680,74 @@ class EchoMatchHead(LearnedHead):
     def __init__(self, config: EchoMatchConfig | None = None, **settings):
         super().__init__(config, **settings)
         self._neighbours: OrderedDict[str, torch.Tensor] = OrderedDict()
+
+    @classmethod
+    def release_state(cls, raw: dict, source: str = "checkpoint") -> ReleaseState:
+        """Translate a checkpoint of the authors' EchoMatch model for this head.
+
+        The layout is DeepShapeMatchingKit's ``{"networks": {"echo_match_net": state}}`` (or
+        the bare ``state``): ``feature_extractor.*`` and ``overlap_diffusion_net.*`` are
+        DiffusionNets with DPFM's key spelling (`release.diffusionnet_state` with
+        ``style="dpfm"``), ``permutation_network.tau`` the learned temperature. A
+        ``module.`` prefix (DataParallel) is dropped, as the reference does when it resumes.
+        The sizes come from the tensors; only ``xyz`` inputs (3 channels) are supported.
+
+        Returns
+        -------
+        ReleaseState
+            Settings (``feature_channels``, ``width``, ``n_blocks``, ``n_neighbours``,
+            ``overlap_width``, ``overlap_blocks``, ``descriptor``), our state dict (the same
+            tensor objects) and the input width.
+
+        Raises
+        ------
+        HeadError
+            Another layout, a missing, unexpected or wrongly shaped key (named), or sizes
+            our `EchoMatchNet` does not have.
+        """
+        networks = raw.get("networks", raw)
+        state = networks.get("echo_match_net", networks) if isinstance(networks, dict) else None
+        if not isinstance(state, dict) or "permutation_network.tau" not in {k.replace("module.", "") for k in state}:
+            raise HeadError(
+                f"{source}: expected the EchoMatch layout {{'networks': {{'echo_match_net': state_dict}}}} with "
+                "'feature_extractor.*', 'permutation_network.tau' and 'overlap_diffusion_net.*'."
+            )
+        state = {k.replace("module.", ""): v for k, v in state.items()}
+        ours: dict[str, torch.Tensor] = {}
+        sizes = {}
+        for ref_prefix, our_prefix in (("feature_extractor.", "features."), ("overlap_diffusion_net.", "overlap.")):
+            sizes[our_prefix], part = diffusionnet_state(state, "dpfm", prefix=ref_prefix, what=source)
+            ours.update({our_prefix + k: v for k, v in part.items()})
+        ours["temperature"] = state["permutation_network.tau"]
+        unexpected = sorted(
+            k for k in state if not k.startswith(("feature_extractor.", "overlap_diffusion_net.", "permutation_network.tau"))
+        )
+        if unexpected:
+            raise HeadError(f"{source}: unexpected key(s) {unexpected} in the EchoMatch network.")
+        feat, over = sizes["features."], sizes["overlap."]
+        for name, s in (("feature", feat), ("overlap", over)):
+            if s["mlp_hidden"] != [s["width"]] * 2 or not s["with_gradient_rotations"]:
+                raise HeadError(
+                    f"{source}: the {name} DiffusionNet's block MLPs {s['mlp_hidden']} / gradient rotations differ from EchoMatch's."
+                )
+        if over["out_channels"] != 1:
+            raise HeadError(f"{source}: the overlap DiffusionNet has {over['out_channels']} outputs instead of 1.")
+        if feat["in_channels"] != 3:
+            raise HeadError(
+                f"{source}: the feature DiffusionNet takes {feat['in_channels']} input channels; only xyz checkpoints "
+                "(3 channels) are supported (the DINO ones need the reference's own DINO features)."
+            )
+        settings = {
+            "descriptor": "xyz",
+            "descriptor_params": {},
+            "feature_channels": feat["out_channels"],
+            "width": feat["width"],
+            "n_blocks": feat["n_blocks"],
+            "n_neighbours": over["in_channels"],
+            "overlap_width": over["width"],
+            "overlap_blocks": over["n_blocks"],
+        }
+        return ReleaseState(settings, ours, feat["in_channels"])
 
     def build_model(self, in_channels: int) -> EchoMatchNet:
         """`EchoMatchNet` for ``in_channels`` input features, sized by the config."""
