@@ -76,14 +76,14 @@ def main(argv=None) -> int:
         from parity_dpfm import dpfm_stages
 
         result = dpfm_stages(args.dpfm_repo, args.checkpoints / "dpfm" / "faust.pth", args.data_root, timing=timing)
-        rows, times = result if isinstance(result, tuple) else (result, {})
+        rows, times = result if timing else (result, {})
         sections.append(markdown(rows, "DPFM (faust.pth, FAUST_r)") + _times(times))
     if args.dsmk_repo:
         from parity_echomatch import echomatch_stages
 
-        result = echomatch_stages(args.dsmk_repo, args.data_root)
-        rows, times = result if isinstance(result, tuple) else (result, {})
-        sections.append(markdown(rows, "EchoMatch (identical random weights)") + _times(times))
+        for pair in ("full", "partial"):
+            rows, times = echomatch_stages(args.dsmk_repo, args.data_root, pair=pair, timing=timing)
+            sections.append(markdown(rows, f"EchoMatch (identical random weights, {pair} pair)") + _times(times))
     text = "\n".join(sections)
     print(text)
     args.out.parent.mkdir(parents=True, exist_ok=True)
