@@ -25,7 +25,6 @@ from __future__ import annotations
 import argparse
 import datetime
 import os
-import platform
 import sys
 from pathlib import Path
 
@@ -33,19 +32,8 @@ HERE = Path(__file__).resolve().parent
 if str(HERE) not in sys.path:
     sys.path.insert(0, str(HERE))
 
+from common import machine  # noqa: E402
 from parity_common import markdown  # noqa: E402
-
-
-def _machine() -> str:
-    cpu = platform.processor() or platform.machine()
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    return f"{cpu}, {os.cpu_count()} cores"
 
 
 def main(argv=None) -> int:
@@ -59,18 +47,22 @@ def main(argv=None) -> int:
         default=Path(os.environ.get("GEOFEAT_CHECKPOINTS", HERE.parent.parent / "shared" / "checkpoints")),
         help="folder with ulrssm/faust_scape.pth and dpfm/faust.pth",
     )
-    parser.add_argument("--data-root", type=Path, default=Path(os.environ.get("GEOFEAT_DATA", HERE.parent.parent / "shared" / "data")))
+    parser.add_argument(
+        "--data-root", type=Path, default=Path(os.environ.get("GEOFEAT_DATA", HERE.parent.parent / "shared" / "data"))
+    )
     parser.add_argument("--no-timing", action="store_true")
     parser.add_argument("--out", type=Path, default=HERE / "results" / "parity" / "parity.md")
     args = parser.parse_args(argv)
     if not (args.ulrssm_repo or args.dpfm_repo or args.dsmk_repo):
         parser.error("give at least one of --ulrssm-repo, --dpfm-repo, --dsmk-repo")
     timing = not args.no_timing
-    sections = [f"Run {datetime.date.today().isoformat()} on {_machine()}.\n"]
+    sections = [f"Run {datetime.date.today().isoformat()} on {machine()}.\n"]
     if args.ulrssm_repo:
         from parity_ulrssm import ulrssm_stages
 
-        rows, times = ulrssm_stages(args.ulrssm_repo, args.checkpoints / "ulrssm" / "faust_scape.pth", args.data_root, timing=timing)
+        rows, times = ulrssm_stages(
+            args.ulrssm_repo, args.checkpoints / "ulrssm" / "faust_scape.pth", args.data_root, timing=timing
+        )
         sections.append(markdown(rows, "ULRSSM (faust_scape.pth, FAUST_r tr_reg_081 -> tr_reg_080)") + _times(times))
     if args.dpfm_repo:
         from parity_dpfm import dpfm_stages

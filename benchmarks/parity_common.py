@@ -19,6 +19,8 @@ from typing import NamedTuple
 import numpy as np
 import torch
 
+from geofeat.adapters.operators import SurfaceOperators, surface_operators
+
 #: Top-level package names of the reference repositories.
 REFERENCE_PACKAGES = ("utils", "networks", "models", "losses", "datasets", "metrics", "diffusion_net", "model", "dpfm")
 
@@ -80,6 +82,28 @@ def reference_import(repo: str | Path, subfolder: str = "") -> Iterator[Callable
     finally:
         sys.path.remove(str(root))
         _forget(REFERENCE_PACKAGES)
+
+
+def as_surface_operators(ref: dict, mesh) -> SurfaceOperators:
+    """A reference's operators (keys ``mass``, ``evals``, ``evecs``, ``gradX``, ``gradY``, ``frames``) in our record, same tensors.
+
+    Faces and edges (which the reference keeps elsewhere) come from ``mesh``.
+    """
+    ours = surface_operators(mesh, 2, laplacian_kind="cotan", cache=False)
+    return SurfaceOperators(
+        mass=ref["mass"].float(), evals=ref["evals"].float(), evecs=ref["evecs"].float(),
+        grad_x=ref["gradX"].float().coalesce(), grad_y=ref["gradY"].float().coalesce(), frames=ref["frames"].float(),
+        faces=ours.faces, edges=ours.edges,
+    )  # fmt: skip
+
+
+def evecs_up_to_sign(ours: torch.Tensor, theirs: torch.Tensor, mass: torch.Tensor, k: int) -> Stage:
+    """Eigenvectors compared up to sign: the largest ``1 - |<phi_ours, phi_ref>_M|`` over the first k."""
+    inner = (ours[:, :k].double() * mass[:, None].double() * theirs[:, :k].double()).sum(0).abs()
+    gap = (1 - inner).abs()
+    return Stage(
+        f"operators: eigenvectors 0..{k - 1} (1 - |<ours, ref>_M|)", float(gap.max()), 1.0, f"worst: index {int(gap.argmax())}"
+    )
 
 
 def seconds_per_call(fn: Callable[[], object], repeat: int = 3) -> float:

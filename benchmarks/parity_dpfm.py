@@ -38,7 +38,15 @@ HERE = Path(__file__).resolve().parent
 if str(HERE) not in sys.path:
     sys.path.insert(0, str(HERE))
 
-from parity_common import Stage, compare, markdown, reference_import, seconds_per_call  # noqa: E402
+from parity_common import (  # noqa: E402
+    Stage,
+    as_surface_operators,
+    compare,
+    evecs_up_to_sign,
+    markdown,
+    reference_import,
+    seconds_per_call,
+)
 
 from geofeat.adapters.dpfm import (  # noqa: E402
     DPFMHead,
@@ -50,7 +58,7 @@ from geofeat.adapters.dpfm import (  # noqa: E402
     weighted_overlap_bce,
 )
 from geofeat.adapters.heads import load_head  # noqa: E402
-from geofeat.adapters.operators import SurfaceOperators, surface_operators  # noqa: E402
+from geofeat.adapters.operators import surface_operators  # noqa: E402
 from geofeat.datasets import load_dataset  # noqa: E402
 
 DEFAULT_PAIR = ("tr_reg_080", "tr_reg_081")  # (x, y) = (shape1, shape2) of the reference
@@ -106,7 +114,7 @@ class _Setup:
         n_samples = {s: self.head.n_samples(m.n_vertices) for s, m in self.meshes.items()}
         for s, mesh in self.meshes.items():
             r = self.shape[s]
-            self.head.use_inputs(mesh, r["xyz"], _as_ours(r, mesh))
+            self.head.use_inputs(mesh, r["xyz"], as_surface_operators(r, mesh))
             order, ranks, dists = r["sample_idx"]
             interp = reference_sample_interpolation(ReferenceCandidates(order, ranks[0], dists[0]), n_samples[s])
             self.head.use_samples(mesh, interp)
@@ -157,25 +165,6 @@ class _Setup:
         return torch.cdist(emb_y, emb_x).argmin(dim=1).numpy()
 
 
-def _as_ours(ref: dict, mesh) -> SurfaceOperators:
-    """The reference's operators in our record (the same tensors)."""
-    ours = surface_operators(mesh, 8, laplacian_kind="cotan", construction="diffusionnet", cache=False)
-    return SurfaceOperators(
-        mass=ref["mass"].float(), evals=ref["evals"].float(), evecs=ref["evecs"].float(),
-        grad_x=ref["gradX"].float().coalesce(), grad_y=ref["gradY"].float().coalesce(), frames=ref["frames"].float(),
-        faces=ours.faces, edges=ours.edges,
-    )  # fmt: skip
-
-
-def _evecs_up_to_sign(ours: torch.Tensor, theirs: torch.Tensor, mass: torch.Tensor, k: int) -> Stage:
-    """Largest ``1 - |<phi_ours, phi_ref>_M|`` over the first k eigenvectors (sign-free)."""
-    inner = (ours[:, :k].double() * mass[:, None].double() * theirs[:, :k].double()).sum(0).abs()
-    gap = (1 - inner).abs()
-    return Stage(
-        f"operators: eigenvectors 0..{k - 1} (1 - |<ours, ref>_M|)", float(gap.max()), 1.0, f"worst: index {int(gap.argmax())}"
-    )
-
-
 def _gradients(model: torch.nn.Module, net: torch.nn.Module) -> Stage:
     """Largest gradient difference over all parameters (reference names mapped to ours)."""
     grads = {name: p.grad for name, p in net.named_parameters()}
@@ -223,8 +212,8 @@ def dpfm_stages(repo: Path, checkpoint: Path, data_root: Path, pair: tuple[str, 
         r = s.shape["x"]
         rows.append(compare("operators: mass", ours_ops.mass, r["mass"]))
         rows.append(compare("operators: eigenvalues", ours_ops.evals, r["evals"]))
-        rows.append(_evecs_up_to_sign(ours_ops.evecs, r["evecs"], r["mass"], c.n_fmap))
-        rows.append(_evecs_up_to_sign(ours_ops.evecs, r["evecs"], r["mass"], c.n_eig))
+        rows.append(evecs_up_to_sign(ours_ops.evecs, r["evecs"], r["mass"], c.n_fmap))
+        rows.append(evecs_up_to_sign(ours_ops.evecs, r["evecs"], r["mass"], c.n_eig))
         rows.append(compare("operators: gradient X", ours_ops.grad_x, r["gradX"]))
         rows.append(compare("operators: gradient Y", ours_ops.grad_y, r["gradY"]))
         rows.append(compare("operators: tangent frames", ours_ops.frames, r["frames"]))

@@ -28,10 +28,17 @@ HERE = Path(__file__).resolve().parent
 if str(HERE) not in sys.path:
     sys.path.insert(0, str(HERE))
 
-from parity_common import Stage, compare, markdown, reference_import, seconds_per_call  # noqa: E402
+from parity_common import (  # noqa: E402
+    Stage,
+    as_surface_operators,
+    compare,
+    evecs_up_to_sign,
+    markdown,
+    reference_import,
+    seconds_per_call,
+)
 
 from geofeat.adapters.heads import load_head  # noqa: E402
-from geofeat.adapters.operators import SurfaceOperators, surface_operators  # noqa: E402
 from geofeat.adapters.ulrssm import ULRSSMHead  # noqa: E402
 from geofeat.datasets import load_dataset  # noqa: E402
 
@@ -46,24 +53,6 @@ def _reference_operators(load, mesh, k: int) -> dict[str, torch.Tensor]:
     frames, mass, lap, evals, evecs, grad_x, grad_y = geometry.compute_operators(verts, faces, k=k)
     return {"verts": verts, "faces": faces, "frames": frames, "mass": mass, "L": lap, "evals": evals, "evecs": evecs,
             "gradX": grad_x, "gradY": grad_y}  # fmt: skip
-
-
-def _as_ours(ref: dict[str, torch.Tensor], mesh) -> SurfaceOperators:
-    """The reference's operators in our record (same tensors)."""
-    ours = surface_operators(mesh, 8, laplacian_kind="cotan", construction="ulrssm", cache=False)
-    return SurfaceOperators(
-        mass=ref["mass"].float(), evals=ref["evals"].float(), evecs=ref["evecs"].float(),
-        grad_x=ref["gradX"].float().coalesce(), grad_y=ref["gradY"].float().coalesce(), frames=ref["frames"].float(),
-        faces=ours.faces, edges=ours.edges,
-    )  # fmt: skip
-
-
-def _evecs_up_to_sign(ours: torch.Tensor, theirs: torch.Tensor, mass: torch.Tensor, k: int) -> Stage:
-    """Eigenvectors compared up to sign: largest ``1 - |<phi_ours, phi_ref>_M|`` over the first k."""
-    inner = (ours[:, :k].double() * mass[:, None].double() * theirs[:, :k].double()).sum(0).abs()
-    gap = float((1 - inner).abs().max())
-    worst = int((1 - inner).abs().argmax())
-    return Stage(f"operators: eigenvectors 0..{k - 1} (1 - |<ours, ref>_M|)", gap, 1.0, f"worst: index {worst}")
 
 
 def ulrssm_stages(repo: Path, checkpoint: Path, data_root: Path, pair_names=DEFAULT_PAIR, timing: bool = True):
@@ -104,7 +93,7 @@ def ulrssm_stages(repo: Path, checkpoint: Path, data_root: Path, pair_names=DEFA
         r = ref["x"]
         rows.append(compare("operators: mass", ours_ops.mass, r["mass"]))
         rows.append(compare("operators: eigenvalues", ours_ops.evals, r["evals"]))
-        rows.append(_evecs_up_to_sign(ours_ops.evecs, r["evecs"], r["mass"], c.diffusion_eig))
+        rows.append(evecs_up_to_sign(ours_ops.evecs, r["evecs"], r["mass"], c.diffusion_eig))
         rows.append(compare("operators: gradient X", ours_ops.grad_x, r["gradX"]))
         rows.append(compare("operators: gradient Y", ours_ops.grad_y, r["gradY"]))
         rows.append(compare("operators: tangent frames", ours_ops.frames, r["frames"]))
@@ -117,7 +106,7 @@ def ulrssm_stages(repo: Path, checkpoint: Path, data_root: Path, pair_names=DEFA
 
         # -- from here on both get the reference's operators and input features
         for s, mesh in (("x", pair.x), ("y", pair.y)):
-            head.use_inputs(mesh, wks_ref[s], _as_ours(ref[s], mesh))
+            head.use_inputs(mesh, wks_ref[s], as_surface_operators(ref[s], mesh))
         # the reference reads its DiffusionNet operators from a disk cache at test time; give it one
         cache_dir = tempfile.mkdtemp(prefix="ulrssm_ops_")
         net = diffusion.DiffusionNet(in_channels=128, out_channels=256, input_type="wks", cache_dir=cache_dir)
@@ -184,7 +173,9 @@ def ulrssm_stages(repo: Path, checkpoint: Path, data_root: Path, pair_names=DEFA
         rows.append(_gradients(head, net_train))
         rows += _partial_training_step(head, net, modules, load, data_root)
         if timing:
-            timings = _timings(head, pair, raw_pair, net, ref, wks_ref, reference_loss, fmap_util, permutation, evecs, evecs_trans, c)
+            timings = _timings(
+                head, pair, raw_pair, net, ref, wks_ref, reference_loss, fmap_util, permutation, evecs, evecs_trans, c
+            )
     return rows, timings
 
 
@@ -229,7 +220,7 @@ def _partial_training_step(head: ULRSSMHead, net, modules, load, data_root: Path
     wks = {s: geometry.compute_wks_autoscale(ref[s]["evals"][None, : c.diffusion_eig], ref[s]["evecs"][None, :, : c.diffusion_eig],
                                              ref[s]["mass"][None])[0] for s in ("x", "y")}  # fmt: skip
     for s, mesh in (("x", pair.x), ("y", pair.y)):
-        head.use_inputs(mesh, wks[s], _as_ours(ref[s], mesh))
+        head.use_inputs(mesh, wks[s], as_surface_operators(ref[s], mesh))
     net_train = copy.deepcopy(net).eval()
     head.model.eval()
     feats = [net_train(ref[s]["verts"][None], ref[s]["faces"][None], feats=wks[s][None])[0] for s in ("x", "y")]
@@ -263,7 +254,9 @@ def _gradients(head: ULRSSMHead, net: torch.nn.Module) -> Stage:
     return Stage("training step: gradients (all parameters)", worst, scale, f"worst: {where}")
 
 
-def _timings(head, pair, raw_pair, net, ref, wks_ref, reference_loss, fmap_util, permutation, evecs, evecs_trans, c) -> dict[str, float]:
+def _timings(
+    head, pair, raw_pair, net, ref, wks_ref, reference_loss, fmap_util, permutation, evecs, evecs_trans, c
+) -> dict[str, float]:
     """Seconds per pair: inference (network + point map, inputs ready) and one training step, both implementations."""
     hard = permutation.Similarity(tau=c.temperature, hard=True)
 
