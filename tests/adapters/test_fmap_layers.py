@@ -329,12 +329,14 @@ def test_bad_inputs_raise_clear_errors():
         assert isinstance(info.value, GeofeatError)
 
 
+@pytest.mark.numerically_sensitive
 def test_singular_system_raises():
     feat_x, feat_y, *spectral = tiny_problem(p=1)
     with pytest.raises(FunctionalMapError, match="singular"):
         fl.regularized_fmap(feat_x, feat_y, *spectral, lambda_=0.0)
 
 
+@pytest.mark.numerically_sensitive
 def test_singular_system_is_detected_without_the_solver_raising(monkeypatch):
     """Some LAPACK kernels (Intel, 1 or 2 threads) return a result for this singular system instead of raising."""
     feat_x, feat_y, *spectral = tiny_problem(p=1)
