@@ -181,7 +181,9 @@ def check_state(module: torch.nn.Module, state: Mapping[str, torch.Tensor], what
         if tuple(state[k].shape) != tuple(expected[k].shape)
     )
     problems = [
-        f"{label} {items}" for label, items in (("missing", missing), ("unexpected", unexpected), ("wrongly shaped", wrong)) if items
+        f"{label} {items}"
+        for label, items in (("missing", missing), ("unexpected", unexpected), ("wrongly shaped", wrong))
+        if items
     ]
     if problems:
         raise HeadError(f"{what} does not fit {type(module).__name__}: " + "; ".join(problems) + ".")

@@ -152,7 +152,9 @@ def evaluate_pair(pair, match: Match, protocol: str = "vertices") -> dict:
     predicted = match.map_yx
     if protocol == "template":
         if pair.corr_x is None or pair.corr_y is None:
-            raise geofeat.DatasetError(f"pair {pair.name}: --protocol template needs a dataset with template points (faust_r, scape_r)")
+            raise geofeat.DatasetError(
+                f"pair {pair.name}: --protocol template needs a dataset with template points (faust_r, scape_r)"
+            )
         errors = metrics.template_geodesic_errors(predicted, pair.corr_x, pair.corr_y, dist_x)
         sym = None
         if pair.corr_x_sym is not None:
