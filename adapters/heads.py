@@ -652,7 +652,9 @@ def preset_settings(cls: type[Head], preset: str | None) -> dict[str, Any]:
     return copy.deepcopy(cls.PRESETS[preset])
 
 
-def load_head(source: str | os.PathLike, checkpoint: str | os.PathLike | None = None, **settings: Any) -> Head:
+def load_head(
+    source: str | os.PathLike, checkpoint: str | os.PathLike | None = None, preset: str = "reference", **settings: Any
+) -> Head:
     """A head saved by `Head.save`, or a head built from the authors' release checkpoint.
 
     Parameters
@@ -664,6 +666,9 @@ def load_head(source: str | os.PathLike, checkpoint: str | os.PathLike | None = 
         A release checkpoint of the authors' code (a ``torch.save`` file). The head gets its
         ``"reference"`` preset, its sizes read from the tensors, and the weights through an
         exact key mapping (see the head's ``release_state``).
+    preset : str
+        With ``checkpoint``: the head's preset to start from (default ``"reference"``; DPFM
+        also has ``"reference_shrec16_cuts"`` and ``"reference_shrec16_holes"``).
     **settings
         With ``checkpoint``: settings that override the preset (e.g. ``tta_steps=5``).
 
@@ -674,7 +679,7 @@ def load_head(source: str | os.PathLike, checkpoint: str | os.PathLike | None = 
         (each named).
     """
     if checkpoint is not None:
-        return _from_release(str(source), Path(checkpoint), settings)
+        return _from_release(str(source), Path(checkpoint), preset, settings)
     if settings:
         raise HeadError(f"settings {sorted(settings)} only apply with a release checkpoint; change head.config instead.")
     folder = Path(source)
@@ -693,7 +698,7 @@ def load_head(source: str | os.PathLike, checkpoint: str | os.PathLike | None = 
     return head
 
 
-def _from_release(name: str, checkpoint: Path, settings: dict[str, Any]) -> LearnedHead:
+def _from_release(name: str, checkpoint: Path, preset: str, settings: dict[str, Any]) -> LearnedHead:
     """`load_head` with a release checkpoint."""
     cls = head_class(name)
     release_state = getattr(cls, "release_state", None)
@@ -705,7 +710,7 @@ def _from_release(name: str, checkpoint: Path, settings: dict[str, Any]) -> Lear
     if not isinstance(raw, dict):
         raise HeadError(f"{checkpoint}: expected a dict of tensors; found {type(raw).__name__}.")
     release = release_state(raw, source=str(checkpoint))
-    head = cls(**(preset_settings(cls, "reference") | release.settings | settings))
+    head = cls(**(preset_settings(cls, preset) | release.settings | settings))
     head.load_state(release.state, release.in_channels, source=str(checkpoint))
     return head
 
