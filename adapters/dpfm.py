@@ -94,7 +94,7 @@ from .heads import (
     ground_truth_overlaps,
 )
 from .operators import SurfaceOperators
-from .release import ReleaseState, diffusionnet_state
+from .release import ReleaseState, diffusionnet_state, state_problems
 
 __all__ = [
     "FMAP_FEATURES",
@@ -977,19 +977,7 @@ class DPFMHead(LearnedHead):
                 if tensor.ndim == 3 and tensor.shape[-1] == 1 and expected[ours].ndim == 2:
                     tensor = tensor[..., 0]  # Conv1d kernel 1 -> Linear
                 state[ours] = tensor
-        missing = sorted(names.get(k, k) for k in expected if k not in state)
-        unexpected += sorted(names.get(k, k) for k in state if k not in expected)
-        wrong = sorted(
-            f"{names.get(k, k)}: {tuple(raw[names[k]].shape) if names.get(k) in raw else tuple(state[k].shape)} "
-            f"(expected {tuple(expected[k].shape)} for {k})"
-            for k in state
-            if k in expected and tuple(state[k].shape) != tuple(expected[k].shape)
-        )
-        problems = [
-            f"{label} {items}"
-            for label, items in (("missing", missing), ("unexpected", unexpected), ("wrongly shaped", wrong))
-            if items
-        ]
+        problems = ([f"unexpected {unexpected}"] if unexpected else []) + state_problems(expected, state, names, raw)
         if problems:
             raise HeadError(f"{source} does not fit DPFM: " + "; ".join(problems) + ".")
         return ReleaseState(settings, {k: v.detach().clone().float().contiguous() for k, v in state.items()}, 3)

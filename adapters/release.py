@@ -33,7 +33,7 @@ import torch
 
 from .heads import HeadError
 
-__all__ = ["DIFFUSIONNET_STYLES", "ReleaseState", "check_state", "diffusionnet_state"]
+__all__ = ["DIFFUSIONNET_STYLES", "ReleaseState", "check_state", "diffusionnet_state", "state_problems"]
 
 #: Key spellings of the reference DiffusionNets: style -> (first, last, block prefix, mlp linear prefix).
 DIFFUSIONNET_STYLES = {
@@ -172,18 +172,51 @@ def check_state(module: torch.nn.Module, state: Mapping[str, torch.Tensor], what
     HeadError
         Naming every missing, unexpected and wrongly shaped key (with both shapes).
     """
-    expected = module.state_dict()
-    missing = sorted(set(expected) - set(state))
-    unexpected = sorted(set(state) - set(expected))
-    wrong = sorted(
-        f"{k}: {tuple(state[k].shape)} instead of {tuple(expected[k].shape)}"
-        for k in set(expected) & set(state)
-        if tuple(state[k].shape) != tuple(expected[k].shape)
-    )
-    problems = [
-        f"{label} {items}"
-        for label, items in (("missing", missing), ("unexpected", unexpected), ("wrongly shaped", wrong))
-        if items
-    ]
+    problems = state_problems(module.state_dict(), state)
     if problems:
         raise HeadError(f"{what} does not fit {type(module).__name__}: " + "; ".join(problems) + ".")
+
+
+def state_problems(
+    expected: Mapping[str, torch.Tensor],
+    state: Mapping[str, torch.Tensor],
+    names: Mapping[str, str] | None = None,
+    source: Mapping[str, torch.Tensor] | None = None,
+) -> list[str]:
+    """What keeps ``state`` from loading into a module whose state dict is ``expected``, as readable phrases.
+
+    Parameters
+    ----------
+    expected, state : mapping of str to torch.Tensor
+        Our keys.
+    names : mapping of str to str, optional
+        The checkpoint's key for each of ours, so that messages name what the user's file holds.
+    source : mapping of str to torch.Tensor, optional
+        The checkpoint itself: a wrongly shaped key is reported with the shape it has there.
+
+    Returns
+    -------
+    list of str
+        ``"missing [...]"``, ``"unexpected [...]"``, ``"wrongly shaped [...]"`` where not empty.
+    """
+    names = names or {}
+
+    def label(key: str) -> str:
+        return names.get(key, key)
+
+    def shape(key: str) -> tuple[int, ...]:
+        theirs = names.get(key)
+        return tuple(source[theirs].shape) if source is not None and theirs in source else tuple(state[key].shape)
+
+    missing = sorted(label(k) for k in expected if k not in state)
+    unexpected = sorted(label(k) for k in state if k not in expected)
+    wrong = sorted(
+        f"{label(k)}: {shape(k)} instead of {tuple(expected[k].shape)}" + (f" (our {k})" if label(k) != k else "")
+        for k in state
+        if k in expected and tuple(state[k].shape) != tuple(expected[k].shape)
+    )
+    return [
+        f"{what} {items}"
+        for what, items in (("missing", missing), ("unexpected", unexpected), ("wrongly shaped", wrong))
+        if items
+    ]

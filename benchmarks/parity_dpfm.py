@@ -165,6 +165,25 @@ class _Setup:
         return torch.cdist(emb_y, emb_x).argmin(dim=1).numpy()
 
 
+def _training_step(head, model: torch.nn.Module, net_train: torch.nn.Module, s, seed: int, **reference_options):
+    """Backward of one training loss in both implementations from the same torch seed (same dropout masks).
+
+    Returns ``(loss_ours, loss_ref)``; the gradients stay on the parameters, ``model`` ends in evaluation mode.
+    """
+    torch.manual_seed(seed)
+    loss_ref = s.reference_loss(net_train, **reference_options)
+    net_train.zero_grad()
+    loss_ref.backward()
+    model.train()
+    model.zero_grad()
+    torch.manual_seed(seed)
+    with torch.enable_grad():
+        loss_ours = head.training_loss(s.pair)
+        loss_ours.backward()
+    model.eval()
+    return loss_ours, loss_ref
+
+
 def _gradients(model: torch.nn.Module, net: torch.nn.Module) -> Stage:
     """Largest gradient difference over all parameters (reference names mapped to ours)."""
     grads = {name: p.grad for name, p in net.named_parameters()}
@@ -270,19 +289,9 @@ def dpfm_stages(repo: Path, checkpoint: Path, data_root: Path, pair: tuple[str, 
         rows.append(compare("loss: NCE (all vertices, a full map)", nce_ours, nce_ref))
 
         net_train = copy.deepcopy(net).train()
-        torch.manual_seed(123)
-        loss_ref = s.reference_loss(net_train)
-        net_train.zero_grad()
-        loss_ref.backward()
-        model.train()
-        model.zero_grad()
-        torch.manual_seed(123)
-        with torch.enable_grad():
-            loss_ours = head.training_loss(s.pair)
-            loss_ours.backward()
+        loss_ours, loss_ref = _training_step(head, model, net_train, s, seed=123)
         rows.append(compare("training step: loss (dropout on, same seed)", loss_ours, loss_ref))
         rows.append(_gradients(model, net_train))
-        model.eval()
         holes = Path(repo) / "dpfm" / "data" / "saved_models" / "shrec_holes.pth"
         if holes.is_file():
             rows += _partial_stages(holes, data_root, load)
@@ -322,17 +331,7 @@ def _partial_stages(checkpoint: Path, data_root: Path, load) -> list[Stage]:
     with torch.no_grad():
         torch.manual_seed(7)
         loss_bug = s.reference_loss(net_train)
-    torch.manual_seed(7)
-    loss_ref = s.reference_loss(net_train, zeroed=True)
-    net_train.zero_grad()
-    loss_ref.backward()
-    model.train()
-    model.zero_grad()
-    torch.manual_seed(7)
-    with torch.enable_grad():
-        loss_ours = head.training_loss(s.pair)
-        loss_ours.backward()
-    model.eval()
+    loss_ours, loss_ref = _training_step(head, model, net_train, s, seed=7, zeroed=True)
     rows.append(compare(tag + "training loss vs reference's own C_gt", loss_ours, loss_bug,
                         "its C_gt sends vertices without a counterpart to the last vertex of x"))  # fmt: skip
     rows.append(compare(tag + "training loss (C_gt rows of unmatched vertices zero)", loss_ours, loss_ref))
