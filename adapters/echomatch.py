@@ -76,7 +76,13 @@ Where we differ, on purpose:
 - the ground-truth functional map is solved in float64 (the reference inverts in float32);
 - one ``nce_temperature`` for both NCE terms (the reference's self-NCE hard-codes 0.07,
   its cross-NCE reads ``nce_t``, default 0.07);
-- the learned temperature is clamped at ``1e-4`` from below (its gradient passed through);
+- the learned temperature is learned as its logarithm (``learn_log_temperature``), so it
+  stays positive and Adam moves it by a ratio, not by an amount: with the reference's raw
+  ``tau`` and Adam at lr 1e-2, steps of about 0.01 took the initial 0.1 below zero within
+  ten steps (soft maps onto the *least* similar points) and the overlap network learnt
+  nothing on some runs (issue 12: which runs depended on the BLAS thread count). The
+  ``"reference"`` preset and the released checkpoints keep the raw ``tau``, clamped at
+  ``1e-4`` from below (its gradient passed through);
 - the reflection is evaluated only at the neighbours (`sampled_reflection`, the values of
   gathering the dense product, about ``V / k`` times cheaper);
 - ``restrict_to_overlap`` (off by default) limits the nearest-neighbour search to the
@@ -108,6 +114,7 @@ import torch.nn.functional as F
 from scipy.spatial import cKDTree
 from torch import nn
 
+from geofeat.checks import check_boolean
 from geofeat.datasets.records import ShapePair
 from geofeat.mesh import Mesh
 
@@ -147,7 +154,7 @@ __all__ = [
 #: Which features are zeroed outside the ground-truth overlap before the functional map while
 #: training: those of ``y`` (the reference's default), of both shapes, or none.
 PRUNE_STRATEGIES = ("y", "both", "none")
-#: Lower bound of the learned temperature (our choice; the reference does not bound it).
+#: Lower bound of a raw learned temperature (our choice; the reference does not bound it).
 MIN_TEMPERATURE = 1e-4
 
 
@@ -167,6 +174,10 @@ class EchoMatchConfig(HeadConfig):
         Dropout probability in the MLPs of both DiffusionNets (0.5).
     temperature_init : float
         Initial value of the learned softmax temperature of the soft point maps (0.1).
+    learn_log_temperature : bool
+        Our choice (default): learn the logarithm of the temperature, positive by
+        construction. ``False``: the reference's raw parameter (clamped at
+        `MIN_TEMPERATURE` when in use).
     n_neighbours : int
         Spatial neighbours (the vertex itself included) at which the reflection is read: the
         input width of the overlap network (64).
@@ -205,6 +216,7 @@ class EchoMatchConfig(HeadConfig):
     n_blocks: int = 4
     dropout: float = 0.5
     temperature_init: float = 0.1
+    learn_log_temperature: bool = True
     n_neighbours: int = 64
     overlap_width: int = 16
     overlap_blocks: int = 3
@@ -241,6 +253,8 @@ class EchoMatchConfig(HeadConfig):
         check_numbers("echomatch", self, ("fmap_gamma",), 0.0, 1.0, low_open=True)
         check_numbers("echomatch", self, ("dropout",), 0.0, 1.0, high_open=True)
         check_numbers("echomatch", self, ("overlap_threshold",), 0.0, 1.0, low_open=True, high_open=True)
+        for name in ("learn_log_temperature", "restrict_to_overlap"):
+            setattr(self, name, check_boolean(getattr(self, name), name, owner="echomatch", error=HeadError))
         if self.prune_strategy not in PRUNE_STRATEGIES:
             raise HeadError(f"echomatch setting prune_strategy must be one of {PRUNE_STRATEGIES}; found {self.prune_strategy!r}.")
 
@@ -593,12 +607,23 @@ class EchoMatchNet(nn.Module):
         self.n_neighbours = int(config.n_neighbours)
         self.features = DiffusionNet(in_channels, config.feature_channels, width=config.width, n_blocks=config.n_blocks,
                                      dropout=float(config.dropout))  # fmt: skip
-        self.temperature = nn.Parameter(torch.tensor([float(config.temperature_init)]))
+        self.learn_log_temperature = bool(config.learn_log_temperature)
+        initial = torch.tensor([float(config.temperature_init)])
+        if self.learn_log_temperature:
+            self.log_temperature = nn.Parameter(initial.log())
+        else:
+            self.temperature = nn.Parameter(initial)
         self.overlap = DiffusionNet(self.n_neighbours, 1, width=config.overlap_width, n_blocks=config.overlap_blocks,
                                     dropout=float(config.dropout))  # fmt: skip
 
     def temperature_value(self) -> torch.Tensor:
-        """The temperature in use, shape (1,): the parameter clamped at `MIN_TEMPERATURE` (gradient passed through unchanged)."""
+        """The temperature in use, shape (1,).
+
+        ``exp(log_temperature)``, or the raw parameter clamped at `MIN_TEMPERATURE` (its
+        gradient passed through unchanged) when ``learn_log_temperature`` is off.
+        """
+        if self.learn_log_temperature:
+            return self.log_temperature.exp()
         clamped = self.temperature.clamp_min(MIN_TEMPERATURE)
         return self.temperature + (clamped - self.temperature).detach()
 
@@ -657,6 +682,7 @@ class EchoMatchHead(LearnedHead):
             "n_blocks": 4,
             "dropout": 0.5,
             "temperature_init": 0.1,
+            "learn_log_temperature": False,
             "n_neighbours": 64,
             "overlap_width": 16,
             "overlap_blocks": 3,
@@ -746,6 +772,7 @@ class EchoMatchHead(LearnedHead):
             "n_neighbours": over["in_channels"],
             "overlap_width": over["width"],
             "overlap_blocks": over["n_blocks"],
+            "learn_log_temperature": False,  # the checkpoint holds the raw temperature
         }
         return ReleaseState(settings, ours, feat["in_channels"])
 

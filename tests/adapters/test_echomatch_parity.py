@@ -107,7 +107,7 @@ def test_release_state_maps_every_reference_tensor_to_its_place():
     assert release.in_channels == 3
     assert release.settings == {
         "descriptor": "xyz", "descriptor_params": {}, "feature_channels": 6, "width": 8, "n_blocks": 2,
-        "n_neighbours": 5, "overlap_width": 4, "overlap_blocks": 1,
+        "n_neighbours": 5, "overlap_width": 4, "overlap_blocks": 1, "learn_log_temperature": False,
     }  # fmt: skip
     src = raw["networks"]["echo_match_net"]
     head = make_head("echomatch", preset="reference", progress=False, **release.settings)
