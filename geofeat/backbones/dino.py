@@ -188,8 +188,16 @@ def sample_patch_features(grid: torch.Tensor, pixels: torch.Tensor, out_size: tu
     view = pixels[:, 0]
     y0, y1, wy = _source_taps(pixels[:, 1], h, out_size[0])
     x0, x1, wx = _source_taps(pixels[:, 2], w, out_size[1])
-    top = grid[view, y0, x0] * (1 - wx)[:, None] + grid[view, y0, x1] * wx[:, None]
-    bottom = grid[view, y1, x0] * (1 - wx)[:, None] + grid[view, y1, x1] * wx[:, None]
+    flat = grid.reshape(-1, grid.shape[-1])  # (N h w, C)
+
+    # index_select, not grid[view, y, x]: the backward of advanced indexing (index_put with
+    # accumulate) adds in an order that changes from run to run with several CPU threads, which
+    # made training steps irreproducible (issue 12); index_select's backward does not.
+    def tap(y: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+        return flat.index_select(0, (view * h + y) * w + x)
+
+    top = tap(y0, x0) * (1 - wx)[:, None] + tap(y0, x1) * wx[:, None]
+    bottom = tap(y1, x0) * (1 - wx)[:, None] + tap(y1, x1) * wx[:, None]
     return F.normalize(top * (1 - wy)[:, None] + bottom * wy[:, None], dim=1)
 
 

@@ -26,6 +26,24 @@ def test_sampling_equals_upsampling(grid_hw, out_hw):
     torch.testing.assert_close(g_sampled, g_full, rtol=0, atol=1e-5)
 
 
+def test_sampling_gradient_is_the_same_on_every_run_with_two_threads():
+    """Many pixels read the same patch: their gradients must add up in a fixed order (issue 12)."""
+    gen = torch.Generator().manual_seed(0)
+    grid = torch.randn(4, 8, 8, 64, generator=gen, requires_grad=True)
+    pixels = torch.stack([torch.randint(0, n, (60_000,), generator=gen) for n in (4, 128, 128)], dim=1)
+    upstream = torch.randn(60_000, 64, generator=gen)
+    threads = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        grads = [
+            torch.autograd.grad((sample_patch_features(grid, pixels, (128, 128)) * upstream).sum(), grid)[0] for _ in range(4)
+        ]
+    finally:
+        torch.set_num_threads(threads)
+    for g in grads[1:]:
+        assert torch.equal(g, grads[0])
+
+
 @pytest.mark.parametrize("mode", ["ball", "face"])
 def test_foreground_back_projection_equals_the_full_one(mode):
     mesh = bumpy(0, 3)
