@@ -24,11 +24,11 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 
-import numpy as np
 import torch
 from torch import nn
 
-from geofeat.errors import DiffusionNetError
+from geofeat.adapters.errors import DiffusionNetError
+from geofeat.checks import check_integer, check_number, is_boolean
 
 from .operators import (
     GRADIENT_REGULARIZATION,
@@ -324,8 +324,7 @@ class DiffusionNet(nn.Module):
         super().__init__()
         for name, value in (("in_channels", in_channels), ("out_channels", out_channels), ("width", width)):
             _check_positive_int(name, value)
-        if not isinstance(n_blocks, (int, np.integer)) or isinstance(n_blocks, bool) or n_blocks < 0:
-            raise DiffusionNetError(f"n_blocks must be a non-negative integer; found {n_blocks!r}.")
+        check_integer(n_blocks, "n_blocks", low=0, error=DiffusionNetError, expected="a non-negative integer")
         if outputs_at not in OUTPUTS_AT:
             raise DiffusionNetError(f"outputs_at must be one of {OUTPUTS_AT}; found {outputs_at!r}.")
         if last_activation is not None and not callable(last_activation):
@@ -414,13 +413,11 @@ class DiffusionNet(nn.Module):
 
 
 def _check_positive_int(name: str, value) -> None:
-    if not isinstance(value, (int, np.integer)) or isinstance(value, bool) or value < 1:
-        raise DiffusionNetError(f"{name} must be a positive integer; found {value!r}.")
+    check_integer(value, name, low=1, error=DiffusionNetError, expected="a positive integer")
 
 
 def _dropout_probability(dropout: bool | float) -> float:
-    if isinstance(dropout, bool):
+    if is_boolean(dropout):
         return DEFAULT_DROPOUT if dropout else 0.0
-    if isinstance(dropout, (int, float, np.floating)) and 0.0 <= float(dropout) < 1.0:
-        return float(dropout)
-    raise DiffusionNetError(f"dropout must be True, False or a probability in [0, 1); found {dropout!r}.")
+    expected = "True, False or a probability in [0, 1)"
+    return check_number(dropout, "dropout", low=0, high=1, high_open=True, error=DiffusionNetError, expected=expected)

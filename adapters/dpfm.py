@@ -66,7 +66,6 @@ from __future__ import annotations
 
 import math
 import re
-from collections import OrderedDict
 from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any, NamedTuple
@@ -77,7 +76,9 @@ import torch.nn.functional as F
 from scipy.spatial import cKDTree
 from torch import nn
 
+from geofeat.checks import check_boolean, check_integer
 from geofeat.datasets.records import ShapePair
+from geofeat.lru import LRUCache
 from geofeat.mesh import Mesh
 
 from .diffusion_net import DiffusionNet
@@ -279,8 +280,7 @@ def _check_config(c: DPFMConfig) -> None:
     if c.pointmap not in POINTMAPS:
         raise HeadError(f"dpfm: pointmap must be one of {POINTMAPS}; found {c.pointmap!r}.")
     for name in ("dropout", "overlap_weighted_fmap", "augmentation"):
-        if not isinstance(getattr(c, name), bool):
-            raise HeadError(f"dpfm: {name} must be a boolean; found {getattr(c, name)!r}.")
+        setattr(c, name, check_boolean(getattr(c, name), name, owner="dpfm", error=HeadError))
     for name, valid in (
         ("head_layout", HEAD_LAYOUTS),
         ("interpolation", INTERPOLATIONS),
@@ -327,8 +327,7 @@ def farthest_point_sampling(points, n_samples: int, seed: int | np.random.Genera
     if pts.ndim != 2 or pts.shape[0] == 0 or not np.isfinite(pts).all():
         raise HeadError(f"farthest_point_sampling: points must be a finite (N, D) array with N >= 1; found shape {pts.shape}.")
     n = pts.shape[0]
-    if not isinstance(n_samples, (int, np.integer)) or isinstance(n_samples, bool) or not 1 <= n_samples <= n:
-        raise HeadError(f"farthest_point_sampling: n_samples must be an integer in [1, {n}]; found {n_samples!r}.")
+    check_integer(n_samples, "n_samples", owner="farthest_point_sampling", low=1, high=n, error=HeadError)
     rng = seed if isinstance(seed, np.random.Generator) else np.random.default_rng(seed)
     chosen = np.empty(int(n_samples), dtype=np.int64)
     chosen[0] = rng.integers(n)
@@ -882,7 +881,7 @@ class DPFMHead(LearnedHead):
     def __init__(self, config: DPFMConfig | None = None, **settings: Any):
         super().__init__(config, **settings)
         _check_config(self.config)
-        self._samples: OrderedDict[str, SampleInterpolation] = OrderedDict()
+        self._samples: LRUCache[str, SampleInterpolation] = LRUCache(_SAMPLE_CACHE_SIZE)
         self._rng = np.random.default_rng(self.config.seed)
 
     def build_model(self, in_channels: int) -> DPFMNet:
@@ -998,10 +997,9 @@ class DPFMHead(LearnedHead):
         (``mesh_normalization``) or with ``interpolation="reference"`` (the reference samples
         the coordinates its network sees); else on the vertices centred and scaled to unit area.
         """
-        key = mesh.hash
-        if key in self._samples:
-            self._samples.move_to_end(key)
-            return self._samples[key]
+        return self._samples.get_or_compute(mesh.hash, lambda: self._sample_interpolation(mesh))
+
+    def _sample_interpolation(self, mesh: Mesh) -> SampleInterpolation:
         c = self.config
         if c.mesh_normalization is not None or c.interpolation == "reference":
             points = mesh.verts
@@ -1016,11 +1014,7 @@ class DPFMHead(LearnedHead):
             entry = reference_sample_interpolation(reference_candidates(points, c.seed), n_samples)
         else:
             entry = sample_interpolation(points, n_samples, c.n_interpolation, c.seed)
-        entry = entry.to(self.device)
-        self._samples[key] = entry
-        while len(self._samples) > _SAMPLE_CACHE_SIZE:
-            self._samples.popitem(last=False)
-        return entry
+        return entry.to(self.device)
 
     def use_samples(self, mesh: Mesh, interpolation: SampleInterpolation) -> None:
         """Pin the samples and interpolation of ``mesh`` (e.g. the reference code's own record of it)."""
@@ -1028,8 +1022,7 @@ class DPFMHead(LearnedHead):
             raise HeadError(
                 f"dpfm: the interpolation has {interpolation.neighbours.shape[0]} rows; mesh {mesh.name!r} has {mesh.n_vertices} vertices."
             )
-        self._samples[mesh.hash] = interpolation.to(self.device)
-        self._samples.move_to_end(mesh.hash)
+        self._samples.put(mesh.hash, interpolation.to(self.device))
 
     def forward(self, pair: ShapePair, augment: bool = False) -> DPFMOutput:
         """Run the model on a prepared pair (`Head.prepare`; gradients as the caller sets them).

@@ -104,7 +104,6 @@ NaN loss; its second test-time point map from the functional map of the unpruned
 from __future__ import annotations
 
 import warnings
-from collections import OrderedDict
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -116,6 +115,7 @@ from torch import nn
 
 from geofeat.checks import check_boolean
 from geofeat.datasets.records import ShapePair
+from geofeat.lru import LRUCache
 from geofeat.mesh import Mesh
 
 from .diffusion_net import DiffusionNet
@@ -705,7 +705,7 @@ class EchoMatchHead(LearnedHead):
 
     def __init__(self, config: EchoMatchConfig | None = None, **settings):
         super().__init__(config, **settings)
-        self._neighbours: OrderedDict[str, torch.Tensor] = OrderedDict()
+        self._neighbours: LRUCache[str, torch.Tensor] = LRUCache(64)
 
     @classmethod
     def release_state(cls, raw: dict, source: str = "checkpoint") -> ReleaseState:
@@ -782,15 +782,9 @@ class EchoMatchHead(LearnedHead):
 
     def neighbours(self, mesh: Mesh) -> torch.Tensor:
         """`spatial_neighbours` of ``mesh`` on the head's device, (V, min(n_neighbours, V)) int64 (kept for 64 meshes)."""
-        key = mesh.hash
-        if key in self._neighbours:
-            self._neighbours.move_to_end(key)
-            return self._neighbours[key]
-        index = torch.as_tensor(spatial_neighbours(mesh.verts, self.config.n_neighbours), device=self.device)
-        self._neighbours[key] = index
-        while len(self._neighbours) > 64:
-            self._neighbours.popitem(last=False)
-        return index
+        return self._neighbours.get_or_compute(
+            mesh.hash, lambda: torch.as_tensor(spatial_neighbours(mesh.verts, self.config.n_neighbours), device=self.device)
+        )
 
     def network_outputs(self, pair: ShapePair) -> tuple[EchoMatchOutput, SurfaceOperators, SurfaceOperators]:
         """Run the network on a pair; also returns the operators of ``x`` and ``y``."""

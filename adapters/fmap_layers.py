@@ -25,8 +25,9 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from geofeat.adapters.errors import FunctionalMapError
 from geofeat.adapters.functional_maps import MASK_KINDS, laplacian_mask
-from geofeat.errors import FunctionalMapError
+from geofeat.checks import check_number
 
 __all__ = [
     "RegularizedFMap",
@@ -124,11 +125,7 @@ def _check_basis(evecs: torch.Tensor, mass: torch.Tensor | None, evals: torch.Te
 
 
 def _positive(value: float, name: str, allow_zero: bool = False) -> float:
-    ok = isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, bool) and np.isfinite(value)
-    if not ok or value < 0 or (value == 0 and not allow_zero):
-        bound = ">= 0" if allow_zero else "> 0"
-        raise FunctionalMapError(f"{name} must be a finite number {bound}; found {value!r}.")
-    return float(value)
+    return check_number(value, name, low=0, low_open=not allow_zero, error=FunctionalMapError)
 
 
 def _unbatch(t: torch.Tensor, batched: bool) -> torch.Tensor:

@@ -14,8 +14,9 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from geofeat.adapters.errors import FunctionalMapError
+from geofeat.checks import check_integer
 from geofeat.devices import resolve_device
-from geofeat.errors import FunctionalMapError
 from geofeat.geometry.spectral import SpectralBasis
 
 #: Laplacian commutativity penalties accepted by `laplacian_mask`.
@@ -108,8 +109,8 @@ def _as_points(values, name: str) -> np.ndarray:
 
 
 def _check_k(basis: SpectralBasis, k: int, name: str) -> int:
-    if not isinstance(k, (int, np.integer)) or isinstance(k, bool) or k < 1:
-        raise FunctionalMapError(f"{name} must be a positive integer number of basis functions; found {k!r}.")
+    expected = "a positive integer number of basis functions"
+    k = check_integer(k, name, low=1, error=FunctionalMapError, expected=expected)
     if k > basis.k:
         raise FunctionalMapError(
             f"{name}={k} basis functions requested, but the basis has only {basis.k}; compute a larger basis."

@@ -18,29 +18,31 @@ from __future__ import annotations
 
 import copy
 import dataclasses
-import importlib
 import json
 import logging
 import math
 import os
 import time
-from collections import OrderedDict
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, ClassVar, NamedTuple
+from typing import Any, ClassVar
 
 import numpy as np
 import torch
 from tqdm.auto import tqdm
 
-import geofeat
-from geofeat.checks import canonical, check_integer, check_number
-from geofeat.datasets.records import ShapePair
+from geofeat._version import __version__
+from geofeat.checks import canonical, check_integer, check_number, is_boolean
+from geofeat.datasets.records import Match, ShapePair  # Match is re-exported: heads return it
+from geofeat.descriptors.compute import compute
 from geofeat.devices import resolve_device
 from geofeat.errors import GeofeatError
 from geofeat.files import atomic_write, load_torch_file
+from geofeat.jsonconfig import JsonConfig
+from geofeat.lru import LRUCache
 from geofeat.mesh import Mesh
+from geofeat.registry import LazyEntry, lookup
 
 from . import matchers
 from .operators import SurfaceOperators, surface_operators
@@ -67,6 +69,8 @@ __all__ = [
 ]
 
 CONFIG_FILE = "head_config.json"
+#: Meshes whose input features and operators a learned head keeps (`LearnedHead.shape_inputs`).
+_INPUTS_KEPT = 64
 WEIGHTS_FILE = "weights.safetensors"
 
 
@@ -79,8 +83,11 @@ class UnusablePair(HeadError):
 
 
 @dataclass
-class HeadConfig:
+class HeadConfig(JsonConfig):
     """Settings shared by every head (subclasses add their own fields).
+
+    `Head.save` writes them into ``head_config.json``; reading goes through
+    `geofeat.jsonconfig.JsonConfig.from_dict` (a key that is no setting: a warning, kept aside).
 
     Parameters
     ----------
@@ -137,41 +144,7 @@ class HeadConfig:
     operators: str = "geofeat"
     mesh_normalization: str | None = None
 
-    def to_dict(self) -> dict[str, Any]:
-        """JSON-ready settings."""
-        return dataclasses.asdict(self)
-
-    @classmethod
-    def from_dict(cls, data: dict[str, Any]) -> HeadConfig:
-        """Build from a mapping; unknown keys are ignored (logged at debug level)."""
-        names = {f.name for f in dataclasses.fields(cls)}
-        unknown = sorted(set(data) - names)
-        if unknown:
-            log.debug("ignoring unknown head settings %s", unknown)
-        return cls(**{k: v for k, v in data.items() if k in names})
-
-
-class Match(NamedTuple):
-    """A predicted correspondence from ``y`` to ``x``.
-
-    Attributes
-    ----------
-    map_yx : numpy.ndarray, shape (V_y,), int64
-        For every vertex of ``y`` a vertex of ``x``.
-    overlap_y : numpy.ndarray, shape (V_y,), bool
-        Vertices of ``y`` predicted to have a counterpart (all True for heads without overlap prediction).
-    overlap_x : numpy.ndarray, shape (V_x,), bool, or None
-        Vertices of ``x`` predicted to have a counterpart, where the head predicts it.
-    overlap_prob_y : numpy.ndarray, shape (V_y,), float32, or None
-    overlap_prob_x : numpy.ndarray, shape (V_x,), float32, or None
-        The overlap probabilities behind the masks, from heads that predict them.
-    """
-
-    map_yx: np.ndarray
-    overlap_y: np.ndarray
-    overlap_x: np.ndarray | None = None
-    overlap_prob_y: np.ndarray | None = None
-    overlap_prob_x: np.ndarray | None = None
+    error: ClassVar[type[GeofeatError]] = HeadError
 
 
 def check_integers(head: str, config: HeadConfig, names: Sequence[str], low: int) -> None:
@@ -342,7 +315,7 @@ def input_features(mesh: Mesh, descriptor: str, params: dict | None = None) -> n
     if descriptor == "xyz":
         params = dict(params or {})
         normalize = params.pop("normalize", True)
-        if params or not isinstance(normalize, bool):
+        if params or not is_boolean(normalize):
             raise HeadError(f"descriptor 'xyz' takes only normalize=True/False; found {sorted(params) or normalize!r}.")
         if not normalize:
             return np.ascontiguousarray(mesh.verts, dtype=np.float32)
@@ -350,7 +323,7 @@ def input_features(mesh: Mesh, descriptor: str, params: dict | None = None) -> n
         area = mesh.area() if mesh.faces is not None else 0.0
         scale = math.sqrt(area) if area > 0 else 1.0
         return np.ascontiguousarray(verts / scale, dtype=np.float32)
-    return geofeat.compute(mesh, descriptor, **(params or {}))
+    return compute(mesh, descriptor, **(params or {}))
 
 
 class Head:
@@ -377,7 +350,7 @@ class Head:
             raise HeadError(f"head {self.name!r} takes a {self.config_class.__name__}; found {type(config).__name__}.")
         self.config = config
         _check_inputs(config)
-        self._inputs: OrderedDict[str, tuple[torch.Tensor, SurfaceOperators]] = OrderedDict()
+        self._inputs: LRUCache[str, tuple[torch.Tensor, SurfaceOperators]] = LRUCache(_INPUTS_KEPT)
 
     # -- inputs
 
@@ -405,16 +378,12 @@ class Head:
 
     def shape_inputs(self, mesh: Mesh) -> tuple[torch.Tensor, SurfaceOperators]:
         """Input features as a tensor (V, C) and the surface operators, on the head's device (kept for 64 meshes)."""
-        key = mesh.hash
-        if key in self._inputs:
-            self._inputs.move_to_end(key)
-            return self._inputs[key]
-        feats = torch.as_tensor(self.features(mesh), device=self.device)
-        entry = (feats, self.operators(mesh).to(self.device))
-        self._inputs[key] = entry
-        while len(self._inputs) > 64:
-            self._inputs.popitem(last=False)
-        return entry
+
+        def build() -> tuple[torch.Tensor, SurfaceOperators]:
+            feats = torch.as_tensor(self.features(mesh), device=self.device)
+            return feats, self.operators(mesh).to(self.device)
+
+        return self._inputs.get_or_compute(mesh.hash, build)
 
     def use_inputs(self, mesh: Mesh, features: torch.Tensor, operators: SurfaceOperators) -> None:
         """Use these input features and operators for ``mesh`` instead of computing them.
@@ -434,10 +403,7 @@ class Head:
                 f"use_inputs: features (V, C) and operators must be of mesh {mesh.name!r} with {mesh.n_vertices} vertices; "
                 f"found features {tuple(features.shape)} and operators of {operators.n_vertices} vertices."
             )
-        self._inputs[mesh.hash] = (features.to(self.device, torch.float32), operators.to(self.device))
-        self._inputs.move_to_end(mesh.hash)
-        while len(self._inputs) > 64:
-            self._inputs.popitem(last=False)
+        self._inputs.put(mesh.hash, (features.to(self.device, torch.float32), operators.to(self.device)))
 
     # -- the interface
 
@@ -453,7 +419,7 @@ class Head:
         """Write ``head_config.json`` (and the weights of learned heads) into ``folder``."""
         folder = Path(folder)
         folder.mkdir(parents=True, exist_ok=True)
-        payload = {"head": self.name, "geofeat_version": geofeat.__version__, "config": self.config.to_dict()}
+        payload = {"head": self.name, "geofeat_version": __version__, "config": self.config.to_dict()}
         text = json.dumps(payload, indent=2, sort_keys=True) + "\n"
         atomic_write(folder / CONFIG_FILE, lambda tmp: tmp.write_text(text))
         return folder
@@ -609,21 +575,25 @@ class LearnedHead(Head):
 
 
 #: name -> "module:Class" (imported on first use)
-HEADS = {
-    "nn": "geofeat.adapters.heads:NearestNeighbourHead",
-    "fmap": "geofeat.adapters.heads:FunctionalMapHead",
-    "ulrssm": "geofeat.adapters.ulrssm:ULRSSMHead",
-    "dpfm": "geofeat.adapters.dpfm:DPFMHead",
-    "echomatch": "geofeat.adapters.echomatch:EchoMatchHead",
+#: Head names: `geofeat.registry.LazyEntry` values (or bare ``"module:Class"`` strings), imported on first use.
+HEADS: dict[str, LazyEntry | str] = {
+    "nn": LazyEntry("nn", "geofeat.adapters.heads:NearestNeighbourHead", summary="nearest neighbour in feature space"),
+    "fmap": LazyEntry("fmap", "geofeat.adapters.heads:FunctionalMapHead", summary="functional map from the input features"),
+    "ulrssm": LazyEntry(
+        "ulrssm",
+        "geofeat.adapters.ulrssm:ULRSSMHead",
+        summary="ULRSSM: unsupervised DiffusionNet features, functional-map losses",
+    ),
+    "dpfm": LazyEntry("dpfm", "geofeat.adapters.dpfm:DPFMHead", summary="DPFM: supervised, overlap-aware functional maps"),
+    "echomatch": LazyEntry(
+        "echomatch", "geofeat.adapters.echomatch:EchoMatchHead", summary="EchoMatch: overlap by correspondence reflection"
+    ),
 }
 
 
 def head_class(name: str) -> type[Head]:
-    """The `Head` subclass registered under ``name``."""
-    if name not in HEADS:
-        raise HeadError(f"unknown head {name!r}; valid names: {sorted(HEADS)}.")
-    module, cls = HEADS[name].split(":")
-    return getattr(importlib.import_module(module), cls)
+    """The `Head` subclass registered under ``name`` (`HeadError` for an unknown name, with suggestions)."""
+    return lookup(HEADS, name, "head", HeadError).load("head")
 
 
 def make_head(name: str, preset: str | None = None, **settings: Any) -> Head:

@@ -15,8 +15,6 @@ handed out as float32 torch tensors.
 
 from __future__ import annotations
 
-import threading
-from collections import OrderedDict
 from dataclasses import dataclass, fields, replace
 
 import numpy as np
@@ -27,7 +25,9 @@ from scipy.spatial import cKDTree
 from geofeat.devices import resolve_device
 from geofeat.errors import MeshError
 from geofeat.geometry.spectral import spectral_basis
+from geofeat.lru import LRUCache
 from geofeat.mesh import Mesh
+from geofeat.topology import unique_edges
 
 #: Neighbours of each point used for normals and gradients of a point cloud (as in DiffusionNet).
 N_NEIGHBORS_CLOUD = 30
@@ -131,8 +131,7 @@ def _same_device(a: torch.device, b: torch.device) -> bool:
     return (a.index if a.index is not None else current) == (b.index if b.index is not None else current)
 
 
-_operator_cache: OrderedDict[tuple, SurfaceOperators] = OrderedDict()
-_operator_lock = threading.Lock()
+_operator_cache: LRUCache[tuple, SurfaceOperators] = LRUCache(lambda: _CACHE_SIZE)
 
 
 def surface_operators(
@@ -177,11 +176,8 @@ def surface_operators(
     if construction not in CONSTRUCTIONS:
         raise MeshError(f"unknown operator construction {construction!r}; expected one of {CONSTRUCTIONS}.")
     key = (mesh.hash, int(k) if isinstance(k, (int, np.integer)) else k, laplacian_kind, construction)
-    if cache:
-        with _operator_lock:
-            if key in _operator_cache:
-                _operator_cache.move_to_end(key)
-                return _operator_cache[key]
+    if cache and (ops := _operator_cache.get(key)) is not None:
+        return ops
     basis = spectral_basis(mesh, k, laplacian_kind=laplacian_kind)
     eps = NORMALIZE_EPS.get(construction)
     if eps is None:
@@ -190,7 +186,7 @@ def surface_operators(
     else:
         frames = tangent_frames(vertex_normals(mesh, face_weights="unit", normalize_eps=eps), normalize_eps=eps)
         grad_x, grad_y = gradient_matrices(mesh, frames, REFERENCE_GRADIENT_REGULARIZATION)
-    edges = None if mesh.faces is None else _undirected_edges(mesh.faces)
+    edges = None if mesh.faces is None else unique_edges(mesh.faces)
     ops = SurfaceOperators(
         mass=_dense32(basis.mass),
         evals=_dense32(np.clip(basis.evals, 0.0, None)),
@@ -202,17 +198,13 @@ def surface_operators(
         edges=None if edges is None else torch.from_numpy(edges),
     )
     if cache:
-        with _operator_lock:
-            _operator_cache[key] = ops
-            while len(_operator_cache) > _CACHE_SIZE:
-                _operator_cache.popitem(last=False)
+        _operator_cache.put(key, ops)
     return ops
 
 
 def clear_operator_cache() -> None:
     """Forget every cached `SurfaceOperators` (the spectral-basis cache is left alone)."""
-    with _operator_lock:
-        _operator_cache.clear()
+    _operator_cache.clear()
 
 
 def _dense32(array: np.ndarray) -> torch.Tensor:
@@ -377,7 +369,7 @@ def gradient_matrices(
 def _directed_neighbors(mesh: Mesh) -> tuple[np.ndarray, np.ndarray]:
     """(tail, tip) index arrays of every directed neighbour pair, no self pairs."""
     if mesh.faces is not None:
-        edges = _undirected_edges(mesh.faces)
+        edges = unique_edges(mesh.faces)
         return np.concatenate((edges[:, 0], edges[:, 1])), np.concatenate((edges[:, 1], edges[:, 0]))
     n = mesh.n_vertices
     n_query = min(N_NEIGHBORS_CLOUD + 1, n)
@@ -388,11 +380,3 @@ def _directed_neighbors(mesh: Mesh) -> tuple[np.ndarray, np.ndarray]:
     tips = neighbors.ravel()
     keep = tips != tails  # the point itself (or a duplicate of it found first)
     return tails[keep], tips[keep]
-
-
-def _undirected_edges(faces: np.ndarray) -> np.ndarray:
-    """Unique undirected edges (E, 2) int64 of the triangles, smaller index first, no self edges."""
-    pairs = faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2)
-    pairs = np.sort(pairs, axis=1)
-    pairs = pairs[pairs[:, 0] != pairs[:, 1]]
-    return np.unique(pairs, axis=0).astype(np.int64)

@@ -77,7 +77,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from geofeat.checks import is_finite_number, is_integer
+from geofeat.checks import canonical, check_boolean, check_number, is_boolean, is_integer
 from geofeat.datasets.records import ShapePair
 from geofeat.mesh import Mesh
 
@@ -458,9 +458,10 @@ def _validate(c: ULRSSMConfig) -> None:
     if c.grad_clip is not None:
         check_numbers("ulrssm", c, ("grad_clip",), 0.0, low_open=True)
     check_integers("ulrssm", c, ("tta_steps",), 0)
-    if not (isinstance(c.dropout, bool) or (is_finite_number(c.dropout) and 0 <= c.dropout < 1)):
-        raise HeadError(f"ulrssm: dropout must be True, False or a probability in [0, 1); found {c.dropout!r}.")
+    if not is_boolean(c.dropout):
+        expected = "True, False or a probability in [0, 1)"
+        check_number(c.dropout, "dropout", owner="ulrssm", low=0, high=1, high_open=True, error=HeadError, expected=expected)
+    c.dropout = canonical(c.dropout)
     if c.gradient_mixing not in GRADIENT_MIXINGS:
         raise HeadError(f"ulrssm: gradient_mixing must be one of {GRADIENT_MIXINGS}; found {c.gradient_mixing!r}.")
-    if not isinstance(c.refine_fmap, bool):
-        raise HeadError(f"ulrssm: refine_fmap must be True or False; found {c.refine_fmap!r}.")
+    c.refine_fmap = check_boolean(c.refine_fmap, "refine_fmap", owner="ulrssm", error=HeadError)

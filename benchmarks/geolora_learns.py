@@ -28,13 +28,13 @@ import os
 import sys
 from pathlib import Path
 
-HERE = Path(__file__).resolve().parent
-sys.path.insert(0, str(HERE))
+import numpy as np
+import torch
+from common import machine
 
-import numpy as np  # noqa: E402
-import torch  # noqa: E402
-from common import machine  # noqa: E402
-from report import markdown_table  # noqa: E402
+from geofeat.report import markdown_table
+
+HERE = Path(__file__).resolve().parent
 
 RESULTS = HERE / "results" / "geolora_learns"
 LOSSES = ("geodesic", "plain")

@@ -28,12 +28,10 @@ import os
 import sys
 from pathlib import Path
 
-HERE = Path(__file__).resolve().parent
-if str(HERE) not in sys.path:
-    sys.path.insert(0, str(HERE))
+from common import machine
+from parity_common import markdown
 
-from common import machine  # noqa: E402
-from parity_common import markdown  # noqa: E402
+HERE = Path(__file__).resolve().parent
 
 
 def main(argv=None) -> int:

@@ -32,13 +32,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from scipy.spatial import cKDTree
-
-HERE = Path(__file__).resolve().parent
-if str(HERE) not in sys.path:
-    sys.path.insert(0, str(HERE))
-
-from parity_common import (  # noqa: E402
+from parity_common import (
     Stage,
     as_surface_operators,
     compare,
@@ -47,8 +41,9 @@ from parity_common import (  # noqa: E402
     reference_import,
     seconds_per_call,
 )
+from scipy.spatial import cKDTree
 
-from geofeat.adapters.dpfm import (  # noqa: E402
+from geofeat.adapters.dpfm import (
     DPFMHead,
     ReferenceCandidates,
     _nce_loss,
@@ -57,9 +52,11 @@ from geofeat.adapters.dpfm import (  # noqa: E402
     template_fmap,
     weighted_overlap_bce,
 )
-from geofeat.adapters.heads import load_head  # noqa: E402
-from geofeat.adapters.operators import surface_operators  # noqa: E402
-from geofeat.datasets import load_dataset  # noqa: E402
+from geofeat.adapters.heads import load_head
+from geofeat.adapters.operators import surface_operators
+from geofeat.datasets import load_dataset
+
+HERE = Path(__file__).resolve().parent
 
 DEFAULT_PAIR = ("tr_reg_080", "tr_reg_081")  # (x, y) = (shape1, shape2) of the reference
 #: Seed of torch's generator before the reference draws its farthest-point start (it uses no seed).

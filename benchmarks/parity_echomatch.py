@@ -56,18 +56,15 @@ from typing import Any
 
 import numpy as np
 import torch
+from parity_common import Stage, compare, markdown, reference_import, seconds_per_call
+
+import geofeat.adapters.echomatch as echomatch_module
+from geofeat.adapters.echomatch import EchoMatchHead
+from geofeat.adapters.heads import ground_truth_map, ground_truth_overlaps, make_head, normalized_mesh
+from geofeat.datasets import load_dataset
+from geofeat.datasets.records import ShapePair
 
 HERE = Path(__file__).resolve().parent
-if str(HERE) not in sys.path:
-    sys.path.insert(0, str(HERE))
-
-from parity_common import Stage, compare, markdown, reference_import, seconds_per_call  # noqa: E402
-
-import geofeat.adapters.echomatch as echomatch_module  # noqa: E402
-from geofeat.adapters.echomatch import EchoMatchHead  # noqa: E402
-from geofeat.adapters.heads import ground_truth_map, ground_truth_overlaps, make_head, normalized_mesh  # noqa: E402
-from geofeat.datasets import load_dataset  # noqa: E402
-from geofeat.datasets.records import ShapePair  # noqa: E402
 
 #: The reference's training configuration its model is built from (relative to the clone).
 REFERENCE_CONFIG = "options/echo_match/train/echo_match_cp2p24_xyz.yaml"

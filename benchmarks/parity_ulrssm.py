@@ -23,12 +23,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
-
-HERE = Path(__file__).resolve().parent
-if str(HERE) not in sys.path:
-    sys.path.insert(0, str(HERE))
-
-from parity_common import (  # noqa: E402
+from parity_common import (
     Stage,
     as_surface_operators,
     compare,
@@ -38,9 +33,11 @@ from parity_common import (  # noqa: E402
     seconds_per_call,
 )
 
-from geofeat.adapters.heads import load_head  # noqa: E402
-from geofeat.adapters.ulrssm import ULRSSMHead  # noqa: E402
-from geofeat.datasets import load_dataset  # noqa: E402
+from geofeat.adapters.heads import load_head
+from geofeat.adapters.ulrssm import ULRSSMHead
+from geofeat.datasets import load_dataset
+
+HERE = Path(__file__).resolve().parent
 
 DEFAULT_PAIR = ("tr_reg_081", "tr_reg_080")  # (y, x)
 

@@ -23,18 +23,15 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from parity_common import reference_import
 from scipy.spatial import cKDTree
 from tqdm.auto import tqdm
 
+from geofeat import metrics
+from geofeat.datasets import load_dataset
+from geofeat.geometry.geodesic import geodesic_matrix
+
 HERE = Path(__file__).resolve().parent
-if str(HERE) not in sys.path:
-    sys.path.insert(0, str(HERE))
-
-from parity_common import reference_import  # noqa: E402
-
-from geofeat import metrics  # noqa: E402
-from geofeat.datasets import load_dataset  # noqa: E402
-from geofeat.geometry.geodesic import geodesic_matrix  # noqa: E402
 
 
 def reference_faust_r(repo: Path, checkpoint: Path, data_root: Path, seed: int = 0, limit: int | None = None,

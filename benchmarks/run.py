@@ -10,6 +10,12 @@ With no arguments it runs offline on the built-in synthetic collection::
 Learned heads (ulrssm, dpfm, echomatch) are trained first on ``--train-split`` of the same
 dataset (or loaded with ``--load``) and saved into ``<out>/head``. Writes into ``--out`` (default ``benchmarks/results/<pipeline>_<dataset>_<descriptor>``):
 ``results.json``, ``results.md``, ``pck.png`` and ``pairs.png``.
+
+Pairs are evaluated target shape by target shape (`geofeat.evaluation.evaluate_dataset`), in
+``--workers`` forked processes for the training-free pipelines, with the same numbers for
+any number of workers. The targets' geodesic matrices are kept on disk in
+``<geofeat cache>/geodesics`` (``$GEOFEAT_CACHE_DIR``, default ``~/.cache/geofeat``) and the
+descriptors in ``<geofeat cache>/features``, so a second run reads them back.
 """
 
 from __future__ import annotations
@@ -25,21 +31,17 @@ import time
 from pathlib import Path
 
 import numpy as np
-from tqdm.auto import tqdm
+
+import geofeat
+from geofeat.adapters.heads import Head, Match, load_head, make_head
+from geofeat.datasets import dataset_names, load_dataset
+from geofeat.descriptors.registry import make_descriptor
+from geofeat.evaluation import SUMMARY_COLUMNS, default_workers, evaluate_dataset, summarize
+from geofeat.files import atomic_write
+from geofeat.geometry.geodesic import GeodesicStore
+from geofeat.report import markdown_table, plot_pairs, plot_pck
 
 HERE = Path(__file__).resolve().parent
-sys.path.insert(0, str(HERE))
-
-from report import markdown_table, plot_pairs, plot_pck  # noqa: E402
-
-import geofeat  # noqa: E402
-from geofeat import metrics  # noqa: E402
-from geofeat.adapters.heads import Head, Match, load_head, make_head  # noqa: E402
-from geofeat.datasets import dataset_names, load_dataset  # noqa: E402
-from geofeat.descriptors.registry import make_descriptor  # noqa: E402
-from geofeat.files import atomic_write  # noqa: E402
-from geofeat.geometry.geodesic import geodesic_matrix  # noqa: E402
-
 log = logging.getLogger("benchmarks.run")
 
 REFERENCE_PIPELINES = ("random", "mirrored_truth")
@@ -120,6 +122,26 @@ def train_head(head: Head, args, out: Path) -> dict:
     return record
 
 
+class _HeadMatch:
+    """``match(index, pair)`` of `geofeat.evaluation.evaluate_dataset` for a head."""
+
+    def __init__(self, head: Head):
+        self.head = head
+
+    def __call__(self, index: int, pair) -> Match:
+        return self.head.match(pair)
+
+
+class _ReferenceMatch:
+    """``match(index, pair)`` of a reference pipeline, seeded by the pair index."""
+
+    def __init__(self, pipeline: str, seed: int):
+        self.pipeline, self.seed = pipeline, seed
+
+    def __call__(self, index: int, pair) -> Match:
+        return reference_match(self.pipeline, pair, seed=self.seed * 100003 + index)
+
+
 class _Pairs:
     """The first ``n`` pairs of a dataset as a sequence, loaded on access."""
 
@@ -135,78 +157,6 @@ class _Pairs:
         return self.dataset[i]
 
 
-def evaluate_pair(pair, match: Match, protocol: str = "vertices") -> dict:
-    """Per-pair metrics; ``errors`` is the array of geodesic errors of the evaluated points.
-
-    ``protocol="vertices"`` evaluates every vertex of ``y`` with a counterpart (our default);
-    ``"template"`` evaluates the template points of datasets with a common template
-    (FAUST_r, SCAPE_r), as the ULRSSM and DPFM references do
-    (`geofeat.metrics.template_geodesic_errors`).
-
-    The overlap IoU is the mean over the shapes whose ground-truth overlap the dataset gives; a
-    head that predicts no overlap for a shape counts as predicting all of it. Heads that give
-    overlap probabilities also get their ROC AUC, averaged over the shapes whose ground truth
-    holds both classes.
-    """
-    dist_x = geodesic_matrix(pair.x, method="dijkstra", normalize=True)
-    predicted = match.map_yx
-    if protocol == "template":
-        if pair.corr_x is None or pair.corr_y is None:
-            raise geofeat.DatasetError(
-                f"pair {pair.name}: --protocol template needs a dataset with template points (faust_r, scape_r)"
-            )
-        errors = metrics.template_geodesic_errors(predicted, pair.corr_x, pair.corr_y, dist_x)
-        sym = None
-        if pair.corr_x_sym is not None:
-            sym = (metrics.at_template_points(predicted, pair.corr_y), pair.corr_x, pair.corr_x_sym)
-    else:
-        errors = metrics.geodesic_errors(predicted, pair.map_yx, dist_x)
-        sym = None if pair.map_yx_sym is None else (predicted, pair.map_yx, pair.map_yx_sym)
-    record = {"pair": f"{pair.y.name}->{pair.x.name}", "errors": errors, "n_evaluated": int(errors.size)}
-    if sym is not None:
-        record["chirality_accuracy"] = metrics.chirality_accuracy(*sym, dist_x)
-    ious = [
-        metrics.overlap_iou(np.ones(truth.shape, dtype=bool) if guess is None else guess, truth)
-        for guess, truth in ((match.overlap_y, pair.overlap_y), (match.overlap_x, pair.overlap_x))
-        if truth is not None
-    ]
-    if ious:
-        record["iou"] = float(np.mean(ious))
-    aucs = [
-        metrics.overlap_auc(scores, truth)
-        for scores, truth in ((match.overlap_prob_y, pair.overlap_y), (match.overlap_prob_x, pair.overlap_x))
-        if scores is not None and truth is not None
-    ]
-    aucs = [auc for auc in aucs if auc is not None]
-    if aucs:
-        record["overlap_auc"] = float(np.mean(aucs))
-    return record
-
-
-def summarize(records: list[dict]) -> dict:
-    """Pooled metrics over pairs, the way published tables report them."""
-    errors = [r["errors"] for r in records]
-    thresholds, fractions = metrics.pck_curve(np.concatenate(errors))
-    summary = {
-        "n_pairs": len(records),
-        "n_evaluated_vertices": int(sum(r["n_evaluated"] for r in records)),
-        "geodesic_error": metrics.mean_geodesic_error(errors),
-        "pck_auc": metrics.pck_auc(np.concatenate(errors)),
-        "pck_thresholds": thresholds.tolist(),
-        "pck": fractions.tolist(),
-    }
-    with_chirality = [r for r in records if "chirality_accuracy" in r]
-    if with_chirality:
-        weights = np.array([r["n_evaluated"] for r in with_chirality], dtype=float)
-        values = np.array([r["chirality_accuracy"] for r in with_chirality])
-        summary["chirality_accuracy"] = float((weights * values).sum() / weights.sum())
-    for key, name in (("iou", "miou"), ("overlap_auc", "overlap_auc")):
-        values = [r[key] for r in records if key in r]
-        if values:
-            summary[name] = float(np.mean(values))
-    return summary
-
-
 def _pair_count(text: str) -> int:
     """argparse type of ``--limit``: a positive whole number of pairs."""
     try:
@@ -217,6 +167,17 @@ def _pair_count(text: str) -> int:
         raise argparse.ArgumentTypeError(
             f"expected a positive number of pairs (at least 1), found {value}; leave --limit out for all pairs"
         )
+    return value
+
+
+def _worker_count(text: str) -> int:
+    """argparse type of ``--workers``: a positive whole number of processes."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a positive whole number of processes, found {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected at least 1 process, found {value}")
     return value
 
 
@@ -260,6 +221,17 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument("--limit", type=_pair_count, default=None, help="evaluate the first N pairs only (N >= 1)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", default=None)
+    parser.add_argument(
+        "--workers",
+        type=_worker_count,
+        default=None,
+        help="processes that evaluate target shapes side by side (default: the usable CPU cores; 1 for learned heads)",
+    )
+    parser.add_argument(
+        "--no-geodesic-store",
+        action="store_true",
+        help="compute the targets' geodesic matrices in memory instead of keeping them in <geofeat cache>/geodesics",
+    )
     parser.add_argument("--no-progress", action="store_true")
     return parser.parse_args(argv)
 
@@ -310,18 +282,26 @@ def main(argv=None) -> int:
     out.mkdir(parents=True, exist_ok=True)
     training = train_head(head, args, out) if args.pipeline in LEARNED_PIPELINES else {}
 
+    if head is None:
+        match = _ReferenceMatch(args.pipeline, args.seed)
+    else:
+        match = _HeadMatch(head)
+    workers = args.workers or (1 if args.pipeline in LEARNED_PIPELINES else default_workers())
+    store = None if args.no_geodesic_store else GeodesicStore()
     start = time.perf_counter()
-    records, pictures = [], []
-    for i in tqdm(range(n_pairs), desc=f"{args.pipeline} on {args.dataset}", unit="pair", disable=args.no_progress):
-        pair = dataset[i]
-        if head is None:
-            match = reference_match(args.pipeline, pair, seed=args.seed * 100003 + i)
-        else:
-            match = head.match(pair)
-        records.append(evaluate_pair(pair, match, args.protocol))
-        if len(pictures) < N_PICTURES:
-            pictures.append((pair, match.map_yx, f"{args.descriptor} + {args.pipeline}"))
+    records, kept = evaluate_dataset(
+        dataset,
+        match,
+        n_pairs,
+        protocol=args.protocol,
+        store=store,
+        workers=workers,
+        keep=range(N_PICTURES),
+        progress=not args.no_progress,
+        desc=f"{args.pipeline} on {args.dataset}",
+    )
     seconds = time.perf_counter() - start
+    pictures = [(pair, m.map_yx, f"{args.descriptor} + {args.pipeline}") for pair, m in kept.values()]
 
     summary = summarize(records)
     result = {
@@ -337,30 +317,14 @@ def main(argv=None) -> int:
         "seconds": seconds,
         "head": None if head is None else {"name": head.name, "config": head.config.to_dict()},
         **training,
-        **summary,
-        "pairs": [
-            {k: v for k, v in r.items() if k != "errors"} | {"geodesic_error": 100 * float(r["errors"].mean())} for r in records
-        ],
+        **summary.to_dict(),
+        "pairs": [record.to_dict() for record in records],
     }
     (out / "results.json").write_text(json.dumps(result, indent=1) + "\n")
-    columns = [
-        ("pipeline", "pipeline", "s"),
-        ("descriptor", "descriptor", "s"),
-        ("dataset", "dataset", "s"),
-        ("n_pairs", "pairs", "d"),
-        ("geodesic_error", "geodesic error x100", ".2f"),
-        ("pck_auc", "PCK AUC", ".3f"),
-        ("miou", "mIoU", ".3f"),
-        ("overlap_auc", "overlap AUC", ".3f"),
-        ("chirality_accuracy", "chirality acc.", ".3f"),
-    ]
+    columns = [("pipeline", "pipeline", "s"), ("descriptor", "descriptor", "s"), ("dataset", "dataset", "s"), *SUMMARY_COLUMNS]
     table = markdown_table([result], columns)
     (out / "results.md").write_text(table + "\n")
-    plot_pck(
-        {f"{args.descriptor} + {args.pipeline}": (np.array(summary["pck_thresholds"]), np.array(summary["pck"]))},
-        out / "pck.png",
-        args.dataset,
-    )
+    plot_pck({f"{args.descriptor} + {args.pipeline}": summary.pck_curve}, out / "pck.png", args.dataset)
     plot_pairs(pictures, out / "pairs.png")
     print(table)
     trained = (

@@ -1,8 +1,10 @@
 """Time one shape through the multi-view DINO path, stage by stage, and draw what it makes.
 
-Stages, each summed over the batches of views: render (rasterize + gray Phong shading),
-backbone (ImageNet normalisation, ViT forward, upsampling, per-pixel L2 norm) and
-back-projection (ball mode: KD-tree neighbours and a sparse product). Backbones are randomly
+The path is `geofeat.render.multiview_features`, the one of the DINO descriptors and the
+GeoLoRA trainer. Stages, each summed over the batches of views: render (rasterize + gray
+Phong shading), backbone (ImageNet normalisation, ViT forward, bilinear samples of the patch
+grid at the foreground pixels, per-pixel L2 norm) and back-projection (ball mode: KD-tree
+neighbours and a sparse product). Backbones are randomly
 initialised DINOv3 architectures (no weights can be downloaded here): a tiny one and one of
 ViT-B/16 size (12 layers, width 768, 12 heads, 4 register tokens).
 
@@ -17,6 +19,7 @@ Usage::
 from __future__ import annotations
 
 import argparse
+import contextlib
 import datetime
 import json
 import sys
@@ -30,11 +33,10 @@ HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 
 from common import DEFAULT_DATA, faust_test_shapes, machine  # noqa: E402
-from report import plot_mesh_colors  # noqa: E402
 
 from geofeat.backbones import DinoBackbone  # noqa: E402
-from geofeat.render import make_cameras, render_phong  # noqa: E402
-from geofeat.render.backproject import VertexFeatureAccumulator  # noqa: E402
+from geofeat.render import make_cameras, multiview_features, render_phong  # noqa: E402
+from geofeat.report import plot_mesh_colors  # noqa: E402
 
 BACKBONES = {
     "tiny (2 layers, width 32)": dict(hidden_size=32, intermediate_size=64, num_hidden_layers=2, num_attention_heads=2),
@@ -53,29 +55,22 @@ def random_dinov3(seed: int, **sizes) -> DinoBackbone:
     return DinoBackbone(DINOv3ViTModel(config), kind="dinov3")
 
 
-def run_stages(mesh, cameras, backbone: DinoBackbone, batch_size: int) -> tuple[dict, np.ndarray, list]:
-    """Seconds per stage, vertex features (V, C) and the rendered images (kept for the figure)."""
-    seconds = {"render": 0.0, "backbone": 0.0, "backproject": 0.0}
-    accumulator = VertexFeatureAccumulator(mesh.verts, mesh.faces, backbone.embed_dim, mode="ball")
-    size = (cameras.height, cameras.width)
-    images = []
-    for start in range(0, len(cameras), batch_size):
-        views = cameras[start : start + batch_size]
-        t0 = time.perf_counter()
-        rendering = render_phong(mesh, None, views)
-        t1 = time.perf_counter()
-        features = backbone.pixel_features(rendering.images, size, batch_size=batch_size)
-        t2 = time.perf_counter()
-        accumulator.add(features, rendering.fragments.pix_to_face, rendering.fragments.bary)
-        t3 = time.perf_counter()
-        seconds["render"] += t1 - t0
-        seconds["backbone"] += t2 - t1
-        seconds["backproject"] += t3 - t2
-        images.extend(rendering.images.numpy())
-    t0 = time.perf_counter()
-    features, _ = accumulator.result()
-    seconds["backproject"] += time.perf_counter() - t0
-    return seconds, features, images
+def run_stages(mesh, cameras, backbone: DinoBackbone, batch_size: int) -> tuple[dict, np.ndarray]:
+    """Seconds per stage and the vertex features (V, C) of one pass through the multi-view path."""
+    seconds = {"render": 0.0, "forward": 0.0, "backproject": 0.0}
+
+    @contextlib.contextmanager
+    def timer(phase: str):
+        start = time.perf_counter()
+        try:
+            yield
+        finally:
+            seconds[phase] += time.perf_counter() - start
+
+    features, _ = multiview_features(mesh, cameras, backbone, backproject="ball", batch_size=batch_size, timer=timer)
+    return {"render": seconds["render"], "backbone": seconds["forward"], "backproject": seconds["backproject"]}, (
+        features.cpu().numpy()
+    )
 
 
 def pca_colors(features: np.ndarray) -> np.ndarray:
@@ -120,7 +115,7 @@ def main(argv=None) -> int:
     mesh = faust_test_shapes(args.data, 1)[0]
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    rows, features_for_figure, images_for_figure = [], None, None
+    rows, features_for_figure = [], None
     for label, sizes in BACKBONES.items():
         backbone = random_dinov3(0, **sizes)
         backbone.model.to(
@@ -128,10 +123,11 @@ def main(argv=None) -> int:
         )
         cameras = make_cameras(mesh, args.views, layout="official", image_size=args.image_size, device=backbone.device)
         run_stages(mesh, cameras[:1], backbone, 1)  # warm-up: first-call allocations
-        seconds, features, images = run_stages(mesh, cameras, backbone, args.batch_size)
+        seconds, features = run_stages(mesh, cameras, backbone, args.batch_size)
         rows.append({"name": label, **seconds, "total": sum(seconds.values())})
         print(f"{label}: " + ", ".join(f"{k} {v:.2f} s" for k, v in rows[-1].items() if k != "name"), flush=True)
-        features_for_figure, images_for_figure = features, images
+        features_for_figure = features
+    images_for_figure = list(render_phong(mesh, None, cameras).images.numpy())  # for the figure, not timed
 
     result = {
         "date": datetime.date.today().isoformat(),

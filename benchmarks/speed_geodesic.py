@@ -36,15 +36,13 @@ from pathlib import Path
 
 import numpy as np
 import scipy.sparse as sp
+from common import DEFAULT_DATA, faust_test_shapes, machine
 from scipy.sparse.csgraph import dijkstra
 
 import geofeat
 from geofeat.geometry.geodesic import edge_graph, geodesic_matrix
 
 HERE = Path(__file__).resolve().parent
-sys.path.insert(0, str(HERE))
-
-from common import DEFAULT_DATA, faust_test_shapes, machine  # noqa: E402
 
 METHODS = ("baseline", "scipy_all_sources", "geofeat_dijkstra", "geofeat_heat")
 LABELS = {

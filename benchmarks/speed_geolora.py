@@ -22,16 +22,15 @@ import sys
 import tempfile
 from pathlib import Path
 
+import numpy as np
+import torch
+from common import machine
+
+from geofeat.backbones import DinoBackbone
+from geofeat.train.config import TrainConfig
+from geofeat.train.trainer import PHASES, GeoLoraTrainer
+
 HERE = Path(__file__).resolve().parent
-sys.path.insert(0, str(HERE))
-
-import numpy as np  # noqa: E402
-import torch  # noqa: E402
-from common import machine  # noqa: E402
-
-from geofeat.backbones import DinoBackbone  # noqa: E402
-from geofeat.train.config import TrainConfig  # noqa: E402
-from geofeat.train.trainer import PHASES, GeoLoraTrainer  # noqa: E402
 
 MODELS = {
     # the backbone of benchmarks/geolora_learns.py

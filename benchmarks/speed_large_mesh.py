@@ -26,11 +26,9 @@ import tempfile
 from pathlib import Path
 
 import numpy as np
+from common import DEFAULT_DATA, machine
 
 HERE = Path(__file__).resolve().parent
-sys.path.insert(0, str(HERE))
-
-from common import DEFAULT_DATA, machine  # noqa: E402
 
 _RUN = """
 import json, resource, sys, time

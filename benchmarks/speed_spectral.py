@@ -31,14 +31,12 @@ import time
 from pathlib import Path
 
 import numpy as np
+from common import DEFAULT_DATA, faust_test_shapes, machine
 
 import geofeat
 from geofeat.geometry.spectral import clear_basis_cache
 
 HERE = Path(__file__).resolve().parent
-sys.path.insert(0, str(HERE))
-
-from common import DEFAULT_DATA, faust_test_shapes, machine  # noqa: E402
 
 
 def run_pyfm(verts, faces, k, n_wks, n_hks):

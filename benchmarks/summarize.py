@@ -14,20 +14,14 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-
-from report import markdown_table, plot_pck  # noqa: E402
+from geofeat.evaluation import SUMMARY_COLUMNS
+from geofeat.report import markdown_table, plot_pck
 
 COLUMNS = [
     ("dataset", "dataset", "s"),
     ("descriptor", "descriptor", "s"),
     ("matcher", "matcher", "s"),
-    ("n_pairs", "pairs", "d"),
-    ("geodesic_error", "geodesic error x100", ".2f"),
-    ("pck_auc", "PCK AUC", ".3f"),
-    ("miou", "mIoU", ".3f"),
-    ("overlap_auc", "overlap AUC", ".3f"),
-    ("chirality_accuracy", "chirality acc.", ".3f"),
+    *SUMMARY_COLUMNS,
     ("train_steps", "training steps", "d"),
     ("seconds", "time (s)", ".0f"),
 ]

@@ -29,15 +29,12 @@ from pathlib import Path
 
 from tqdm.auto import tqdm
 
+from geofeat.adapters.dpfm import DPFMHead
+from geofeat.adapters.heads import load_head
+from geofeat.datasets import load_dataset
+from geofeat.evaluation import evaluate_pair, summarize
+
 HERE = Path(__file__).resolve().parent
-if str(HERE) not in sys.path:
-    sys.path.insert(0, str(HERE))
-
-from run import evaluate_pair, summarize  # noqa: E402
-
-from geofeat.adapters.dpfm import DPFMHead  # noqa: E402
-from geofeat.adapters.heads import load_head  # noqa: E402
-from geofeat.datasets import load_dataset  # noqa: E402
 
 #: dataset -> (checkpoint file, preset)
 RUNS = {
@@ -74,7 +71,7 @@ def transfer(models: Path, data_root: Path, dataset_name: str, interpolation: st
         "interpolation": interpolation,
         "seconds": time.perf_counter() - start,
         "head": head.config.to_dict(),
-        **{k: v for k, v in summary.items() if k not in ("pck", "pck_thresholds")},
+        **{k: v for k, v in summary.to_dict().items() if k not in ("pck", "pck_thresholds")},
     }
 
 

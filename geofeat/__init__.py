@@ -6,25 +6,12 @@
 (4999, 128)
 """
 
-from importlib.metadata import PackageNotFoundError, version
-
-try:
-    __version__ = version("geofeat")
-except PackageNotFoundError:  # running from a source tree that is not installed
-    __version__ = "0.0.0+unknown"
-
-from geofeat.cache import FeatureCache
+from geofeat._version import __version__
+from geofeat.cache import CacheError, FeatureCache
 from geofeat.config import cache_dir, set_cache_dir
 from geofeat.descriptors import Descriptor, compute, compute_many, descriptors
-from geofeat.errors import (
-    CacheError,
-    DatasetError,
-    DescriptorError,
-    GeofeatError,
-    MeshError,
-    MissingDependencyError,
-    SpectralError,
-)
+from geofeat.errors import DescriptorError, GeofeatError, MeshError, MissingDependencyError
+from geofeat.geometry.errors import SpectralError
 from geofeat.mesh import Mesh, load_mesh, normalize
 
 __all__ = [
@@ -47,3 +34,12 @@ __all__ = [
     "normalize",
     "set_cache_dir",
 ]
+
+
+def __getattr__(name: str):
+    """``geofeat.DatasetError``, imported on first use (``import geofeat`` does not load the datasets)."""
+    if name == "DatasetError":
+        from geofeat.datasets.errors import DatasetError
+
+        return DatasetError
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

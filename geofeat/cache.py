@@ -42,10 +42,15 @@ import h5py
 import numpy as np
 
 from geofeat import config
-from geofeat.errors import CacheError
+from geofeat.errors import GeofeatError
 from geofeat.files import fsync_file, fsync_folder
 
 log = logging.getLogger(__name__)
+
+
+class CacheError(GeofeatError, OSError):
+    """The feature cache cannot be used (bad location, unwritable directory)."""
+
 
 TMP_PREFIX = ".tmp-"
 #: Temporary files older than this (seconds) are taken for leftovers of killed writers.

@@ -90,6 +90,7 @@ def check_integer(
     low: int | None = None,
     high: int | None = None,
     error: type[GeofeatError] = DescriptorError,
+    expected: str | None = None,
 ) -> int:
     """Check that ``value`` is an integer in ``[low, high]``; return it as a Python ``int``.
 
@@ -105,6 +106,9 @@ def check_integer(
         Inclusive bounds.
     error : type
         Exception raised on failure.
+    expected : str, optional
+        What the message says was expected (e.g. ``"a positive integer number of
+        eigenpairs"``); by default ``"an integer"`` and the bounds.
 
     Returns
     -------
@@ -119,7 +123,7 @@ def check_integer(
             where = f" <= {high}"
         else:
             where = ""
-        raise error(f"{_prefix(owner, name)} must be an integer{where}; found {_found(value)}.")
+        raise error(f"{_prefix(owner, name)} must be {expected or 'an integer' + where}; found {_found(value)}.")
     return int(value)
 
 
@@ -133,6 +137,7 @@ def check_number(
     low_open: bool = False,
     high_open: bool = False,
     error: type[GeofeatError] = DescriptorError,
+    expected: str | None = None,
 ) -> float:
     """Check that ``value`` is a finite number in the interval ``low .. high``; return it as a Python ``float``.
 
@@ -140,8 +145,8 @@ def check_number(
     ----------
     value : Any
         An int, float or NumPy number; bools and strings are refused.
-    name, owner, error
-        As for `check_integer`.
+    name, owner, error, expected
+        As for `check_integer` (``expected`` defaults to ``"a finite number"`` and the bounds).
     low, high : float
         Bounds; ``low_open`` / ``high_open`` exclude the bound itself.
 
@@ -159,7 +164,7 @@ def check_number(
             where = f" {'<' if high_open else '<='} {high}"
         else:
             where = f" in {'(' if low_open else '['}{low}, {high}{')' if high_open else ']'}"
-        raise error(f"{_prefix(owner, name)} must be a finite number{where}; found {_found(value)}.")
+        raise error(f"{_prefix(owner, name)} must be {expected or 'a finite number' + where}; found {_found(value)}.")
     return float(value)
 
 

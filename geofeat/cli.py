@@ -8,8 +8,8 @@ import logging
 import sys
 import tempfile
 
-from geofeat.cache import FeatureCache
-from geofeat.errors import CacheError, GeofeatError
+from geofeat.cache import CacheError, FeatureCache
+from geofeat.errors import GeofeatError
 
 
 def _out(line: str = "") -> None:
@@ -118,9 +118,7 @@ def _train_command(args: argparse.Namespace) -> int:
     from geofeat.train.trainer import GeoLoraTrainer
 
     given = {name: getattr(args, name) for name in TrainConfig.field_names() if getattr(args, name) is not None}
-    config = TrainConfig.from_file(args.config, **given) if args.config else TrainConfig(**given)
-    if config.unknown_keys:
-        logging.getLogger("geofeat.train").warning("ignored unknown settings in %s: %s", args.config, config.unknown_keys)
+    config = TrainConfig.from_file(args.config, **given) if args.config else TrainConfig(**given)  # warns of unknown keys
     try:
         checkpoint = GeoLoraTrainer(config).fit()
     except KeyboardInterrupt:

@@ -1,6 +1,52 @@
-"""Exception types. Every error geofeat raises for bad input derives from `GeofeatError`."""
+"""Exception types of the core. Every error geofeat raises for bad input derives from `GeofeatError`.
+
+The core's own errors are defined here: `GeofeatError`, `MeshError` (meshes, files),
+`DescriptorError` (bad parameters; the default of `geofeat.checks`), `MissingDependencyError`
+(optional dependencies, `geofeat.registry`) and `DeviceError` (`geofeat.devices`). Every other
+error type is defined beside the layer that raises it and is re-exported here (imported on
+first use, so this module never imports a layer above the core):
+
+========================  ==========================================
+``SpectralError``         `geofeat.geometry.errors`
+``CacheError``            `geofeat.cache`
+``DatasetError``          `geofeat.datasets.errors`
+``MetricError``           `geofeat.metrics`
+``RenderError``           `geofeat.render.errors`
+``BackboneError``         `geofeat.backbones.errors`
+``TrainingError``         `geofeat.train.errors`
+``FunctionalMapError``    `geofeat.adapters.errors`
+``DiffusionNetError``     `geofeat.adapters.errors`
+========================  ==========================================
+"""
 
 from __future__ import annotations
+
+import importlib
+from typing import Any
+
+#: Error types defined in the layer that raises them: name -> module.
+MOVED = {
+    "SpectralError": "geofeat.geometry.errors",
+    "CacheError": "geofeat.cache",
+    "DatasetError": "geofeat.datasets.errors",
+    "MetricError": "geofeat.metrics",
+    "RenderError": "geofeat.render.errors",
+    "BackboneError": "geofeat.backbones.errors",
+    "TrainingError": "geofeat.train.errors",
+    "FunctionalMapError": "geofeat.adapters.errors",
+    "DiffusionNetError": "geofeat.adapters.errors",
+}
+
+
+def __getattr__(name: str) -> Any:
+    """``geofeat.errors.X`` for the error types defined in the layers (`MOVED`)."""
+    if name in MOVED:
+        return getattr(importlib.import_module(MOVED[name]), name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    return sorted([*globals(), *MOVED])
 
 
 class GeofeatError(Exception):
@@ -11,10 +57,6 @@ class MeshError(GeofeatError, ValueError):
     """A mesh (arrays or file) is malformed: wrong shape, dtype, values or format."""
 
 
-class SpectralError(GeofeatError, RuntimeError):
-    """The Laplace-Beltrami eigenproblem could not be solved, even after every fallback."""
-
-
 class DescriptorError(GeofeatError, ValueError):
     """An unknown descriptor name or a bad descriptor parameter."""
 
@@ -23,37 +65,5 @@ class MissingDependencyError(GeofeatError, ImportError):
     """An optional dependency is not installed; the message names the extra to install."""
 
 
-class CacheError(GeofeatError, OSError):
-    """The feature cache cannot be used (bad location, unwritable directory)."""
-
-
-class DatasetError(GeofeatError, ValueError):
-    """A benchmark dataset cannot be used: folder layout, file contents or loader options are wrong."""
-
-
-class MetricError(GeofeatError, ValueError):
-    """Inputs to a metric have the wrong shape, dtype or values."""
-
-
-class FunctionalMapError(GeofeatError, ValueError):
-    """Bad input to a functional-map routine (shapes, sizes, indices)."""
-
-
-class RenderError(GeofeatError, ValueError):
-    """Bad input to the rendering layer (cameras, image size, mesh tensors, settings)."""
-
-
-class BackboneError(GeofeatError, ValueError):
-    """A DINO backbone cannot be loaded or used: missing or malformed weights, bad options or images."""
-
-
 class DeviceError(GeofeatError, ValueError):
     """An unknown torch device, or CUDA requested where there is none."""
-
-
-class TrainingError(GeofeatError, ValueError):
-    """Bad input to a training routine (loss tensors of the wrong shape, dtype or values, bad options)."""
-
-
-class DiffusionNetError(GeofeatError, ValueError):
-    """Bad input to DiffusionNet: options, feature tensors or operators that do not fit together."""

@@ -14,10 +14,9 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import scipy.sparse as sp
-from scipy.sparse.csgraph import connected_components
 
 from geofeat.errors import MeshError
+from geofeat.topology import edge_counts, triangle_areas, vertex_components
 
 log = logging.getLogger(__name__)
 
@@ -89,8 +88,7 @@ class Mesh:
         """Triangle areas, shape (F,) float64."""
         if self.faces is None:
             raise MeshError(f"mesh {self.name!r} is a point cloud: it has no faces, so no face areas")
-        tri = self.verts[self.faces]
-        return 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+        return triangle_areas(self.verts, self.faces)
 
     def area(self) -> float:
         """Total surface area of the triangles."""
@@ -115,11 +113,7 @@ class Mesh:
         n_unref = int(np.count_nonzero(np.bincount(faces.ravel(), minlength=self.n_vertices) == 0))
         if n_unref:
             problems.append(f"{n_unref} unreferenced vertex(es): their features are copied from the nearest referenced vertex")
-        edges = np.sort(faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
-        edge_ids = np.sort(edges[:, 0] * self.n_vertices + edges[:, 1])
-        run_starts = np.flatnonzero(np.diff(edge_ids, prepend=-1))
-        counts = np.diff(np.append(run_starts, edge_ids.size))
-        n_nonmanifold = int(np.count_nonzero(counts > 2))
+        n_nonmanifold = int(np.count_nonzero(edge_counts(faces) > 2))
         if n_nonmanifold:
             problems.append(f"{n_nonmanifold} non-manifold edge(s) (shared by more than two faces)")
         n_components = self.n_components()
@@ -132,10 +126,7 @@ class Mesh:
         if self.faces is None:
             return 1
         used = np.bincount(self.faces.ravel(), minlength=self.n_vertices) > 0
-        rows = self.faces[:, [0, 1, 2]].ravel()
-        cols = self.faces[:, [1, 2, 0]].ravel()
-        graph = sp.coo_matrix((np.ones(rows.size), (rows, cols)), shape=(self.n_vertices,) * 2)
-        _, labels = connected_components(graph, directed=False)
+        _, labels = vertex_components(self.n_vertices, self.faces)
         return int(np.unique(labels[used]).size)
 
     def bbox_diagonal(self) -> float:
@@ -145,6 +136,13 @@ class Mesh:
     def __repr__(self) -> str:
         kind = "point cloud" if self.faces is None else f"{len(self.faces)} faces"
         return f"Mesh(name={self.name!r}, {self.n_vertices} vertices, {kind}, hash={self.hash[:12]})"
+
+
+def require_faces(mesh: Mesh, what: str) -> np.ndarray:
+    """The faces (F, 3) int64 of ``mesh``; `MeshError` naming ``what`` needs them for a point cloud."""
+    if mesh.faces is None:
+        raise MeshError(f"{mesh.name!r} is a point cloud: {what} needs a triangle mesh with faces.")
+    return mesh.faces
 
 
 def _validated_verts(verts) -> np.ndarray:

@@ -25,9 +25,14 @@ from collections.abc import Iterable
 import numpy as np
 from scipy.stats import rankdata
 
-from geofeat.errors import MetricError
+from geofeat.errors import GeofeatError
 
 log = logging.getLogger(__name__)
+
+
+class MetricError(GeofeatError, ValueError):
+    """Inputs to a metric have the wrong shape, dtype or values."""
+
 
 #: Default PCK thresholds (normalised geodesic distance): 0 to 0.25 in steps of 0.0025.
 DEFAULT_PCK_THRESHOLDS = np.linspace(0.0, 0.25, 101)

@@ -80,7 +80,8 @@ from typing import TYPE_CHECKING, Any
 
 import torch
 
-from geofeat.errors import BackboneError, MissingDependencyError
+from geofeat.backbones.errors import BackboneError
+from geofeat.errors import MissingDependencyError
 
 if TYPE_CHECKING:
     from transformers import PreTrainedConfig

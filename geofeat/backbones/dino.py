@@ -35,8 +35,9 @@ import torch
 import torch.nn.functional as F
 
 from geofeat.backbones.convert import convert_official, require_transformers, unwrap_official_checkpoint
+from geofeat.backbones.errors import BackboneError
+from geofeat.checks import check_integer
 from geofeat.devices import resolve_device
-from geofeat.errors import BackboneError
 from geofeat.files import is_unsafe_pickle_error, load_torch_file, unsafe_pickle_message
 
 if TYPE_CHECKING:
@@ -281,11 +282,8 @@ class DinoBackbone:
     @layer.setter
     def layer(self, value: int) -> None:
         n = self.num_layers
-        if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or not -n <= int(value) < n:
-            raise BackboneError(
-                f"layer must be an integer block index in [{-n}, {n - 1}] for this {n}-block model, found {value!r}"
-            )
-        self._layer = int(value)
+        expected = f"an integer block index in [{-n}, {n - 1}] for this {n}-block model"
+        self._layer = check_integer(value, "layer", low=-n, high=n - 1, error=BackboneError, expected=expected)
 
     @property
     def device(self) -> torch.device:
@@ -397,8 +395,7 @@ class DinoBackbone:
             (CPU for numpy input). Computed under ``torch.no_grad()`` in ``eval()`` mode.
         """
         images = torch.as_tensor(images)
-        if isinstance(batch_size, bool) or not isinstance(batch_size, (int, np.integer)) or batch_size < 1:
-            raise BackboneError(f"batch_size must be a positive integer, found {batch_size!r}")
+        check_integer(batch_size, "batch_size", low=1, error=BackboneError, expected="a positive integer")
         if images.ndim != 4:
             self._pixels(images)  # raises the shape error
         size = _check_out_size(out_size if out_size is not None else images.shape[1:3])

@@ -38,14 +38,18 @@ import re
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import torch
 from torch import Tensor
 
+from geofeat._version import __version__
 from geofeat.backbones.dino import DinoBackbone, state_dict_digest
-from geofeat.errors import BackboneError, MissingDependencyError
+from geofeat.backbones.errors import BackboneError
+from geofeat.checks import check_integer, check_number
+from geofeat.errors import MissingDependencyError
 from geofeat.files import atomic_write, load_torch_file
+from geofeat.jsonconfig import JsonConfig
 
 logger = logging.getLogger(__name__)
 
@@ -104,8 +108,10 @@ def _require_safetensors() -> Any:
 
 
 @dataclass
-class LoraSettings:
+class LoraSettings(JsonConfig):
     """LoRA hyper-parameters, plus free-form training settings stored with the adapter.
+
+    A `geofeat.jsonconfig.JsonConfig` (`to_json` / `from_json` are its `save` / `load`).
 
     Parameters
     ----------
@@ -128,14 +134,12 @@ class LoraSettings:
     targets: tuple[str, ...] | None = None
     training: dict[str, Any] = field(default_factory=dict)
 
+    error: ClassVar[type[BackboneError]] = BackboneError
+
     def __post_init__(self) -> None:
-        if isinstance(self.rank, bool) or not isinstance(self.rank, int) or self.rank < 1:
-            raise BackboneError(f"LoRA rank must be a positive integer, found {self.rank!r}")
-        if isinstance(self.alpha, bool) or not isinstance(self.alpha, (int, float)) or not self.alpha > 0:
-            raise BackboneError(f"LoRA alpha must be a positive number, found {self.alpha!r}")
-        if isinstance(self.dropout, bool) or not isinstance(self.dropout, (int, float)) or not 0 <= self.dropout < 1:
-            raise BackboneError(f"LoRA dropout must be a number in [0, 1), found {self.dropout!r}")
-        self.alpha, self.dropout = float(self.alpha), float(self.dropout)
+        self.rank = check_integer(self.rank, "rank", owner="LoRA", low=1, error=BackboneError, expected="a positive integer")
+        self.alpha = check_number(self.alpha, "alpha", owner="LoRA", low=0, low_open=True, error=BackboneError)
+        self.dropout = check_number(self.dropout, "dropout", owner="LoRA", low=0, high=1, high_open=True, error=BackboneError)
         if self.targets is not None:
             if isinstance(self.targets, str) or not all(isinstance(t, str) and t for t in self.targets) or not self.targets:
                 raise BackboneError(f"LoRA targets must be a non-empty sequence of module names, found {self.targets!r}")
@@ -152,29 +156,14 @@ class LoraSettings:
         """``alpha / rank``, the factor applied to ``B @ A``."""
         return self.alpha / self.rank
 
-    def to_dict(self) -> dict[str, Any]:
-        """Plain JSON-ready dict (targets as a list or None)."""
-        out = dataclasses.asdict(self)
-        out["targets"] = list(self.targets) if self.targets is not None else None
-        return out
-
-    @classmethod
-    def from_dict(cls, data: Mapping[str, Any]) -> LoraSettings:
-        """Build from a dict; unknown keys are ignored with a debug log."""
-        names = {f.name for f in dataclasses.fields(cls)}
-        unknown = sorted(set(data) - names)
-        if unknown:
-            logger.debug("ignoring unknown LoRA settings keys %s", unknown)
-        return cls(**{k: v for k, v in data.items() if k in names})
-
     def to_json(self, path: str | os.PathLike) -> None:
-        """Write the settings as JSON (atomically)."""
-        atomic_write(Path(path), lambda p: p.write_text(json.dumps(self.to_dict(), indent=2, sort_keys=True)))
+        """Write the settings as JSON (atomically; `JsonConfig.save`)."""
+        self.save(path)
 
     @classmethod
     def from_json(cls, path: str | os.PathLike) -> LoraSettings:
-        """Read settings written by `to_json` (unknown keys ignored)."""
-        return cls.from_dict(_read_json(Path(path)))
+        """Read settings written by `to_json` (`JsonConfig.load`: unknown keys warned about and kept aside)."""
+        return cls.load(path)
 
 
 # ----------------------------------------------------------------------------- adding LoRA
@@ -329,12 +318,6 @@ def _read_json(path: Path) -> dict[str, Any]:
     return data
 
 
-def _geofeat_version() -> str:
-    from geofeat import __version__  # lazy: geofeat/__init__ imports the descriptor layer
-
-    return __version__
-
-
 def save_adapter(
     backbone: DinoBackbone,
     folder: str | os.PathLike,
@@ -374,12 +357,12 @@ def save_adapter(
     config = {
         "format": _FORMAT,
         "format_version": _FORMAT_VERSION,
-        "geofeat_version": _geofeat_version(),
+        "geofeat_version": __version__,
         "backbone_kind": backbone.kind,
         "backbone_digest": backbone.weights_digest,
         "backbone_source": backbone.source,
         "num_layers": backbone.num_layers,
-        **active.to_dict(),
+        **active.to_dict(unknown=False),
         "extra_info": dict(extra_info or {}),
     }
     try:
@@ -460,7 +443,7 @@ def load_adapter(backbone: DinoBackbone, folder: str | os.PathLike) -> DinoBackb
     folder = Path(folder)
     config = _read_adapter_config(folder)
     _check_backbone(backbone, config, folder)
-    settings = LoraSettings.from_dict(config)
+    settings = LoraSettings.from_dict({k: config[k] for k in LoraSettings.field_names() if k in config})
     tensors = _read_adapter_tensors(folder)
     _attach(backbone, settings, str(folder))
     _load_lora_tensors(backbone, tensors, str(folder))
@@ -511,7 +494,7 @@ def adapter_digest(folder: str | os.PathLike) -> str:
     """
     folder = Path(folder)
     config = _read_adapter_config(folder)
-    settings = LoraSettings.from_dict(config)
+    settings = LoraSettings.from_dict({k: config[k] for k in LoraSettings.field_names() if k in config})
     return _digest(config["backbone_kind"], config["backbone_digest"], settings, _read_adapter_tensors(folder))
 
 

@@ -7,7 +7,7 @@ from geofeat.datasets.derived import DerivedPartialBenchmark, TemplateCollection
 from geofeat.datasets.faust import FaustRemeshed, ScapeRemeshed
 from geofeat.datasets.pfaust import PFaust
 from geofeat.datasets.psmal import PartialSmal
-from geofeat.datasets.records import ShapePair
+from geofeat.datasets.records import Match, ShapePair
 from geofeat.datasets.registry import dataset_description, dataset_names, load_dataset, register_dataset
 from geofeat.datasets.shrec16 import Shrec16Partial
 from geofeat.datasets.synthetic import SyntheticHumans
@@ -17,6 +17,7 @@ __all__ = [
     "BeCoS",
     "DerivedPartialBenchmark",
     "FaustRemeshed",
+    "Match",
     "PFaust",
     "PairDataset",
     "PartialSmal",

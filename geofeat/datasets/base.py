@@ -16,15 +16,15 @@ import logging
 import operator
 import os
 import re
-from collections import OrderedDict
 from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
 from typing import ClassVar, Protocol
 
 import numpy as np
 
+from geofeat.datasets.errors import DatasetError
 from geofeat.datasets.records import PROTOCOLS, ShapePair
-from geofeat.errors import DatasetError
+from geofeat.lru import LRUCache
 from geofeat.mesh import Mesh, load_mesh
 
 log = logging.getLogger(__name__)
@@ -80,7 +80,7 @@ class PairDataset(Sequence):
         self.protocol = protocol
         self.mesh_cache_size = mesh_cache_size
         self._entries: list[PairEntry] = []
-        self._meshes: OrderedDict[tuple[Path, str], Mesh] = OrderedDict()
+        self._meshes: LRUCache[tuple[Path, str], Mesh] = LRUCache(mesh_cache_size)
         self._arrays: dict[Path, np.ndarray] = {}
 
     def __len__(self) -> int:
@@ -116,17 +116,12 @@ class PairDataset(Sequence):
     def _mesh(self, path: Path, name: str | None = None) -> Mesh:
         """The mesh at ``path`` (named ``name``, else the file stem), read once per instance."""
         key = (Path(path), name or Path(path).stem)
-        mesh = self._meshes.get(key)
-        if mesh is None:
+
+        def load() -> Mesh:
             mesh = load_mesh(path)
-            if name is not None and name != mesh.name:
-                mesh = mesh.renamed(name)
-            self._meshes[key] = mesh
-            if self.mesh_cache_size is not None and len(self._meshes) > self.mesh_cache_size:
-                self._meshes.popitem(last=False)
-        else:
-            self._meshes.move_to_end(key)
-        return mesh
+            return mesh.renamed(name) if name is not None and name != mesh.name else mesh
+
+        return self._meshes.get_or_compute(key, load)
 
     def _array(self, path: Path, reader: Callable[[Path], np.ndarray]) -> np.ndarray:
         """``reader(path)``, read once per instance and returned read-only."""

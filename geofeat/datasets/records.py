@@ -1,8 +1,9 @@
-"""The pair record every dataset loader returns."""
+"""The pair record every dataset loader returns, and the match record every head predicts for a pair."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
@@ -55,3 +56,28 @@ class ShapePair:
     def name(self) -> str:
         """``"<y name>-><x name>"``."""
         return f"{self.y.name}->{self.x.name}"
+
+
+class Match(NamedTuple):
+    """A predicted correspondence from ``y`` to ``x`` of a `ShapePair`.
+
+    Heads (``geofeat.adapters.heads``) return it; `geofeat.evaluation.evaluate_pair` scores it.
+
+    Attributes
+    ----------
+    map_yx : numpy.ndarray, shape (V_y,), int64
+        For every vertex of ``y`` a vertex of ``x``.
+    overlap_y : numpy.ndarray, shape (V_y,), bool
+        Vertices of ``y`` predicted to have a counterpart (all True for heads without overlap prediction).
+    overlap_x : numpy.ndarray, shape (V_x,), bool, or None
+        Vertices of ``x`` predicted to have a counterpart, where the head predicts it.
+    overlap_prob_y : numpy.ndarray, shape (V_y,), float32, or None
+    overlap_prob_x : numpy.ndarray, shape (V_x,), float32, or None
+        The overlap probabilities behind the masks, from heads that predict them.
+    """
+
+    map_yx: np.ndarray
+    overlap_y: np.ndarray
+    overlap_x: np.ndarray | None = None
+    overlap_prob_y: np.ndarray | None = None
+    overlap_prob_x: np.ndarray | None = None

@@ -7,39 +7,25 @@
 >>> pair = pairs[0]                                # ShapePair, meshes read now
 
 Names are case-insensitive and ``-`` equals ``_``. Each name is a loader plus preset options
-(``shrec16_cuts`` is the SHREC'16 loader with ``partiality="cuts"``).
+(``shrec16_cuts`` is the SHREC'16 loader with ``partiality="cuts"``): a `geofeat.registry.LazyEntry`
+whose loader module is imported when the dataset is first opened.
 """
 
 from __future__ import annotations
 
-import difflib
 import inspect
 import logging
 import os
 from collections.abc import Callable
-from dataclasses import dataclass, field
 
 from geofeat.datasets.base import PairDataset
-from geofeat.datasets.becos import BeCoS
-from geofeat.datasets.cp2p24 import CP2P24
-from geofeat.datasets.derived import remeshed_partial_benchmark, synthetic_partial_benchmark
+from geofeat.datasets.errors import DatasetError
 from geofeat.datasets.faust import FaustRemeshed, ScapeRemeshed
-from geofeat.datasets.pfaust import PFaust
-from geofeat.datasets.psmal import PartialSmal
-from geofeat.datasets.shrec16 import Shrec16Partial
-from geofeat.errors import DatasetError
+from geofeat.registry import LazyEntry, lookup
 
 log = logging.getLogger(__name__)
 
-
-@dataclass(frozen=True)
-class _Registered:
-    factory: Callable[..., PairDataset]
-    preset: dict = field(default_factory=dict)
-    description: str = ""
-
-
-_REGISTRY: dict[str, _Registered] = {}
+_REGISTRY: dict[str, LazyEntry] = {}
 
 
 def _canonical(name: str) -> str:
@@ -47,7 +33,7 @@ def _canonical(name: str) -> str:
 
 
 def register_dataset(
-    name: str, factory: Callable[..., PairDataset], *, description: str = "", overwrite: bool = False, **preset
+    name: str, factory: Callable[..., PairDataset] | str, *, description: str = "", overwrite: bool = False, **preset
 ) -> None:
     """Make ``factory`` available as ``load_dataset(name, ...)``.
 
@@ -55,9 +41,10 @@ def register_dataset(
     ----------
     name : str
         Dataset name (case-insensitive; ``-`` and ``_`` are equivalent).
-    factory : callable
+    factory : callable or str
         Called as ``factory(root, split, **preset, **options)``; returns a `PairDataset` (or
-        any sequence of `ShapePair` with ``pair_names``).
+        any sequence of `ShapePair` with ``pair_names``). A ``"module:attr"`` string is
+        imported when the dataset is first opened.
     description : str
         One line for listings.
     overwrite : bool
@@ -68,7 +55,7 @@ def register_dataset(
     key = _canonical(name)
     if key in _REGISTRY and not overwrite:
         raise DatasetError(f"a dataset named {key!r} is already registered; pass overwrite=True to replace it.")
-    _REGISTRY[key] = _Registered(factory, dict(preset), description)
+    _REGISTRY[key] = LazyEntry(key, factory, summary=description, options=dict(preset))
 
 
 def dataset_names() -> list[str]:
@@ -78,7 +65,7 @@ def dataset_names() -> list[str]:
 
 def dataset_description(name: str) -> str:
     """The one-line description of a registered dataset."""
-    return _lookup(name).description
+    return _lookup(name).summary
 
 
 def load_dataset(name: str, root: str | os.PathLike | None = None, split: str = "test", **options) -> PairDataset:
@@ -109,11 +96,12 @@ def load_dataset(name: str, root: str | os.PathLike | None = None, split: str = 
         missing or malformed dataset.
     """
     entry = _lookup(name)
-    for key, value in entry.preset.items():
+    factory = entry.load("dataset")
+    for key, value in entry.options.items():
         if key in options and options[key] != value:
             raise DatasetError(f"dataset {_canonical(name)!r} fixes {key}={value!r}; found {key}={options[key]!r}.")
-    options = {**options, **entry.preset}
-    accepted = _accepted_options(entry.factory)
+    options = {**options, **entry.options}
+    accepted = _accepted_options(factory)
     if accepted is not None:
         if "seed" in options and "seed" not in accepted:
             log.debug("dataset %r has fixed pairs; seed=%r ignored", name, options.pop("seed"))
@@ -121,18 +109,13 @@ def load_dataset(name: str, root: str | os.PathLike | None = None, split: str = 
         if unknown:
             raise DatasetError(
                 f"dataset {_canonical(name)!r} does not take option(s) {', '.join(unknown)}; "
-                f"it takes: {', '.join(sorted(accepted - set(entry.preset))) or 'none'}."
+                f"it takes: {', '.join(sorted(accepted - set(entry.options))) or 'none'}."
             )
-    return entry.factory(root, split, **options)
+    return factory(root, split, **options)
 
 
-def _lookup(name: str) -> _Registered:
-    key = _canonical(name)
-    if key not in _REGISTRY:
-        close = difflib.get_close_matches(key, _REGISTRY, n=3)
-        hint = f" Did you mean {', '.join(map(repr, close))}?" if close else ""
-        raise DatasetError(f"unknown dataset {name!r}.{hint} Known datasets: {', '.join(dataset_names())}.")
-    return _REGISTRY[key]
+def _lookup(name: str) -> LazyEntry:
+    return lookup(_REGISTRY, name, "dataset", DatasetError, canonical=_canonical)
 
 
 def _accepted_options(factory: Callable) -> set[str] | None:
@@ -147,22 +130,32 @@ def _accepted_options(factory: Callable) -> set[str] | None:
 
 
 def _register_builtins() -> None:
-    register_dataset("faust_r", FaustRemeshed, description="FAUST_r full-to-full (ULRSSM split 80/20)")
-    register_dataset("scape_r", ScapeRemeshed, description="SCAPE_r full-to-full (ULRSSM split 51/20)")
+    shrec16, pfaust = "geofeat.datasets.shrec16:Shrec16Partial", "geofeat.datasets.pfaust:PFaust"
+    synthetic, remeshed = (
+        "geofeat.datasets.derived:synthetic_partial_benchmark",
+        "geofeat.datasets.derived:remeshed_partial_benchmark",
+    )
+    register_dataset("faust_r", "geofeat.datasets.faust:FaustRemeshed", description="FAUST_r full-to-full (ULRSSM split 80/20)")
+    register_dataset("scape_r", "geofeat.datasets.faust:ScapeRemeshed", description="SCAPE_r full-to-full (ULRSSM split 51/20)")
     for kind in ("cuts", "holes"):
-        register_dataset(f"shrec16_{kind}", Shrec16Partial, partiality=kind, description=f"SHREC'16 Partial {kind.upper()}, P2F")
+        register_dataset(f"shrec16_{kind}", shrec16, partiality=kind, description=f"SHREC'16 Partial {kind.upper()}, P2F")
     for short, difficulty in (("m", "medium"), ("h", "hard")):
         register_dataset(
-            f"pfaust_{short}", PFaust, difficulty=difficulty, description=f"PFAUST-{short.upper()} ({difficulty}), P2F"
+            f"pfaust_{short}", pfaust, difficulty=difficulty, description=f"PFAUST-{short.upper()} ({difficulty}), P2F"
         )
     for protocol, setting in (("f2f", "full_full"), ("p2f", "partial_full"), ("p2p", "partial_partial")):
-        register_dataset(f"becos_{protocol}", BeCoS, setting=setting, description=f"BeCoS {setting}, {protocol.upper()}")
-    register_dataset("psmal", PartialSmal, description="PARTIALSMAL, P2P")
-    register_dataset("cp2p24", CP2P24, description="CP2P24, P2P")
+        register_dataset(
+            f"becos_{protocol}",
+            "geofeat.datasets.becos:BeCoS",
+            setting=setting,
+            description=f"BeCoS {setting}, {protocol.upper()}",
+        )
+    register_dataset("psmal", "geofeat.datasets.psmal:PartialSmal", description="PARTIALSMAL, P2P")
+    register_dataset("cp2p24", "geofeat.datasets.cp2p24:CP2P24", description="CP2P24, P2P")
     for kind in ("cuts", "holes", "ray"):
         register_dataset(
             f"synthetic_{kind}",
-            synthetic_partial_benchmark,
+            synthetic,
             kind=kind,
             protocol="p2f",
             description=f"built-in synthetic humans, {kind.upper()} partial to full (no data needed)",
@@ -170,7 +163,7 @@ def _register_builtins() -> None:
         for prefix, loader in (("faust_r", FaustRemeshed), ("scape_r", ScapeRemeshed)):
             register_dataset(
                 f"{prefix}_{kind}",
-                remeshed_partial_benchmark,
+                remeshed,
                 loader=loader,
                 kind=kind,
                 protocol="p2f",
@@ -178,7 +171,7 @@ def _register_builtins() -> None:
             )
     register_dataset(
         "synthetic_p2p",
-        synthetic_partial_benchmark,
+        synthetic,
         kind="cuts",
         protocol="p2p",
         description="built-in synthetic humans, two CUTS partial shapes (no data needed)",
@@ -186,7 +179,7 @@ def _register_builtins() -> None:
     for prefix, loader in (("faust_r", FaustRemeshed), ("scape_r", ScapeRemeshed)):
         register_dataset(
             f"{prefix}_p2p",
-            remeshed_partial_benchmark,
+            remeshed,
             loader=loader,
             kind="cuts",
             protocol="p2p",

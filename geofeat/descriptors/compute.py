@@ -7,19 +7,18 @@ import json
 import logging
 import multiprocessing
 import os
-from collections import OrderedDict
 from collections.abc import Sequence
 from concurrent.futures import ProcessPoolExecutor, as_completed
 
 import numpy as np
 from tqdm.auto import tqdm
 
-import geofeat
-from geofeat.cache import FeatureCache, cache_key
-from geofeat.checks import canonical
+from geofeat._version import __version__
+from geofeat.cache import CacheError, FeatureCache, cache_key
+from geofeat.checks import canonical, check_integer
 from geofeat.descriptors.base import Descriptor
 from geofeat.descriptors.registry import make_descriptor
-from geofeat.errors import CacheError, DescriptorError
+from geofeat.lru import LRUCache
 from geofeat.mesh import Mesh, as_mesh
 
 log = logging.getLogger(__name__)
@@ -31,8 +30,8 @@ MeshLike = Mesh | str | os.PathLike | tuple | object
 _UNWRITABLE_WARNED: set[str] = set()
 
 #: Descriptors kept alive between calls, so that a model is loaded once per process, not per mesh.
-_RECENT_DESCRIPTORS: OrderedDict[tuple[str, str], Descriptor] = OrderedDict()
 _RECENT_SIZE = 4
+_RECENT_DESCRIPTORS: LRUCache[tuple[str, str], Descriptor] = LRUCache(lambda: _RECENT_SIZE)
 
 
 def reusable_descriptor(name: str, **params) -> Descriptor:
@@ -43,13 +42,7 @@ def reusable_descriptor(name: str, **params) -> Descriptor:
     the process are not re-read (call `clear_descriptors`).
     """
     key = (name, json.dumps(canonical(params), sort_keys=True, default=str))
-    descriptor = _RECENT_DESCRIPTORS.pop(key, None)
-    if descriptor is None:
-        descriptor = make_descriptor(name, **params)
-    _RECENT_DESCRIPTORS[key] = descriptor
-    while len(_RECENT_DESCRIPTORS) > _RECENT_SIZE:
-        _RECENT_DESCRIPTORS.popitem(last=False)
-    return descriptor
+    return _RECENT_DESCRIPTORS.get_or_compute(key, lambda: make_descriptor(name, **params))
 
 
 def clear_descriptors() -> None:
@@ -131,7 +124,7 @@ def compute(mesh_or_path: MeshLike, name: str, cache: CacheArg = True, **params)
         "params": params_json,
         "descriptor_version": descriptor.version,
         "weights_digest": weights,
-        "geofeat_version": geofeat.__version__,
+        "geofeat_version": __version__,
     }
     try:
         store.put(key, features, meta)
@@ -173,8 +166,7 @@ def compute_many(
         One (V_i, dim) float32 array per input, in input order.
     """
     make_descriptor(name, **params)  # unknown names or bad parameters fail here, not in a worker
-    if not isinstance(n_jobs, int) or isinstance(n_jobs, bool) or n_jobs < 1:
-        raise DescriptorError(f"n_jobs must be a positive integer number of processes; found {n_jobs!r}.")
+    n_jobs = check_integer(n_jobs, "n_jobs", low=1, expected="a positive integer number of processes")
     items = list(meshes_or_paths)
     bar = tqdm(total=len(items), desc=f"{name} features", unit="shape", disable=not progress)
     results: list[np.ndarray | None] = [None] * len(items)

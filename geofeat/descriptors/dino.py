@@ -1,77 +1,27 @@
-"""Raw DINOv2 / DINOv3 features lifted from multi-view renders to mesh vertices.
+"""Raw DINOv2 / DINOv3 features and GeoLoRA features lifted from multi-view renders to mesh vertices.
 
-Mesh -> cameras -> rasterize + gray Phong shading -> backbone -> per-pixel features ->
-back-projection to vertices, in batches of views so that memory stays bounded.
+The descriptors hold the parameters and the backbone; the path itself (cameras -> rasterize +
+gray Phong shading -> backbone -> patch features sampled at the foreground pixels ->
+back-projection to vertices, in batches of views) is `geofeat.render.multiview_features`, the
+one the GeoLoRA trainer uses too.
 """
 
 from __future__ import annotations
 
 import os
-from collections.abc import Callable
 from typing import ClassVar
 
 import numpy as np
 import torch
-from tqdm.auto import tqdm
 
 from geofeat.checks import check_boolean, check_choice, check_integer
 from geofeat.descriptors.base import Descriptor
 from geofeat.errors import DescriptorError
 from geofeat.mesh import Mesh
-from geofeat.render import Cameras, make_cameras, render_phong
-from geofeat.render.backproject import BACKPROJECT_MODES, VertexFeatureAccumulator
+from geofeat.render import make_cameras, multiview_features
+from geofeat.render.backproject import BACKPROJECT_MODES
 from geofeat.render.cameras import CAMERA_LAYOUTS
-
-PixelFeatureFn = Callable[[torch.Tensor, tuple[int, int]], torch.Tensor]
-
-
-def multiview_features(
-    mesh: Mesh,
-    cameras: Cameras,
-    pixel_features: PixelFeatureFn,
-    n_channels: int,
-    backproject: str = "ball",
-    fill: str = "nearest",
-    batch_size: int = 4,
-    progress: bool = False,
-) -> tuple[np.ndarray, np.ndarray]:
-    """Render a mesh from every camera, compute pixel features and back-project them to vertices.
-
-    Parameters
-    ----------
-    mesh : Mesh
-        Triangle mesh.
-    cameras : Cameras
-        N views.
-    pixel_features : callable
-        ``(images (B, H, W, 3) float in [0, 1], (H, W)) -> (B, H, W, C)`` features.
-    n_channels : int
-        C.
-    backproject : {"ball", "face"}
-        See `geofeat.render.backproject`.
-    fill : {"nearest", "zero"}
-        Vertices seen in no view: nearest seen vertex's features, or zeros (training masks them).
-    batch_size : int
-        Views rendered and encoded together.
-    progress : bool
-        Show a progress bar over batches of views.
-
-    Returns
-    -------
-    features : numpy.ndarray, shape (V, C), float32
-    seen : numpy.ndarray, shape (V,), bool
-    """
-    if mesh.faces is None:
-        raise DescriptorError(f"{mesh.name!r} is a point cloud: multi-view features need faces to render.")
-    accumulator = VertexFeatureAccumulator(mesh.verts, mesh.faces, n_channels, mode=backproject, device=cameras.device)
-    size = (cameras.height, cameras.width)
-    starts = range(0, len(cameras), batch_size)
-    for start in tqdm(starts, desc=f"views of {mesh.name or 'mesh'}", unit="batch", disable=not progress):
-        views = cameras[start : start + batch_size]
-        rendering = render_phong(mesh, None, views)
-        features = pixel_features(rendering.images, size)
-        accumulator.add(features, rendering.fragments.pix_to_face, rendering.fragments.bary)
-    return accumulator.result(fill=fill)
+from geofeat.render.multiview import FILL_MODES
 
 
 class DinoFeatures(Descriptor):
@@ -107,7 +57,9 @@ class DinoFeatures(Descriptor):
 
     kind: ClassVar[str] = ""
     default_image_size: ClassVar[int] = 0
-    version = "1"
+    # 2: patch features sampled at the foreground pixels (geofeat.render.multiview) instead of
+    # read from upsampled whole images; equal up to float32 rounding (see README).
+    version = "2"
 
     def __init__(
         self,
@@ -152,7 +104,7 @@ class DinoFeatures(Descriptor):
             )
         checked["device"] = str(params["device"])
         checked["batch_size"] = check_integer(params["batch_size"], "batch_size", owner=owner, low=1)
-        checked["fill"] = check_choice(params["fill"], "fill", ("nearest", "zero"), owner=owner)
+        checked["fill"] = check_choice(params["fill"], "fill", FILL_MODES, owner=owner)
         checked["random_rotation"] = check_boolean(params["random_rotation"], "random_rotation", owner=owner)
         checked["seed"] = check_integer(params["seed"], "seed", owner=owner, low=0)
         for name, value in checked.items():
@@ -186,13 +138,10 @@ class DinoFeatures(Descriptor):
             random_rotation=self.random_rotation, seed=self.seed, device=backbone.device,
         )  # fmt: skip
 
-        def pixel_features(images: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:
-            return backbone.pixel_features(images, size, batch_size=self.batch_size)
-
         features, _ = multiview_features(
-            mesh, cameras, pixel_features, backbone.embed_dim, self.backproject, self.fill, self.batch_size, progress=True
+            mesh, cameras, backbone, backproject=self.backproject, fill=self.fill, batch_size=self.batch_size, progress=True
         )
-        return features
+        return features.cpu().numpy().astype(np.float32, copy=False)
 
 
 class DINOv2(DinoFeatures):

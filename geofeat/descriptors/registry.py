@@ -1,38 +1,15 @@
-"""The registry of descriptor names: lazy imports and clear errors for missing extras."""
+"""The registry of descriptor names: lazy imports and clear errors for missing extras (`geofeat.registry`)."""
 
 from __future__ import annotations
 
-import importlib
-import importlib.util
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 from geofeat.descriptors.base import Descriptor
-from geofeat.errors import DescriptorError, MissingDependencyError
+from geofeat.errors import DescriptorError
+from geofeat.registry import LazyEntry, lookup
 
-
-@dataclass(frozen=True)
-class RegistryEntry:
-    """How to build one descriptor.
-
-    Attributes
-    ----------
-    name : str
-        Registry name.
-    target : str
-        ``"module:ClassName"`` of the `Descriptor` subclass, imported on first use.
-    requires : tuple of str
-        Modules that must be importable.
-    extra : str or None
-        The ``pip install geofeat[extra]`` that provides them.
-    summary : str
-        One line for listings.
-    """
-
-    name: str
-    target: str
-    requires: tuple[str, ...] = field(default_factory=tuple)
-    extra: str | None = None
-    summary: str = ""
+#: How to build one descriptor: ``LazyEntry(name, "module:ClassName", requires, extra, summary)``.
+RegistryEntry = LazyEntry
 
 
 @dataclass(frozen=True)
@@ -46,7 +23,7 @@ class DescriptorInfo:
     params: dict
 
 
-_REGISTRY: dict[str, RegistryEntry] = {}
+_REGISTRY: dict[str, LazyEntry] = {}
 
 
 def register(entry: RegistryEntry) -> None:
@@ -87,14 +64,6 @@ register(
 )
 
 
-def _missing_modules(entry: RegistryEntry) -> list[str]:
-    return [module for module in entry.requires if importlib.util.find_spec(module) is None]
-
-
-def _unknown_name_error(name: str) -> DescriptorError:
-    return DescriptorError(f"unknown descriptor {name!r}; valid names: {', '.join(sorted(_REGISTRY))}.")
-
-
 def descriptor_class(name: str) -> type[Descriptor]:
     """The `Descriptor` subclass registered under ``name``, imported now.
 
@@ -105,15 +74,7 @@ def descriptor_class(name: str) -> type[Descriptor]:
     MissingDependencyError
         An optional dependency is missing (the message names the extra to install).
     """
-    entry = _REGISTRY.get(name)
-    if entry is None:
-        raise _unknown_name_error(name)
-    missing = _missing_modules(entry)
-    if missing:
-        hint = f"pip install 'geofeat[{entry.extra}]'" if entry.extra else f"pip install {' '.join(missing)}"
-        raise MissingDependencyError(f"descriptor {name!r} needs {', '.join(missing)}, which is not installed: {hint}")
-    module_name, class_name = entry.target.split(":")
-    return getattr(importlib.import_module(module_name), class_name)
+    return lookup(_REGISTRY, name, "descriptor", DescriptorError).load("descriptor")
 
 
 def make_descriptor(name: str, **params) -> Descriptor:
@@ -138,9 +99,9 @@ def descriptors() -> list[DescriptorInfo]:
     infos = []
     for name in sorted(_REGISTRY):
         entry = _REGISTRY[name]
-        missing = _missing_modules(entry)
+        missing = entry.missing()
         if missing:
-            reason = f"missing {', '.join(missing)}: pip install 'geofeat[{entry.extra}]'"
+            reason = f"missing {', '.join(missing)}: {entry.install_hint(missing)}"
             infos.append(DescriptorInfo(name, False, reason, entry.summary, {}))
             continue
         cls = descriptor_class(name)

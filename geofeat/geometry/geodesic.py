@@ -5,7 +5,9 @@ Two entry points:
 * `distances_from`: distances from a few source vertices, in the mesh's own units;
 * `geodesic_matrix`: the all-pairs ``(V, V)`` matrix, by default divided by the square root
   of the surface area (the normalisation of the published geodesic-error protocols),
-  cached in memory by mesh content.
+  cached in memory by mesh content;
+* `GeodesicStore`: those matrices kept on disk by mesh content (evaluation and training read
+  them back instead of computing them again).
 
 All-pairs Dijkstra does not run one Dijkstra per vertex. The vertices are split into
 patches (graph Voronoi cells of farthest-point seeds); one side of every edge between two
@@ -20,16 +22,21 @@ every vertex up to float32 rounding, several times faster.
 from __future__ import annotations
 
 import logging
-import threading
-from collections import OrderedDict
+import os
+import zlib
+from pathlib import Path
 
 import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components, dijkstra
 from tqdm.auto import tqdm
 
+from geofeat.config import cache_dir
 from geofeat.errors import MeshError
+from geofeat.files import atomic_write
+from geofeat.lru import LRUCache
 from geofeat.mesh import Mesh
+from geofeat.topology import unique_edges, vertex_components
 
 log = logging.getLogger(__name__)
 
@@ -55,9 +62,7 @@ def edge_graph(mesh: Mesh) -> sp.csr_matrix:
     """
     if mesh.faces is None:
         raise MeshError(f"{mesh.name!r} is a point cloud: geodesics need faces.")
-    edges = np.sort(mesh.faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
-    edges = np.unique(edges, axis=0)
-    edges = edges[edges[:, 0] != edges[:, 1]]
+    edges = unique_edges(mesh.faces)
     lengths = np.linalg.norm(mesh.verts[edges[:, 0]] - mesh.verts[edges[:, 1]], axis=1)
     n = mesh.n_vertices
     rows = np.concatenate([edges[:, 0], edges[:, 1]])
@@ -105,8 +110,9 @@ def distances_from(mesh: Mesh, sources, method: str = "dijkstra") -> np.ndarray:
 # All pairs
 # ---------------------------------------------------------------------------------------
 
-_matrix_cache: OrderedDict[tuple, np.ndarray] = OrderedDict()
-_matrix_lock = threading.Lock()
+_matrix_cache: LRUCache[tuple, np.ndarray] = LRUCache(
+    lambda: _CACHE_SIZE, max_weight=lambda: _CACHE_BYTES, weigh=lambda a: a.nbytes
+)
 
 
 def geodesic_matrix(
@@ -161,11 +167,8 @@ def geodesic_matrix(
     if mesh.faces is None:
         raise MeshError(f"{mesh.name!r} is a point cloud: geodesic distances need faces (a triangle mesh).")
     key = (mesh.hash, method, bool(normalize))
-    if cache:
-        with _matrix_lock:
-            if key in _matrix_cache:
-                _matrix_cache.move_to_end(key)
-                return _matrix_cache[key]
+    if cache and (dist := _matrix_cache.get(key)) is not None:
+        return dist
     scale = _normalisation(mesh) if normalize else 1.0
     if method == "dijkstra":
         dist = _all_pairs_dijkstra(edge_graph(mesh) * scale, mesh.verts, progress=progress)
@@ -173,14 +176,13 @@ def geodesic_matrix(
         dist = _all_pairs_heat(mesh, scale, progress=progress)
     dist.flags.writeable = False
     if cache:
-        _remember(key, dist)
+        _matrix_cache.put(key, dist)
     return dist
 
 
 def clear_geodesic_cache() -> None:
     """Forget every cached geodesic matrix."""
-    with _matrix_lock:
-        _matrix_cache.clear()
+    _matrix_cache.clear()
 
 
 def _normalisation(mesh: Mesh) -> float:
@@ -188,16 +190,6 @@ def _normalisation(mesh: Mesh) -> float:
     if not area > 0:
         raise MeshError(f"{mesh.name!r} has zero surface area: cannot normalise by sqrt(area). Pass normalize=False.")
     return 1.0 / float(np.sqrt(area))
-
-
-def _remember(key: tuple, dist: np.ndarray) -> None:
-    with _matrix_lock:
-        _matrix_cache[key] = dist
-        _matrix_cache.move_to_end(key)
-        while len(_matrix_cache) > 1 and (
-            len(_matrix_cache) > _CACHE_SIZE or sum(a.nbytes for a in _matrix_cache.values()) > _CACHE_BYTES
-        ):
-            _matrix_cache.popitem(last=False)
 
 
 # ---------------------------------------------------------------------------------------
@@ -366,7 +358,7 @@ def _mean(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 def _face_components(mesh: Mesh) -> list[tuple[np.ndarray, np.ndarray | None]]:
     """Connected components as (vertex indices (n,), faces re-indexed (f, 3) or None for a lone vertex)."""
-    n_comp, labels = connected_components(edge_graph(mesh), directed=False)
+    n_comp, labels = vertex_components(mesh.n_vertices, mesh.faces)
     referenced = np.zeros(mesh.n_vertices, dtype=bool)
     referenced[mesh.faces.ravel()] = True
     if n_comp == 1 and referenced.all():
@@ -382,3 +374,129 @@ def _face_components(mesh: Mesh) -> list[tuple[np.ndarray, np.ndarray | None]]:
         position[idx] = np.arange(idx.size)
         parts.append((idx, position[mesh.faces[face_label == label]]))
     return parts
+
+
+# ---------------------------------------------------------------------------------------
+# On disk
+# ---------------------------------------------------------------------------------------
+
+#: Version of the layout of `GeodesicStore` entries (part of their file names).
+STORE_VERSION = "2"
+#: Precisions a `GeodesicStore` keeps its matrices in.
+STORE_DTYPES = ("float32", "float16")
+
+
+class GeodesicStore:
+    """All-pairs geodesic matrices on disk (edge Dijkstra over ``sqrt(area)``), one ``.npy`` file per mesh content.
+
+    An entry is named ``<mesh hash>-<dtype>-v<version>-<crc>.npy``: a plain NumPy file whose
+    name carries the CRC-32 of its array (dtype, shape and bytes). It is written through a
+    temporary file and renamed (`geofeat.files.atomic_write`), so a reader sees a whole
+    entry or none, with several processes too. Every read checks shape, dtype and checksum;
+    a damaged entry (truncated, overwritten, bit rot) is logged, deleted and recomputed,
+    never returned.
+
+    Parameters
+    ----------
+    folder : str or os.PathLike, optional
+        Default ``<geofeat cache>/geodesics`` (`geofeat.config.cache_dir`: ``$GEOFEAT_CACHE_DIR``
+        or `geofeat.set_cache_dir` move it).
+    dtype : {"float32", "float16"}
+        ``"float32"``: exactly the matrix of `geodesic_matrix` (evaluation; 4 V^2 bytes, 100 MB
+        for 5,000 vertices). ``"float16"``: about three significant digits in half the space
+        (training loss weights).
+    connected : bool
+        Refuse meshes in several pieces (`MeshError`): their matrices hold ``inf``.
+    """
+
+    def __init__(self, folder: str | os.PathLike | None = None, dtype: str = "float32", connected: bool = False):
+        if dtype not in STORE_DTYPES:
+            raise MeshError(f"GeodesicStore keeps matrices in one of {STORE_DTYPES}; found dtype={dtype!r}.")
+        self.folder = Path(folder).expanduser() if folder is not None else cache_dir() / "geodesics"
+        self.dtype = np.dtype(dtype)
+        self.connected = bool(connected)
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}({str(self.folder)!r}, dtype={self.dtype.name!r})"
+
+    def _prefix(self, mesh: Mesh) -> str:
+        return f"{mesh.hash}-{self.dtype.name}-v{STORE_VERSION}-"
+
+    def _entries(self, mesh: Mesh) -> list[Path]:
+        if not self.folder.is_dir():
+            return []
+        return sorted(p for p in self.folder.glob(f"{self._prefix(mesh)}*.npy") if p.is_file())
+
+    def path(self, mesh: Mesh) -> Path | None:
+        """The file of the matrix of ``mesh``, or None when not stored."""
+        entries = self._entries(mesh)
+        return entries[0] if entries else None
+
+    def ensure(self, mesh: Mesh) -> Path:
+        """Compute and store the matrix unless a sound entry is present; returns its file."""
+        for path in self._entries(mesh):
+            if isinstance(self._read(path, mesh), np.ndarray):
+                return path
+        return self._compute(mesh)[0]
+
+    def load(self, mesh: Mesh) -> np.ndarray:
+        """The matrix of ``mesh``, read back (checked) or computed and stored.
+
+        Returns
+        -------
+        numpy.ndarray, shape (V, V), float32, read-only
+            A float32 store returns exactly `geodesic_matrix` (``method="dijkstra"``,
+            ``normalize=True``); a float16 one its rounding, widened to float32.
+        """
+        for path in self._entries(mesh):
+            dist = self._read(path, mesh)
+            if isinstance(dist, np.ndarray):
+                return dist
+        return self._compute(mesh)[1]
+
+    def _compute(self, mesh: Mesh) -> tuple[Path, np.ndarray]:
+        dist = geodesic_matrix(mesh, method="dijkstra", normalize=True)
+        if self.connected and not np.isfinite(dist).all():
+            raise MeshError(
+                f"{mesh.name!r} is not connected: its geodesic distances are infinite; give a connected mesh "
+                "(geofeat.geometry.partial.largest_component_submesh keeps its largest piece)."
+            )
+        stored = np.ascontiguousarray(dist, dtype=self.dtype)
+        path = self.folder / f"{self._prefix(mesh)}{_array_crc(stored):08x}.npy"
+
+        def write(tmp: Path) -> None:
+            with open(tmp, "wb") as handle:  # a handle: np.save would append ".npy" to the temporary name
+                np.save(handle, stored)
+
+        atomic_write(path, write)
+        if self.dtype == np.float32:
+            return path, dist
+        widened = stored.astype(np.float32)
+        widened.flags.writeable = False
+        return path, widened
+
+    def _read(self, path: Path, mesh: Mesh) -> np.ndarray | None:
+        """The checked float32 matrix in ``path``, or None after deleting a damaged entry."""
+        n = mesh.n_vertices
+        try:
+            stored = np.load(path, mmap_mode="r")
+            expected = path.stem.rsplit("-", 1)[1]
+            if stored.shape != (n, n) or stored.dtype != self.dtype:
+                problem = f"holds a {stored.dtype} {stored.shape} array; expected {self.dtype.name} ({n}, {n})"
+            elif f"{_array_crc(stored):08x}" != expected:
+                problem = f"fails its checksum (expected {expected})"
+            else:
+                dist = np.array(stored, dtype=np.float32)  # a copy: the file may be replaced later
+                dist.flags.writeable = False
+                return dist
+        except (OSError, ValueError, EOFError) as exc:
+            problem = f"cannot be read ({exc})"
+        log.warning("geodesic store entry %s of %r %s; recomputing it", path, mesh.name, problem)
+        path.unlink(missing_ok=True)
+        return None
+
+
+def _array_crc(array: np.ndarray) -> int:
+    """CRC-32 of an array's dtype, shape and bytes (C order)."""
+    header = f"{array.dtype.str}{array.shape}".encode()
+    return zlib.crc32(np.ascontiguousarray(array).data, zlib.crc32(header))

@@ -32,6 +32,9 @@ Components are edge-connected sets of faces (faces sharing an edge); the largest
 one with the largest surface area (GeoLoRA uses face count for cuts and holes, area for
 ray; on FAUST_r the two picks agreed in 87 of 90 draws, and area does not depend on how
 finely a region happens to be meshed).
+
+The visibility test of RAY (`visible_faces`) and `shape_centre` live in
+`geofeat.geometry.visibility` and are importable from here as well.
 """
 
 from __future__ import annotations
@@ -44,20 +47,36 @@ from types import MappingProxyType
 from typing import Any, Literal
 
 import numpy as np
-import scipy.sparse as sp
-from scipy.sparse.csgraph import connected_components
 
 from geofeat.errors import MeshError
 from geofeat.geometry.geodesic import distances_from
-from geofeat.mesh import Mesh
+from geofeat.geometry.visibility import CENTER_KINDS, Centre, shape_centre, visible_faces
+from geofeat.mesh import Mesh, require_faces
+from geofeat.topology import face_components, triangle_areas
 
 log = logging.getLogger(__name__)
 
+__all__ = [
+    "CENTER_KINDS",
+    "PARTIAL_KINDS",
+    "Centre",
+    "PartialShape",
+    "cut_partial",
+    "faces_within",
+    "holes_partial",
+    "largest_component",
+    "largest_component_submesh",
+    "make_partial",
+    "random_unit_vector",
+    "ray_partial",
+    "shape_centre",
+    "submesh",
+    "visible_faces",
+]
+
 PARTIAL_KINDS = ("cuts", "holes", "ray")
-CENTER_KINDS = ("centroid", "bbox")
 
 Seed = int | np.random.Generator
-Centre = Literal["centroid", "bbox"]
 #: A draw returns the kept source face indices and what was drawn (plane, balls, camera).
 _Draw = Callable[[], tuple[np.ndarray, dict[str, Any]]]
 
@@ -161,7 +180,7 @@ def faces_within(mesh: Mesh, keep_vertices: np.ndarray) -> np.ndarray:
     -------
     numpy.ndarray, shape (F,), bool
     """
-    faces = _require_faces(mesh, "a vertex subset")
+    faces = require_faces(mesh, "a vertex subset")
     keep_vertices = np.asarray(keep_vertices)
     if keep_vertices.shape != (mesh.n_vertices,) or keep_vertices.dtype != bool:
         raise MeshError(
@@ -189,30 +208,13 @@ def largest_component(mesh: Mesh, face_ids: np.ndarray) -> np.ndarray:
     numpy.ndarray, shape (K',), int64
         The faces of the largest component, in increasing order; empty when K is 0.
     """
-    faces = _require_faces(mesh, "a face subset")
+    faces = require_faces(mesh, "a face subset")
     face_ids = np.unique(np.asarray(face_ids, dtype=np.int64))
     if face_ids.size == 0:
         return face_ids
-    labels = _edge_component_labels(faces[face_ids])
-    areas = _triangle_areas(mesh.verts, faces[face_ids])
+    labels = face_components(faces[face_ids])
+    areas = triangle_areas(mesh.verts, faces[face_ids])
     return face_ids[labels == np.argmax(np.bincount(labels, weights=areas))]
-
-
-def _edge_component_labels(faces: np.ndarray) -> np.ndarray:
-    """Component label of each face, faces joined through shared edges; shape (K,) int."""
-    corner_pairs = np.sort(faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
-    _, edge_ids = np.unique(corner_pairs, axis=0, return_inverse=True)
-    face_of_edge = np.repeat(np.arange(len(faces)), 3)
-    incidence = sp.csr_matrix(
-        (np.ones(face_of_edge.size), (face_of_edge, edge_ids.ravel())), shape=(len(faces), int(edge_ids.max()) + 1)
-    )
-    _, labels = connected_components(incidence @ incidence.T, directed=False)
-    return labels
-
-
-def _triangle_areas(verts: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    tri = verts[faces]
-    return 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
 
 
 def submesh(mesh: Mesh, face_ids: np.ndarray, name: str | None = None) -> tuple[Mesh, np.ndarray]:
@@ -234,7 +236,7 @@ def submesh(mesh: Mesh, face_ids: np.ndarray, name: str | None = None) -> tuple[
     vertex_map : numpy.ndarray, shape (V_p,), int64
         Source index of each vertex of the new mesh.
     """
-    faces = _require_faces(mesh, "a face subset")
+    faces = require_faces(mesh, "a face subset")
     face_ids = np.unique(np.asarray(face_ids, dtype=np.int64))
     if face_ids.size == 0:
         raise MeshError(f"cannot make a sub-mesh of {mesh.name!r} from no faces; keep at least one face.")
@@ -273,7 +275,7 @@ def largest_component_submesh(
     face_map : numpy.ndarray, shape (F_p,), int64
         Source index of each kept face.
     """
-    faces = _require_faces(mesh, "a subset")
+    faces = require_faces(mesh, "a subset")
     mask = np.ones(len(faces), dtype=bool)
     if keep_faces is not None:
         keep_faces = np.asarray(keep_faces)
@@ -536,171 +538,12 @@ def random_unit_vector(rng: np.random.Generator) -> np.ndarray:
             return vector / norm
 
 
-def shape_centre(mesh: Mesh, how: Centre = "centroid") -> np.ndarray:
-    """The area-weighted centroid of the surface, or the bounding-box centre; shape (3,) float64."""
-    faces = _require_faces(mesh, "a centre")
-    if how == "bbox":
-        return 0.5 * (mesh.verts.min(axis=0) + mesh.verts.max(axis=0))
-    if how != "centroid":
-        raise MeshError(f"unknown centre {how!r}; expected one of {CENTER_KINDS}.")
-    areas = mesh.face_areas()
-    if not areas.sum() > 0:
-        raise MeshError(f"mesh {mesh.name!r} has zero surface area; it has no area-weighted centroid. Use center='bbox'.")
-    return (mesh.verts[faces].mean(axis=1) * areas[:, None]).sum(axis=0) / areas.sum()
-
-
-def visible_faces(mesh: Mesh, eye, target=None) -> np.ndarray:
-    """Faces a pinhole camera sees: those whose centroid the eye sees past every other face.
-
-    A face is visible when the segment from ``eye`` to its centroid crosses no other
-    triangle. The test is exact (no image resolution): centroids and triangles are
-    projected through the eye, each centroid is tested against the triangles whose
-    projected bounding box covers its cell of a uniform grid, and depths are compared
-    through inverse depth, which is affine in the image for a pinhole camera.
-
-    Parameters
-    ----------
-    mesh : Mesh
-        Triangle mesh with F faces.
-    eye : array_like, shape (3,)
-        Camera position, outside the bounding sphere about ``target``.
-    target : array_like, shape (3,), optional
-        Point looked at (default: the area-weighted centroid); only the viewing direction
-        and the bounding sphere depend on it.
-
-    Returns
-    -------
-    numpy.ndarray, shape (F,), bool
-    """
-    faces = _require_faces(mesh, "visibility")
-    eye = np.asarray(eye, dtype=np.float64).reshape(3)
-    target = shape_centre(mesh) if target is None else np.asarray(target, dtype=np.float64).reshape(3)
-    sphere_radius = float(np.linalg.norm(mesh.verts - target, axis=1).max())
-    eye_distance = float(np.linalg.norm(eye - target))
-    if not eye_distance > sphere_radius * (1 + 1e-9):
-        raise MeshError(
-            f"the camera must be outside the bounding sphere (radius {sphere_radius:.6g} about the target); "
-            f"found it at distance {eye_distance:.6g}. Move the eye further away."
-        )
-    axes = _camera_axes(target - eye)
-    camera = (mesh.verts - eye) @ axes.T  # (V, 3): right, up, depth > 0
-    image = camera[:, :2] / camera[:, 2:]
-    centroids = (mesh.verts[faces].mean(axis=1) - eye) @ axes.T
-    blocked = _blocked_points(image, 1.0 / camera[:, 2], faces, centroids[:, :2] / centroids[:, 2:], 1.0 / centroids[:, 2])
-    return ~blocked
-
-
-def _camera_axes(forward: np.ndarray) -> np.ndarray:
-    """Rows: right, up, forward (unit, orthogonal) for a camera looking along ``forward``."""
-    forward = forward / np.linalg.norm(forward)
-    helper = np.eye(3)[np.argmin(np.abs(forward))]
-    right = np.cross(forward, helper)
-    right /= np.linalg.norm(right)
-    return np.stack([right, np.cross(right, forward), forward])
-
-
-def _blocked_points(
-    image: np.ndarray, nearness: np.ndarray, faces: np.ndarray, points: np.ndarray, point_nearness: np.ndarray
-) -> np.ndarray:
-    """For each point ``i`` (on face ``i``), whether another face lies in front of it.
-
-    Parameters
-    ----------
-    image : numpy.ndarray, shape (V, 2)
-        Projected vertices (x / depth, y / depth).
-    nearness : numpy.ndarray, shape (V,)
-        1 / depth of the vertices.
-    faces : numpy.ndarray, shape (F, 3)
-    points : numpy.ndarray, shape (F, 2)
-        Projected query points, one per face (the face it lies on is not an occluder).
-    point_nearness : numpy.ndarray, shape (F,)
-        1 / depth of the query points.
-
-    Returns
-    -------
-    numpy.ndarray, shape (F,), bool
-    """
-    corners = image[faces]  # (F, 3, 2)
-    low, high = corners.min(axis=1), corners.max(axis=1)
-    grid = _Grid.around(low, high)
-    occluder, cells = grid.cells_under_boxes(low, high)
-    order = np.argsort(cells, kind="stable")
-    sorted_cells, occluder = cells[order], occluder[order]
-    query_cells = grid.cell_id(points)
-    starts = np.searchsorted(sorted_cells, query_cells, side="left")
-    counts = np.searchsorted(sorted_cells, query_cells, side="right") - starts
-    query = np.repeat(np.arange(len(points)), counts)
-    offsets = np.arange(query.size) - np.repeat(np.cumsum(counts) - counts, counts)
-    other = occluder[np.repeat(starts, counts) + offsets]
-    keep = other != query
-    query, other = query[keep], other[keep]
-    edge1 = corners[other, 1] - corners[other, 0]
-    edge2 = corners[other, 2] - corners[other, 0]
-    det = edge1[:, 0] * edge2[:, 1] - edge1[:, 1] * edge2[:, 0]
-    offset = points[query] - corners[other, 0]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        bary1 = (offset[:, 0] * edge2[:, 1] - offset[:, 1] * edge2[:, 0]) / det
-        bary2 = (edge1[:, 0] * offset[:, 1] - edge1[:, 1] * offset[:, 0]) / det
-    bary0 = 1.0 - bary1 - bary2
-    inside = (det != 0) & (bary0 >= 0) & (bary1 >= 0) & (bary2 >= 0)
-    depth_w = nearness[faces[other]]
-    other_nearness = bary0 * depth_w[:, 0] + bary1 * depth_w[:, 1] + bary2 * depth_w[:, 2]
-    in_front = inside & (other_nearness > point_nearness[query] * (1 + 1e-9))
-    return np.bincount(query[in_front], minlength=len(points)) > 0
-
-
-@dataclass(frozen=True)
-class _Grid:
-    """A uniform grid of square cells over the image plane, used to find candidate occluders."""
-
-    origin: np.ndarray  # (2,) lower-left corner
-    size: float  # cell side
-    n_cells: np.ndarray  # (2,) cells along x and y
-
-    @classmethod
-    def around(cls, low: np.ndarray, high: np.ndarray) -> _Grid:
-        """Grid over boxes ``low``-``high`` (N, 2), cells half as wide as a typical box.
-
-        (Half: fewer candidate occluders per cell against more cells per box; about twice
-        faster than cells of a whole box on FAUST, and at most 1024 cells a side.)
-        """
-        origin, extent = low.min(axis=0), high.max(axis=0) - low.min(axis=0)
-        size = max(0.5 * float(np.median((high - low).max(axis=1))), float(extent.max()) / 1024, 1e-300)
-        return cls(origin, size, np.maximum(np.ceil(extent / size).astype(np.int64), 1))
-
-    def cell_xy(self, points: np.ndarray) -> np.ndarray:
-        """Integer cell coordinates (N, 2) of points (N, 2), clipped to the grid."""
-        return np.clip(np.floor((points - self.origin) / self.size).astype(np.int64), 0, self.n_cells - 1)
-
-    def cell_id(self, points: np.ndarray) -> np.ndarray:
-        """Flat cell index (N,) of points (N, 2)."""
-        xy = self.cell_xy(points)
-        return xy[:, 1] * self.n_cells[0] + xy[:, 0]
-
-    def cells_under_boxes(self, low: np.ndarray, high: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Every (box, cell) pair with the cell under the box: box indices (P,), cell ids (P,)."""
-        first, last = self.cell_xy(low), self.cell_xy(high)
-        span = last - first + 1
-        counts = span[:, 0] * span[:, 1]
-        box = np.repeat(np.arange(len(low)), counts)
-        step = np.arange(box.size) - np.repeat(np.cumsum(counts) - counts, counts)
-        ix = first[box, 0] + step % span[box, 0]
-        iy = first[box, 1] + step // span[box, 0]
-        return box, iy * self.n_cells[0] + ix
-
-
 # ---------------------------------------------------------------------------------------
 # Argument checks.
 
 
-def _require_faces(mesh: Mesh, what: str) -> np.ndarray:
-    if mesh.faces is None:
-        raise MeshError(f"{mesh.name!r} is a point cloud: {what} needs a triangle mesh with faces.")
-    return mesh.faces
-
-
 def _check_generator_args(mesh: Mesh, kind: str, keep_range, max_tries) -> None:
-    _require_faces(mesh, f"a {kind!r} partial shape")
+    require_faces(mesh, f"a {kind!r} partial shape")
     lo, hi = keep_range
     if not 0 <= lo <= hi <= 1:
         raise MeshError(f"keep_range is a fraction of vertices (lo, hi) with 0 <= lo <= hi <= 1; found {keep_range!r}.")

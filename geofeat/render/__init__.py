@@ -7,7 +7,8 @@
 (torch.Size([9, 224, 224, 3]), torch.Size([9, 224, 224]))
 
 The rasterizer and the shader run on ``cameras.device`` (CPU or CUDA) with no compiled code.
-`pyrender_depth` needs the ``gl`` extra and is imported lazily.
+`pyrender_depth` needs the ``gl`` extra and is imported lazily. `multiview_features` is the
+one render -> backbone -> back-projection path of the DINO descriptors and the GeoLoRA trainer.
 """
 
 from geofeat.render.cameras import (
@@ -24,6 +25,7 @@ from geofeat.render.cameras import (
     official_grid_cameras,
     orbit_cameras,
 )
+from geofeat.render.multiview import MultiviewFeatures, multiview_features
 from geofeat.render.pyrender_backend import gl_platform, pyrender_depth
 from geofeat.render.rasterizer import Fragments, MeshRasterizer, RasterSettings, rasterize
 from geofeat.render.shading import PhongSettings, Rendering, render_phong, shade_phong, vertex_normals
@@ -35,6 +37,7 @@ __all__ = [
     "Cameras",
     "Fragments",
     "MeshRasterizer",
+    "MultiviewFeatures",
     "PhongSettings",
     "ProjectedPoints",
     "RasterSettings",
@@ -44,6 +47,7 @@ __all__ = [
     "gl_platform",
     "look_at_rotation",
     "make_cameras",
+    "multiview_features",
     "official_grid_angles",
     "official_grid_cameras",
     "orbit_cameras",

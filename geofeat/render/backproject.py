@@ -75,7 +75,11 @@ class VertexFeatureAccumulator:
         self.weights = torch.zeros(len(self.verts), dtype=torch.float32, device=self.device)
 
     def add(self, pixel_features: torch.Tensor, pix_to_face: torch.Tensor, bary: torch.Tensor) -> None:
-        """Accumulate one batch of views.
+        """Accumulate one batch of views given whole feature images (any per-pixel values).
+
+        The foreground rows of ``pixel_features`` go through `add_foreground`. The multi-view
+        DINO path (`geofeat.render.multiview`) never forms whole feature images; this is for
+        other per-pixel values, such as unprojected surface points.
 
         Parameters
         ----------
@@ -88,11 +92,8 @@ class VertexFeatureAccumulator:
                 f"pixel features of shape {tuple(pixel_features.shape)} do not match fragments of shape "
                 f"{tuple(pix_to_face.shape)} with {self.n_channels} channels."
             )
-        pixels = torch.nonzero((pix_to_face >= 0).reshape(-1)).squeeze(1).cpu().numpy()  # flat foreground indices (M,)
-        rows, local, values = self._entries(pixels, pix_to_face, bary)
-        # The product reads the features in place: no (M, C) copy of the foreground pixels.
-        features = pixel_features.reshape(-1, self.n_channels).to(self.device, torch.float32)
-        self._scatter(rows, pixels[local], values, features)
+        foreground = (pix_to_face >= 0).reshape(-1).to(pixel_features.device)
+        self.add_foreground(pixel_features.reshape(-1, self.n_channels)[foreground], pix_to_face, bary)
 
     def add_foreground(self, features: torch.Tensor, pix_to_face: torch.Tensor, bary: torch.Tensor) -> None:
         """Accumulate one batch of views given the features of its foreground pixels only.

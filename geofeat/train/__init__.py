@@ -6,7 +6,6 @@ from geofeat.train.losses import (
     geodesic_point_info_nce,
     observed_rows,
     point_info_nce,
-    training_geodesics,
 )
 
 __all__ = [
@@ -15,5 +14,4 @@ __all__ = [
     "geodesic_point_info_nce",
     "observed_rows",
     "point_info_nce",
-    "training_geodesics",
 ]

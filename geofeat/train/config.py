@@ -10,16 +10,14 @@ decimated, a checkpoint and a validation every 5,000 steps, 50,000 steps in all.
 
 from __future__ import annotations
 
-import dataclasses
-import json
 import os
-from dataclasses import dataclass, field
-from pathlib import Path
-from typing import Any
+from dataclasses import dataclass
+from typing import Any, ClassVar
 
-from geofeat.errors import TrainingError
-from geofeat.files import atomic_write
+from geofeat.checks import canonical, is_finite_number, is_integer
 from geofeat.geometry.partial import PARTIAL_KINDS
+from geofeat.jsonconfig import JsonConfig
+from geofeat.train.errors import TrainingError
 
 __all__ = ["LOSSES", "RESUMABLE_CHANGES", "TrainConfig"]
 
@@ -32,8 +30,11 @@ RESUMABLE_CHANGES = frozenset(
 
 
 @dataclass
-class TrainConfig:
+class TrainConfig(JsonConfig):
     """Every setting of ``geofeat train-geolora``.
+
+    ``config.json`` of a run; a `geofeat.jsonconfig.JsonConfig`, so a key of a settings file
+    that names no setting (``wandb_project``, say) is warned about and saved back, not lost.
 
     Parameters
     ----------
@@ -129,9 +130,12 @@ class TrainConfig:
     val_pairs: int = 20
     geodesic_cache: str | None = None
     progress: bool = True
-    _extra: dict[str, Any] = field(default_factory=dict, repr=False, compare=False)
+
+    error: ClassVar[type[TrainingError]] = TrainingError
 
     def __post_init__(self) -> None:
+        for name in self.field_names():  # NumPy scalars as Python values, for the JSON file
+            setattr(self, name, canonical(getattr(self, name)))
         self.partial_kinds = tuple(self.partial_kinds)
         problems = []
         if not self.data:
@@ -144,48 +148,22 @@ class TrainConfig:
         if unknown_kinds or not self.partial_kinds:
             problems.append(f"partial_kinds must be a non-empty subset of {PARTIAL_KINDS}, found {list(self.partial_kinds)}")
         for name in ("rank", "image_size", "views_full", "views_partial", "partials_per_shape", "max_vertices"):
-            if not isinstance(getattr(self, name), int) or getattr(self, name) < 1:
+            if not is_integer(getattr(self, name)) or getattr(self, name) < 1:
                 problems.append(f"{name} must be a positive integer, found {getattr(self, name)!r}")
         for name in ("steps", "checkpoint_every", "validate_every", "val_pairs"):
-            if not isinstance(getattr(self, name), int) or getattr(self, name) < 0:
+            if not is_integer(getattr(self, name)) or getattr(self, name) < 0:
                 problems.append(f"{name} must be an integer >= 0, found {getattr(self, name)!r}")
-        if self.first is not None and (not isinstance(self.first, int) or self.first < 1):
+        if self.first is not None and (not is_integer(self.first) or self.first < 1):
             problems.append(f"first must be a positive integer or None, found {self.first!r}")
         for name in ("lr", "grad_clip", "temperature", "alpha"):
-            if not isinstance(getattr(self, name), (int, float)) or getattr(self, name) <= 0:
+            if not is_finite_number(getattr(self, name)) or getattr(self, name) <= 0:
                 problems.append(f"{name} must be a number > 0, found {getattr(self, name)!r}")
-        if self.max_minutes is not None and (not isinstance(self.max_minutes, (int, float)) or self.max_minutes <= 0):
+        if self.max_minutes is not None and (not is_finite_number(self.max_minutes) or self.max_minutes <= 0):
             problems.append(f"max_minutes must be a number > 0 or None, found {self.max_minutes!r}")
         if problems:
             raise TrainingError("bad training settings: " + "; ".join(problems) + ".")
 
-    # -- serialisation
-
-    def to_dict(self) -> dict[str, Any]:
-        """JSON-ready settings (tuples as lists), without unknown keys read from a file."""
-        data = {f.name: getattr(self, f.name) for f in dataclasses.fields(self) if not f.name.startswith("_")}
-        data["partial_kinds"] = list(self.partial_kinds)
-        return data
-
-    def save(self, path: str | os.PathLike) -> None:
-        """Write the settings as JSON (atomically)."""
-        text = json.dumps(self.to_dict(), indent=2, sort_keys=True) + "\n"
-        atomic_write(path, lambda tmp: tmp.write_text(text))
-
-    @classmethod
-    def field_names(cls) -> list[str]:
-        """Names of the settings, in declaration order."""
-        return [f.name for f in dataclasses.fields(cls) if not f.name.startswith("_")]
-
-    @classmethod
-    def from_dict(cls, data: dict[str, Any], **overrides: Any) -> TrainConfig:
-        """Build from a mapping; unknown keys are kept aside (and reported by `unknown_keys`), not refused."""
-        known = set(cls.field_names())
-        values = {k: v for k, v in data.items() if k in known}
-        values.update({k: v for k, v in overrides.items() if v is not None})
-        config = cls(**values)
-        config._extra = {k: v for k, v in data.items() if k not in known}
-        return config
+    # -- serialisation (to_dict, from_dict, save, load, unknown: see JsonConfig)
 
     @classmethod
     def from_file(cls, path: str | os.PathLike, **overrides: Any) -> TrainConfig:
@@ -196,27 +174,7 @@ class TrainConfig:
         TrainingError
             Missing or unreadable file, or not a mapping.
         """
-        path = Path(path)
-        if not path.is_file():
-            raise TrainingError(f"configuration file {path} does not exist.")
-        text = path.read_text()
-        try:
-            if path.suffix.lower() in (".yaml", ".yml"):
-                import yaml
-
-                data = yaml.safe_load(text)
-            else:
-                data = json.loads(text)
-        except Exception as exc:  # json and yaml raise unrelated error types
-            raise TrainingError(f"could not parse {path}: {exc}") from exc
-        if not isinstance(data, dict):
-            raise TrainingError(f"{path} must hold a mapping of settings, found {type(data).__name__}.")
-        return cls.from_dict(data, **overrides)
-
-    @property
-    def unknown_keys(self) -> list[str]:
-        """Keys of the file this was read from that are no setting (ignored)."""
-        return sorted(self._extra)
+        return cls.load(path, **overrides)
 
     def changes_from(self, other: TrainConfig) -> list[str]:
         """Names of the settings that differ from ``other``."""

@@ -10,7 +10,7 @@ partial vertex ``p`` with a ground-truth full vertex ``g(p)`` is a query; its lo
 
 and the loss is the cross-entropy with the positive as the target, averaged over the
 queries. ``d`` is the geodesic distance on the full shape divided by the square root of its
-surface area (see `training_geodesics`). Only the partial -> full direction is used and
+surface area (the trainer's `geofeat.train.shapes.GeodesicStore`). Only the partial -> full direction is used and
 every full vertex takes part (no sub-sampling).
 
 This follows the released GeoLoRA training code (vikiehm/geo-lora: the weighted loss in
@@ -30,9 +30,7 @@ import numpy as np
 import torch
 import torch.nn.functional as fn
 
-from geofeat.errors import TrainingError
-from geofeat.geometry.geodesic import geodesic_matrix
-from geofeat.mesh import Mesh
+from geofeat.train.errors import TrainingError
 
 __all__ = [
     "DEFAULT_OFFSET",
@@ -40,7 +38,6 @@ __all__ = [
     "geodesic_point_info_nce",
     "observed_rows",
     "point_info_nce",
-    "training_geodesics",
 ]
 
 #: Temperature of the softmax, as in the GeoLoRA release.
@@ -50,38 +47,6 @@ DEFAULT_OFFSET = 0.5
 
 UnseenFull = Literal["zero", "drop"]
 _UNSEEN_FULL = ("zero", "drop")
-
-
-def training_geodesics(mesh: Mesh, device: str | torch.device = "cpu") -> torch.Tensor:
-    """All-pairs geodesic distances of a full shape, normalised as GeoLoRA training does.
-
-    Shortest paths along the mesh edges of the mesh scaled to unit surface area, i.e.
-    distances divided by ``sqrt(area)`` (one global factor, not per row, not by the maximum).
-
-    Parameters
-    ----------
-    mesh : Mesh
-        The full triangle mesh, ``V`` vertices, connected.
-    device : str or torch.device
-        Where the tensor goes.
-
-    Returns
-    -------
-    torch.Tensor, shape (V, V), float32
-        Symmetric, zero diagonal, a fresh (writable) tensor.
-
-    Raises
-    ------
-    TrainingError
-        When the mesh has several connected components (infinite distances).
-    """
-    dist = geodesic_matrix(mesh, method="dijkstra", normalize=True)
-    if not np.isfinite(dist).all():
-        raise TrainingError(
-            f"{mesh.name!r} has several connected components: geodesic distances between them are infinite. "
-            "Train on a connected full shape (keep its largest component)."
-        )
-    return torch.tensor(np.array(dist, dtype=np.float32), device=device)
 
 
 def observed_rows(features: torch.Tensor) -> torch.Tensor:
@@ -127,7 +92,7 @@ def geodesic_point_info_nce(
         Ground-truth full vertex of each partial vertex, ``-1`` for none (ignored).
     geodesic_full : torch.Tensor, shape (F, F), floating
         Geodesic distances on the full shape divided by ``sqrt(area)``
-        (`training_geodesics`). Only the rows of ground-truth vertices are read; they must
+        (`geofeat.train.shapes.GeodesicStore.load`). Only the rows of ground-truth vertices are read; they must
         be finite and non-negative. Any device: the rows used are moved to the features'.
     seen_partial : torch.Tensor, shape (P,), bool, optional
         Partial vertices seen in at least one view; the others are no query (their features
@@ -242,7 +207,7 @@ def _negative_weights(geodesic: torch.Tensor, batch: _Batch, offset: float) -> t
     if not torch.isfinite(rows).all() or (rows < 0).any():
         raise TrainingError(
             "geodesic_full has infinite, NaN or negative distances in the rows of ground-truth vertices; "
-            "expected finite distances >= 0 on a connected full shape (see training_geodesics)."
+            "expected finite distances >= 0 on a connected full shape (see geofeat.train.shapes.GeodesicStore)."
         )
     dtype = torch.promote_types(batch.query.dtype, torch.float32)
     return rows.to(device=batch.query.device, dtype=dtype).add_(offset)

@@ -4,7 +4,8 @@ Every full shape is loaded once, decimated when it has more than ``max_vertices`
 (quadric decimation, as the GeoLoRA release does above 12,000) and reduced to its largest
 connected component (geodesics between components are infinite). Its all-pairs geodesic
 matrix (edge Dijkstra, divided by ``sqrt(area)``) is computed once and stored as a float16
-``.npy`` file keyed by the mesh content hash; steps read it back memory-mapped. float16 keeps
+``.npy`` file keyed by the mesh content hash (`geofeat.geometry.geodesic.GeodesicStore`,
+checksum-verified); steps read it back. float16 keeps
 about three significant digits, plenty for the loss weights ``0.5 + d``, and halves the disk
 use (a 5,000-vertex shape takes 50 MB, a 12,000-vertex one 288 MB).
 """
@@ -19,18 +20,15 @@ import numpy as np
 import torch
 from tqdm.auto import tqdm
 
-from geofeat.config import cache_dir
-from geofeat.errors import TrainingError
-from geofeat.files import atomic_write
-from geofeat.geometry.geodesic import geodesic_matrix
+from geofeat.errors import MeshError
+from geofeat.geometry import geodesic
 from geofeat.geometry.partial import largest_component_submesh
 from geofeat.mesh import MESH_SUFFIXES, Mesh, load_mesh
+from geofeat.train.errors import TrainingError
 
 log = logging.getLogger(__name__)
 
 __all__ = ["GeodesicStore", "decimate", "load_training_shapes", "prepare_full_shape"]
-
-_STORE_VERSION = "1"
 
 
 def decimate(mesh: Mesh, max_vertices: int) -> Mesh:
@@ -141,8 +139,11 @@ def load_training_shapes(
     return [prepare_full_shape(m, max_vertices) for m in meshes]
 
 
-class GeodesicStore:
-    """All-pairs geodesic matrices on disk, one float16 ``.npy`` per mesh content hash.
+class GeodesicStore(geodesic.GeodesicStore):
+    """The geometry layer's `geofeat.geometry.geodesic.GeodesicStore` as training uses it.
+
+    float16 entries (the loss weights need about three digits), connected shapes only, and
+    matrices handed out as torch tensors.
 
     Parameters
     ----------
@@ -151,39 +152,19 @@ class GeodesicStore:
     """
 
     def __init__(self, folder: str | os.PathLike | None = None):
-        self.folder = Path(folder) if folder is not None else cache_dir() / "geodesics"
-
-    def path(self, mesh: Mesh) -> Path:
-        """Where the matrix of ``mesh`` lives."""
-        return self.folder / f"{mesh.hash}-v{_STORE_VERSION}.npy"
+        super().__init__(folder, dtype="float16", connected=True)
 
     def ensure(self, mesh: Mesh) -> Path:
-        """Compute and store the matrix unless present; safe with several processes (atomic rename)."""
-        path = self.path(mesh)
-        if path.is_file():
-            return path
-        dist = geodesic_matrix(mesh, method="dijkstra", normalize=True)
-        if not np.isfinite(dist).all():
-            raise TrainingError(f"{mesh.name!r} is not connected: its geodesic distances are infinite.")
-        stored = dist.astype(np.float16)
-
-        def write(tmp: Path) -> None:
-            with open(tmp, "wb") as handle:  # a handle: np.save would append ".npy" to the temporary name
-                np.save(handle, stored)
-
-        return atomic_write(path, write)
+        """Compute and store the matrix unless present (`TrainingError` for a mesh in several pieces)."""
+        try:
+            return super().ensure(mesh)
+        except MeshError as exc:
+            raise TrainingError(str(exc)) from exc
 
     def load(self, mesh: Mesh, device: str | torch.device = "cpu") -> torch.Tensor:
-        """The (V, V) float32 matrix of ``mesh``; computed when missing, recomputed when the file is damaged."""
-        for _ in range(2):
-            path = self.ensure(mesh)
-            try:
-                stored = np.load(path, mmap_mode="r")
-                if stored.shape == (mesh.n_vertices, mesh.n_vertices) and stored.dtype == np.float16:
-                    return torch.from_numpy(np.asarray(stored, dtype=np.float32)).to(device)
-                problem = f"holds a {stored.dtype} {stored.shape} array for a {mesh.n_vertices}-vertex mesh"
-            except (OSError, ValueError) as exc:
-                problem = f"cannot be read ({exc})"
-            log.warning("%s %s; recomputing it", path, problem)
-            path.unlink(missing_ok=True)
-        raise TrainingError(f"the geodesic matrix of {mesh.name!r} could not be stored in {self.folder}: {problem}.")
+        """The (V, V) float32 matrix of ``mesh`` on ``device``; computed when missing, recomputed when the file is damaged."""
+        try:
+            dist = super().load(mesh)
+        except MeshError as exc:
+            raise TrainingError(str(exc)) from exc
+        return torch.from_numpy(np.array(dist)).to(device)

@@ -8,8 +8,10 @@ One step (the GeoLoRA recipe):
    HOLES / RAY, each turned by its own random angle about the up axis (the known vertex
    map is the ground truth);
 4. render the full shape from ``views_full`` and every partial shape from ``views_partial``
-   cameras of the official grid, run the LoRA backbone with gradients, upsample and
-   back-project its patch features (vertices seen in no view keep zero features);
+   cameras of the official grid, run the LoRA backbone with gradients, sample its patch
+   features at the foreground pixels and back-project them, through
+   `geofeat.render.multiview_features`, the path of the ``geolora`` descriptor (vertices seen
+   in no view keep zero features);
 5. average the (geodesic-weighted) PointInfoNCE of the partial shapes, back-propagate, clip
    the gradient norm and take an Adam step.
 
@@ -54,17 +56,17 @@ import numpy as np
 import torch
 from tqdm.auto import tqdm
 
-from geofeat.backbones import DinoBackbone, load_backbone, sample_patch_features
+from geofeat.backbones import DinoBackbone, load_backbone
 from geofeat.backbones.lora import LoraSettings, add_lora, load_adapter, save_adapter
+from geofeat.datasets.records import Match
 from geofeat.devices import resolve_device
-from geofeat.errors import TrainingError
+from geofeat.evaluation import evaluate_pair, summarize
 from geofeat.files import atomic_write, fsync_folder, fsync_tree, load_torch_file
 from geofeat.geometry.partial import make_partial
 from geofeat.mesh import Mesh
-from geofeat.metrics import geodesic_errors
-from geofeat.render import make_cameras, render_phong
-from geofeat.render.backproject import VertexFeatureAccumulator, foreground_pixels
+from geofeat.render import make_cameras, multiview_features
 from geofeat.train.config import RESUMABLE_CHANGES, TrainConfig
+from geofeat.train.errors import TrainingError
 from geofeat.train.losses import geodesic_point_info_nce, point_info_nce
 from geofeat.train.shapes import GeodesicStore, load_training_shapes
 
@@ -411,22 +413,26 @@ class GeoLoraTrainer:
 
     # ------------------------------------------------------------------ features
 
-    def _amp(self):
-        use = self.config.amp == "on" or (self.config.amp == "auto" and self.device.type == "cuda")
-        if not use:
-            return contextlib.nullcontext()
-        return torch.autocast(device_type=self.device.type, dtype=torch.bfloat16)
+    def _autocast(self) -> bool:
+        """bfloat16 autocast of the backbone: ``config.amp`` "on", or "auto" on CUDA."""
+        return self.config.amp == "on" or (self.config.amp == "auto" and self.device.type == "cuda")
 
-    def shape_features(self, mesh: Mesh, n_views: int, timer: _Timer, fill: str = "zero") -> tuple[torch.Tensor, torch.Tensor]:
+    def shape_features(
+        self, mesh: Mesh, n_views: int, timer: _Timer | None = None, fill: str = "zero"
+    ) -> tuple[torch.Tensor, torch.Tensor]:
         """Multi-view LoRA-DINOv3 features of a mesh, differentiable when gradients are enabled.
+
+        `geofeat.render.multiview_features` with the run's settings, all views in one batch;
+        the ``geolora`` descriptor with the same views, image size, layout, back-projection,
+        fill and adapter gives the same features.
 
         Parameters
         ----------
         mesh : Mesh
             V vertices.
         n_views : int
-            Cameras of ``config.camera_layout``.
-        timer : _Timer
+            Cameras of ``config.camera_layout`` (not rotated).
+        timer : _Timer, optional
             Charged with "render", "forward" and "backproject".
         fill : {"zero", "nearest"}
             Features of vertices seen in no view.
@@ -434,23 +440,17 @@ class GeoLoraTrainer:
         Returns
         -------
         features : torch.Tensor, shape (V, C), float32
+            With an autograd graph to the LoRA parameters when the caller's autograd mode is
+            on (`torch.is_grad_enabled`): training steps; validation runs under ``no_grad``.
         seen : torch.Tensor, shape (V,), bool
         """
-        size = self.config.image_size
-        with timer("render"):
-            cameras = make_cameras(mesh, n_views, layout=self.config.camera_layout, image_size=size, device=self.device)
-            rendering = render_phong(mesh, None, cameras)
-        pix_to_face = rendering.fragments.pix_to_face
-        with timer("forward"):
-            with self._amp():
-                grid = self.backbone.patch_features(rendering.images)
-            features = sample_patch_features(grid, foreground_pixels(pix_to_face), (size, size))  # (M, C)
-        with timer("backproject"):
-            accumulator = VertexFeatureAccumulator(
-                mesh.verts, mesh.faces, self.backbone.embed_dim, mode=self.config.backproject, device=self.device
-            )
-            accumulator.add_foreground(features, pix_to_face, rendering.fragments.bary)
-            return accumulator.result_tensor(fill=fill)
+        cameras = make_cameras(
+            mesh, n_views, layout=self.config.camera_layout, image_size=self.config.image_size, device=self.device
+        )
+        return multiview_features(
+            mesh, cameras, self.backbone, backproject=self.config.backproject, fill=fill,
+            grad=torch.is_grad_enabled(), autocast=self._autocast(), timer=timer,
+        )  # fmt: skip
 
     # ------------------------------------------------------------------ one step
 
@@ -514,7 +514,9 @@ class GeoLoraTrainer:
 
         Features use the training view counts (``views_full`` for the full shape,
         ``views_partial`` for the partial one), unseen vertices filled from the nearest seen
-        one; distances on the full shape over ``sqrt(area)``. None when no validation set.
+        one; the protocol of `geofeat.evaluation` (``"vertices"``), with the distances of the
+        trainer's float16 geodesic store (about three significant digits). None when no
+        validation set.
         """
         config = self.config
         if not config.val_dataset or config.val_pairs == 0:
@@ -525,15 +527,16 @@ class GeoLoraTrainer:
             self._validation = load_dataset(config.val_dataset, root=config.data_root, split=config.val_split)
         dataset = self._validation
         timer = _Timer(self.device)
-        errors = []
+        records = []
         n_pairs = min(config.val_pairs, len(dataset))
         for i in tqdm(range(n_pairs), desc="validation", unit="pair", leave=False, disable=not config.progress):
             pair = dataset[i]
             feat_x, _ = self.shape_features(pair.x, config.views_full, timer, fill="nearest")
             feat_y, _ = self.shape_features(pair.y, config.views_partial, timer, fill="nearest")
             predicted = torch.cdist(feat_y, feat_x).argmin(dim=1).cpu().numpy()
-            errors.append(geodesic_errors(predicted, pair.map_yx, self.geodesics.load(pair.x).numpy()))
-        return 100.0 * float(np.concatenate(errors).mean())
+            match = Match(predicted, np.ones(pair.y.n_vertices, dtype=bool))
+            records.append(evaluate_pair(pair, match, "vertices", distances=self.geodesics.load(pair.x).numpy()))
+        return summarize(records).geodesic_error
 
     # ------------------------------------------------------------------ the loop
 

@@ -1,14 +1,9 @@
-import importlib.util
 import json
 import subprocess
 import sys
 
-import numpy as np
 import pytest
 from shapes import REPO
-
-from geofeat.adapters.heads import Match
-from geofeat.datasets import load_dataset
 
 RUN = REPO / "benchmarks" / "run.py"
 
@@ -17,7 +12,7 @@ def run(*args):
     return subprocess.run([sys.executable, str(RUN), "--no-progress", *args], capture_output=True, text=True, cwd=REPO)
 
 
-def test_default_run_on_the_builtin_collection_writes_every_report(tmp_path):
+def test_default_run_on_the_builtin_collection_writes_every_report(tmp_path, isolated_cache):
     result = run("--limit", "2", "--out", str(tmp_path))
     assert result.returncode == 0, result.stderr
     report = json.loads((tmp_path / "results.json").read_text())
@@ -28,6 +23,10 @@ def test_default_run_on_the_builtin_collection_writes_every_report(tmp_path):
     assert "| nn | wks | synthetic_cuts | 2 |" in (tmp_path / "results.md").read_text()
     for picture in ("pck.png", "pairs.png"):
         assert (tmp_path / picture).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    # the targets' geodesic matrices are kept in the cache folder ($GEOFEAT_CACHE_DIR/geodesics)
+    assert len(list((isolated_cache / "geodesics").glob("*-float32-*.npy"))) == len(
+        {p["pair"].split("->")[1] for p in report["pairs"]}
+    )
 
 
 def test_p2p_run_reports_miou(tmp_path):
@@ -94,28 +93,6 @@ def test_quick_learned_heads_train_evaluate_and_reload(pipeline, dataset, tmp_pa
     assert reloaded["loaded_from"] == str(tmp_path / "a" / "head")
     assert reloaded["train_steps"] == report["train_steps"] and reloaded["train_losses"] == report["train_losses"]
     assert reloaded["geodesic_error"] == pytest.approx(report["geodesic_error"])
-
-
-def load_run_module():
-    spec = importlib.util.spec_from_file_location("benchmark_run", RUN)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
-def test_overlap_metrics_average_every_shape_with_ground_truth():
-    bench = load_run_module()
-    pair = load_dataset("synthetic_cuts")[0]  # P2F: the ground truth overlap of the full shape x
-    assert pair.overlap_y.all() and 0 < pair.overlap_x.mean() < 1
-    all_y = np.ones(pair.y.n_vertices, dtype=bool)
-    no_prediction = bench.evaluate_pair(pair, Match(pair.map_yx, all_y))
-    assert no_prediction["iou"] == pytest.approx((1.0 + pair.overlap_x.mean()) / 2)
-    assert "overlap_auc" not in no_prediction  # no probabilities, no ranking
-    scores = pair.overlap_x + np.random.default_rng(0).uniform(0, 0.5, pair.x.n_vertices)  # ranks the truth perfectly
-    exact = bench.evaluate_pair(pair, Match(pair.map_yx, all_y, pair.overlap_x.copy(), None, scores))
-    assert exact["iou"] == 1.0 and exact["overlap_auc"] == 1.0  # only x has both classes
-    summary = bench.summarize([no_prediction, exact])
-    assert summary["overlap_auc"] == 1.0 and summary["miou"] == pytest.approx((no_prediction["iou"] + 1.0) / 2)
 
 
 def test_summary_tells_the_test_time_adaptation_apart(tmp_path):

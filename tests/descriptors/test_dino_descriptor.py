@@ -9,8 +9,7 @@ from tiny_models import tiny_dinov3
 from transformers import DINOv3ViTModel
 
 import geofeat
-from geofeat.descriptors.dino import multiview_features
-from geofeat.render import Cameras, make_cameras
+from geofeat.render import Cameras, make_cameras, multiview_features
 
 
 @pytest.fixture(scope="module")
@@ -87,11 +86,8 @@ def test_rotating_mesh_and_cameras_together_leaves_features_unchanged(tiny_dinov
         device="cpu",
     )
 
-    def pixel_features(images, size):
-        return backbone.pixel_features(images, size, batch_size=2)
-
-    a, seen_a = multiview_features(mesh, cameras, pixel_features, backbone.embed_dim, fill="zero")
-    b, seen_b = multiview_features(turned, turned_cameras, pixel_features, backbone.embed_dim, fill="zero")
+    a, seen_a = (t.numpy() for t in multiview_features(mesh, cameras, backbone, fill="zero", batch_size=2))
+    b, seen_b = (t.numpy() for t in multiview_features(turned, turned_cameras, backbone, fill="zero", batch_size=2))
     assert (seen_a == seen_b).mean() > 0.99
     both = seen_a & seen_b
     np.testing.assert_allclose(a[both], b[both], atol=2e-3)

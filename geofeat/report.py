@@ -1,18 +1,32 @@
-"""Reports of a benchmark run: Markdown table, PCK plot and correspondence pictures."""
+"""Reports of benchmark runs: Markdown tables, PCK plots and correspondence pictures.
+
+The plots need matplotlib (the ``bench`` extra: ``pip install 'geofeat[bench]'``), imported
+on first use only, so that importing this module (or `markdown_table`) costs nothing. They
+draw on `matplotlib.figure.Figure` objects and write PNG files without touching pyplot's
+global state or backend.
+"""
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
+from typing import Any
 
-import matplotlib
+import numpy as np
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-from mpl_toolkits.mplot3d.art3d import Poly3DCollection  # noqa: E402
+from geofeat.errors import MissingDependencyError
+from geofeat.mesh import Mesh
 
-from geofeat.mesh import Mesh  # noqa: E402
+__all__ = [
+    "markdown_table",
+    "plot_mesh_colors",
+    "plot_pairs",
+    "plot_pck",
+    "position_colors",
+    "transferred_colors",
+]
 
+#: Colour of vertices without a predicted counterpart.
 NO_MATCH_COLOR = np.array([0.55, 0.55, 0.55])
 
 
@@ -24,6 +38,11 @@ def markdown_table(rows: list[dict], columns: list[tuple[str, str, str]]) -> str
     rows : list of dict
     columns : list of (key, header, format)
         ``format`` is a format spec such as ``".2f"``; missing values print as a dash.
+
+    Returns
+    -------
+    str
+        Header, separator and one line per row, joined by newlines.
     """
     lines = ["| " + " | ".join(header for _, header, _ in columns) + " |", "|" + "---|" * len(columns)]
     for row in rows:
@@ -35,9 +54,30 @@ def markdown_table(rows: list[dict], columns: list[tuple[str, str, str]]) -> str
     return "\n".join(lines)
 
 
-def plot_pck(curves: dict[str, tuple[np.ndarray, np.ndarray]], path: Path, title: str) -> None:
-    """Save PCK curves, one per label: fraction of matches within a geodesic error threshold."""
-    fig, ax = plt.subplots(figsize=(5, 4))
+def _figure(**settings: Any):
+    """A new matplotlib ``Figure`` (no pyplot); `MissingDependencyError` naming the extra without matplotlib."""
+    try:
+        from matplotlib.figure import Figure
+    except ImportError as exc:
+        raise MissingDependencyError(
+            "plots need matplotlib, which is not installed; install the bench extra: pip install 'geofeat[bench]'"
+        ) from exc
+    return Figure(**settings)
+
+
+def plot_pck(curves: dict[str, tuple[np.ndarray, np.ndarray]], path: str | os.PathLike, title: str) -> None:
+    """Save PCK curves, one per label: fraction of matches within a geodesic error threshold.
+
+    Parameters
+    ----------
+    curves : dict
+        ``label -> (thresholds (T,), fractions (T,))``.
+    path : str or os.PathLike
+        PNG to write.
+    title : str
+    """
+    fig = _figure(figsize=(5, 4))
+    ax = fig.subplots()
     for label, (thresholds, fractions) in curves.items():
         ax.plot(thresholds, fractions, label=label)
     ax.set_xlabel("geodesic error threshold (fraction of sqrt(area))")
@@ -48,8 +88,7 @@ def plot_pck(curves: dict[str, tuple[np.ndarray, np.ndarray]], path: Path, title
     ax.legend()
     ax.set_title(title, fontsize=9)
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+    fig.savefig(Path(path), dpi=120)
 
 
 def position_colors(mesh: Mesh) -> np.ndarray:
@@ -59,7 +98,7 @@ def position_colors(mesh: Mesh) -> np.ndarray:
 
 
 def transferred_colors(colors_x: np.ndarray, map_yx: np.ndarray) -> np.ndarray:
-    """Colours of X pulled back to Y through a map (gray where ``map_yx == -1``), shape (V_y, 3)."""
+    """Colours of X (V_x, 3) pulled back to Y through a map (gray where ``map_yx == -1``), shape (V_y, 3)."""
     out = np.tile(NO_MATCH_COLOR, (map_yx.size, 1))
     valid = map_yx >= 0
     out[valid] = colors_x[map_yx[valid]]
@@ -67,6 +106,8 @@ def transferred_colors(colors_x: np.ndarray, map_yx: np.ndarray) -> np.ndarray:
 
 
 def _draw(ax, mesh: Mesh, colors: np.ndarray, title: str) -> None:
+    from mpl_toolkits.mplot3d.art3d import Poly3DCollection
+
     verts = mesh.verts[:, [0, 2, 1]]  # show y up
     face_colors = colors[mesh.faces].mean(axis=1)
     normals = np.cross(verts[mesh.faces[:, 1]] - verts[mesh.faces[:, 0]], verts[mesh.faces[:, 2]] - verts[mesh.faces[:, 0]])
@@ -84,16 +125,16 @@ def _draw(ax, mesh: Mesh, colors: np.ndarray, title: str) -> None:
     ax.set_title(title, fontsize=8)
 
 
-def plot_pairs(pairs: list[tuple], path: Path) -> None:
+def plot_pairs(pairs: list[tuple], path: str | os.PathLike) -> None:
     """Pictures of pairs: X in position colours, Y coloured through the predicted map, and through the truth.
 
     Parameters
     ----------
     pairs : list of (ShapePair, predicted map_yx (V_y,), label)
-    path : Path
+    path : str or os.PathLike
         PNG to write.
     """
-    fig = plt.figure(figsize=(9, 3.2 * len(pairs)))
+    fig = _figure(figsize=(9, 3.2 * len(pairs)))
     for row, (pair, predicted, label) in enumerate(pairs):
         colors_x = position_colors(pair.x)
         panels = [
@@ -105,17 +146,15 @@ def plot_pairs(pairs: list[tuple], path: Path) -> None:
             ax = fig.add_subplot(len(pairs), 3, 3 * row + col + 1, projection="3d")
             _draw(ax, mesh, colors, title)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    fig.savefig(Path(path), dpi=110)
 
 
-def plot_mesh_colors(mesh: Mesh, colors: np.ndarray, path: Path, title: str) -> None:
-    """A mesh with per-vertex colours (V, 3) seen from the front and from the back."""
-    fig = plt.figure(figsize=(6, 3.6))
+def plot_mesh_colors(mesh: Mesh, colors: np.ndarray, path: str | os.PathLike, title: str) -> None:
+    """A mesh with per-vertex colours (V, 3) seen from the front and from the back, saved as a PNG."""
+    fig = _figure(figsize=(6, 3.6))
     for col, (azimuth, side) in enumerate(((-90, "front"), (90, "back"))):
         ax = fig.add_subplot(1, 2, col + 1, projection="3d")
         _draw(ax, mesh, colors, f"{title}, {side}" if col == 0 else side)
         ax.view_init(elev=10, azim=azimuth)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    fig.savefig(Path(path), dpi=110)

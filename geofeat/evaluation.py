@@ -1,0 +1,442 @@
+"""Evaluating predicted matches against ground truth, pair by pair and over a benchmark.
+
+One protocol for every caller (``benchmarks/run.py``, ``benchmarks/summarize.py``, the GeoLoRA
+trainer's validation):
+
+* `evaluate_pair` scores a `Match` of a `ShapePair` into a `PairEvaluation` record: geodesic
+  errors, chirality accuracy, overlap IoU and overlap ROC AUC;
+* `summarize` pools records into a `BenchmarkSummary`, the metrics that ``results.json``
+  holds;
+* `evaluate_dataset` runs a matcher over the first pairs of a dataset and evaluates them,
+  target shape by target shape (each target's geodesic matrix is computed or read once), in
+  one process or in a pool of forked worker processes, with the same records either way.
+
+Protocols (``protocol=``): ``"vertices"`` evaluates every vertex of ``y`` that has a
+counterpart (the default); ``"template"`` evaluates the template points of datasets with a
+common template (FAUST_r, SCAPE_r), as the ULRSSM and DPFM references do
+(`geofeat.metrics.template_geodesic_errors`). Distances are edge-Dijkstra geodesics on the
+target ``x`` divided by ``sqrt(area(x))``.
+"""
+
+from __future__ import annotations
+
+import logging
+import multiprocessing
+import os
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from tqdm.auto import tqdm
+
+from geofeat import metrics
+from geofeat.datasets.errors import DatasetError
+from geofeat.datasets.records import Match, ShapePair
+from geofeat.geometry.geodesic import GeodesicStore, geodesic_matrix
+from geofeat.mesh import Mesh
+from geofeat.metrics import MetricError
+
+log = logging.getLogger(__name__)
+
+__all__ = [
+    "PROTOCOLS",
+    "SUMMARY_COLUMNS",
+    "BenchmarkSummary",
+    "PairEvaluation",
+    "default_workers",
+    "evaluate_dataset",
+    "evaluate_pair",
+    "pair_targets",
+    "summarize",
+    "target_distances",
+]
+
+#: Which points of ``y`` are evaluated: every vertex with a counterpart, or the template points.
+PROTOCOLS = ("vertices", "template")
+
+#: Markdown table columns ``(key, header, format)`` of the summary metrics, as run reports show them.
+SUMMARY_COLUMNS = [
+    ("n_pairs", "pairs", "d"),
+    ("geodesic_error", "geodesic error x100", ".2f"),
+    ("pck_auc", "PCK AUC", ".3f"),
+    ("miou", "mIoU", ".3f"),
+    ("overlap_auc", "overlap AUC", ".3f"),
+    ("chirality_accuracy", "chirality acc.", ".3f"),
+]
+
+
+@dataclass(frozen=True, eq=False)
+class PairEvaluation:
+    """The metrics of one matched pair.
+
+    Attributes
+    ----------
+    pair : str
+        ``"<y name>-><x name>"``.
+    errors : numpy.ndarray, shape (n_evaluated,), float64
+        Geodesic error of every evaluated point (fractions of ``sqrt(area(x))``).
+    chirality_accuracy : float or None
+        Fraction of evaluated points matched on the correct side, where the dataset has a
+        mirrored ground truth.
+    iou : float or None
+        Overlap IoU, the mean over the shapes whose ground-truth overlap the dataset gives
+        (a head that predicts no overlap for a shape counts as predicting all of it).
+    overlap_auc : float or None
+        ROC AUC of the predicted overlap probabilities, the mean over the shapes with
+        probabilities and a ground truth holding both classes.
+    """
+
+    pair: str
+    errors: np.ndarray
+    chirality_accuracy: float | None = None
+    iou: float | None = None
+    overlap_auc: float | None = None
+
+    @property
+    def n_evaluated(self) -> int:
+        """Number of evaluated points."""
+        return int(self.errors.size)
+
+    @property
+    def geodesic_error(self) -> float:
+        """Mean geodesic error of the pair, x100."""
+        return 100 * float(self.errors.mean())
+
+    def to_dict(self) -> dict[str, Any]:
+        """The pair's row of ``results.json``: name, counts and metrics, without the error array (None left out)."""
+        row: dict[str, Any] = {"pair": self.pair, "n_evaluated": self.n_evaluated}
+        for key in ("chirality_accuracy", "iou", "overlap_auc"):
+            value = getattr(self, key)
+            if value is not None:
+                row[key] = value
+        row["geodesic_error"] = self.geodesic_error
+        return row
+
+
+@dataclass(frozen=True)
+class BenchmarkSummary:
+    """Metrics pooled over the pairs of a benchmark, the way published tables report them.
+
+    Attributes
+    ----------
+    n_pairs : int
+    n_evaluated_vertices : int
+        Evaluated points of all pairs together.
+    geodesic_error : float
+        Mean geodesic error x100 over all evaluated points of all pairs pooled.
+    pck_auc : float
+        Area under the PCK curve, in [0, 1].
+    pck_thresholds, pck : list of float
+        The PCK curve: fraction of points within each error threshold.
+    chirality_accuracy : float or None
+        Mean over pairs weighted by their evaluated points (pairs with a mirrored ground truth).
+    miou : float or None
+        Mean overlap IoU over the pairs that have one.
+    overlap_auc : float or None
+        Mean overlap ROC AUC over the pairs that have one.
+    """
+
+    n_pairs: int
+    n_evaluated_vertices: int
+    geodesic_error: float
+    pck_auc: float
+    pck_thresholds: list[float] = field(repr=False)
+    pck: list[float] = field(repr=False)
+    chirality_accuracy: float | None = None
+    miou: float | None = None
+    overlap_auc: float | None = None
+
+    def to_dict(self) -> dict[str, Any]:
+        """The summary keys of ``results.json`` (None left out), in a fixed order."""
+        return {key: value for key, value in self.__dict__.items() if value is not None}
+
+    @property
+    def pck_curve(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(thresholds, fractions)``, two float64 arrays of the same length."""
+        return np.asarray(self.pck_thresholds, dtype=np.float64), np.asarray(self.pck, dtype=np.float64)
+
+
+def _check_protocol(protocol: str) -> None:
+    if protocol not in PROTOCOLS:
+        raise MetricError(f"protocol must be one of {PROTOCOLS}; found {protocol!r}.")
+
+
+def target_distances(mesh: Mesh, store: GeodesicStore | None = None) -> np.ndarray:
+    """The evaluation distances on a target shape: edge-Dijkstra geodesics over ``sqrt(area)``.
+
+    Parameters
+    ----------
+    mesh : Mesh
+        Target (full) shape with V vertices.
+    store : GeodesicStore, optional
+        Read the matrix from (and keep it in) this disk store; a float32 store gives exactly
+        the matrix computed in memory. None computes it (cached in memory).
+
+    Returns
+    -------
+    numpy.ndarray, shape (V, V), float32, read-only
+    """
+    if store is None:
+        return geodesic_matrix(mesh, method="dijkstra", normalize=True)
+    return store.load(mesh)
+
+
+def evaluate_pair(
+    pair: ShapePair, match: Match, protocol: str = "vertices", distances: np.ndarray | None = None
+) -> PairEvaluation:
+    """Score a predicted match of a pair.
+
+    Parameters
+    ----------
+    pair : ShapePair
+        Ground truth; V_x and V_y vertices.
+    match : Match
+        Prediction: ``map_yx`` (V_y,) and optional overlap masks and probabilities.
+    protocol : {"vertices", "template"}
+        Evaluated points (see the module notes).
+    distances : numpy.ndarray, shape (V_x, V_x), optional
+        Geodesic distances on ``pair.x`` over ``sqrt(area)`` (`target_distances`); computed
+        when not given.
+
+    Returns
+    -------
+    PairEvaluation
+
+    Raises
+    ------
+    MetricError
+        For an unknown protocol or a distance matrix of the wrong shape.
+    DatasetError
+        For ``protocol="template"`` on a pair without template points.
+    """
+    _check_protocol(protocol)
+    if protocol == "template" and (pair.corr_x is None or pair.corr_y is None):
+        raise DatasetError(f"pair {pair.name}: --protocol template needs a dataset with template points (faust_r, scape_r)")
+    dist_x = target_distances(pair.x) if distances is None else distances
+    if dist_x.shape != (pair.x.n_vertices, pair.x.n_vertices):
+        raise MetricError(
+            f"pair {pair.name}: distances must be the (V_x, V_x) = ({pair.x.n_vertices}, {pair.x.n_vertices}) matrix of x; "
+            f"found shape {dist_x.shape}. Pass target_distances(pair.x)."
+        )
+    predicted = match.map_yx
+    if protocol == "template":
+        errors = metrics.template_geodesic_errors(predicted, pair.corr_x, pair.corr_y, dist_x)
+        sym = None
+        if pair.corr_x_sym is not None:
+            sym = (metrics.at_template_points(predicted, pair.corr_y), pair.corr_x, pair.corr_x_sym)
+    else:
+        errors = metrics.geodesic_errors(predicted, pair.map_yx, dist_x)
+        sym = None if pair.map_yx_sym is None else (predicted, pair.map_yx, pair.map_yx_sym)
+    chirality = None if sym is None else metrics.chirality_accuracy(*sym, dist_x)
+    ious = [
+        metrics.overlap_iou(np.ones(truth.shape, dtype=bool) if guess is None else guess, truth)
+        for guess, truth in ((match.overlap_y, pair.overlap_y), (match.overlap_x, pair.overlap_x))
+        if truth is not None
+    ]
+    aucs = [
+        metrics.overlap_auc(scores, truth)
+        for scores, truth in ((match.overlap_prob_y, pair.overlap_y), (match.overlap_prob_x, pair.overlap_x))
+        if scores is not None and truth is not None
+    ]
+    aucs = [auc for auc in aucs if auc is not None]
+    return PairEvaluation(
+        pair=f"{pair.y.name}->{pair.x.name}",
+        errors=errors,
+        chirality_accuracy=chirality,
+        iou=float(np.mean(ious)) if ious else None,
+        overlap_auc=float(np.mean(aucs)) if aucs else None,
+    )
+
+
+def summarize(records: Sequence[PairEvaluation]) -> BenchmarkSummary:
+    """Pool per-pair records into the benchmark metrics.
+
+    Parameters
+    ----------
+    records : sequence of PairEvaluation
+        At least one, with at least one evaluated point in all.
+
+    Returns
+    -------
+    BenchmarkSummary
+        Geodesic error and PCK pooled over all points; chirality weighted by the evaluated
+        points of each pair; mIoU and overlap AUC as means over the pairs that have them.
+    """
+    if not records:
+        raise MetricError("summarize needs at least one evaluated pair; found none.")
+    errors = [r.errors for r in records]
+    pooled = np.concatenate(errors)
+    thresholds, fractions = metrics.pck_curve(pooled)
+    with_chirality = [r for r in records if r.chirality_accuracy is not None]
+    chirality = None
+    if with_chirality:
+        weights = np.array([r.n_evaluated for r in with_chirality], dtype=float)
+        values = np.array([r.chirality_accuracy for r in with_chirality])
+        chirality = float((weights * values).sum() / weights.sum())
+    ious = [r.iou for r in records if r.iou is not None]
+    aucs = [r.overlap_auc for r in records if r.overlap_auc is not None]
+    return BenchmarkSummary(
+        n_pairs=len(records),
+        n_evaluated_vertices=int(sum(r.n_evaluated for r in records)),
+        geodesic_error=metrics.mean_geodesic_error(errors),
+        pck_auc=metrics.pck_auc(pooled),
+        pck_thresholds=thresholds.tolist(),
+        pck=fractions.tolist(),
+        chirality_accuracy=chirality,
+        miou=float(np.mean(ious)) if ious else None,
+        overlap_auc=float(np.mean(aucs)) if aucs else None,
+    )
+
+
+# ----------------------------------------------------------------------------- a dataset
+
+
+def pair_targets(dataset: Sequence[ShapePair], n_pairs: int) -> list[str | int]:
+    """A key of the target shape ``x`` of each of the first ``n_pairs`` pairs, read from names only.
+
+    Datasets with ``pair_names`` (``"<y>-><x>"``, every loader here) give the target's name
+    without loading any mesh; for other sequences every pair is its own group (its index).
+    """
+    names = getattr(dataset, "pair_names", None)
+    if names is None:
+        return list(range(n_pairs))
+    return [name.rsplit("->", 1)[1] for name in list(names)[:n_pairs]]
+
+
+def _group_by_target(targets: Sequence[str | int]) -> list[list[int]]:
+    """Pair indices grouped by target, groups in order of their first pair, indices ascending."""
+    groups: dict[str | int, list[int]] = {}
+    for i, key in enumerate(targets):
+        groups.setdefault(key, []).append(i)
+    return list(groups.values())
+
+
+MatchFunction = Callable[[int, ShapePair], Match]
+
+
+@dataclass
+class _Job:
+    dataset: Sequence[ShapePair]
+    match: MatchFunction
+    protocol: str
+    store: GeodesicStore | None
+    keep: frozenset[int]
+
+
+#: The job of the forked workers of `evaluate_dataset` (inherited through fork, never pickled).
+_JOB: _Job | None = None
+
+
+def _evaluate_group(indices: list[int]) -> list[tuple[int, PairEvaluation, tuple[ShapePair, Match] | None]]:
+    """Evaluate the pairs of one target shape; returns ``(index, record, (pair, match) when kept)``."""
+    job = _JOB
+    if job is None:
+        raise RuntimeError("no evaluation job: _evaluate_group runs inside evaluate_dataset only")
+    out = []
+    target, distances = None, None
+    for i in indices:
+        pair = job.dataset[i]
+        match = job.match(i, pair)
+        if pair.x.hash != target:
+            target, distances = pair.x.hash, target_distances(pair.x, job.store)
+        out.append((i, evaluate_pair(pair, match, job.protocol, distances), (pair, match) if i in job.keep else None))
+    return out
+
+
+def _worker_start() -> None:
+    """In a forked worker: one BLAS/torch thread, the cores go to the workers."""
+    try:
+        import torch
+
+        torch.set_num_threads(1)
+    except ImportError:  # pragma: no cover - torch is a dependency of every install
+        pass
+
+
+def default_workers() -> int:
+    """Worker processes of `evaluate_dataset` when not given: the usable CPU cores (``os.sched_getaffinity``)."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # pragma: no cover - not on Linux
+        return max(1, os.cpu_count() or 1)
+
+
+def evaluate_dataset(
+    dataset: Sequence[ShapePair],
+    match: MatchFunction,
+    n_pairs: int | None = None,
+    *,
+    protocol: str = "vertices",
+    store: GeodesicStore | None = None,
+    workers: int = 1,
+    keep: Sequence[int] = (),
+    progress: bool = True,
+    desc: str = "evaluating",
+) -> tuple[list[PairEvaluation], dict[int, tuple[ShapePair, Match]]]:
+    """Match and evaluate the first ``n_pairs`` pairs of a dataset, target shape by target shape.
+
+    Parameters
+    ----------
+    dataset : sequence of ShapePair
+        Indexable (a dataset of `geofeat.datasets`).
+    match : callable
+        ``match(index, pair) -> Match``.
+    n_pairs : int, optional
+        Default all pairs.
+    protocol : {"vertices", "template"}
+    store : GeodesicStore, optional
+        Where the targets' geodesic matrices are kept on disk (None: computed in memory).
+    workers : int
+        Processes. With more than one (and where ``fork`` exists) the target groups are
+        shared out among forked workers, which inherit ``dataset`` and ``match`` (nothing
+        is pickled but the records); each worker computes with one thread. The records do
+        not depend on the number of workers: every pair is matched and evaluated alone.
+    keep : sequence of int
+        Pair indices whose ``(pair, match)`` are returned too (for pictures).
+    progress : bool
+        Show a tqdm progress bar (pairs).
+    desc : str
+        The progress bar's label.
+
+    Returns
+    -------
+    records : list of PairEvaluation
+        In pair order.
+    kept : dict
+        ``index -> (ShapePair, Match)`` for the indices of ``keep``.
+    """
+    global _JOB
+    _check_protocol(protocol)
+    n_pairs = len(dataset) if n_pairs is None else min(int(n_pairs), len(dataset))
+    groups = _group_by_target(pair_targets(dataset, n_pairs))
+    workers = max(1, min(int(workers), len(groups)))
+    if workers > 1 and "fork" not in multiprocessing.get_all_start_methods():
+        log.info("no fork start method here: evaluating in one process")
+        workers = 1
+    results: dict[int, tuple[PairEvaluation, tuple[ShapePair, Match] | None]] = {}
+    _JOB = _Job(dataset, match, protocol, store, frozenset(keep))
+    try:
+        with tqdm(total=n_pairs, desc=desc, unit="pair", disable=not progress) as bar:
+            if workers == 1:
+                for group in groups:
+                    for i, record, kept in _evaluate_group(group):
+                        results[i] = (record, kept)
+                        bar.update(1)
+            else:
+                from concurrent.futures import ProcessPoolExecutor, as_completed
+
+                # largest groups first, so that the workers finish together
+                order = sorted(groups, key=len, reverse=True)
+                context = multiprocessing.get_context("fork")
+                with ProcessPoolExecutor(workers, mp_context=context, initializer=_worker_start) as pool:
+                    futures = [pool.submit(_evaluate_group, group) for group in order]
+                    for future in as_completed(futures):
+                        for i, record, kept in future.result():
+                            results[i] = (record, kept)
+                            bar.update(1)
+    finally:
+        _JOB = None
+    records = [results[i][0] for i in range(n_pairs)]
+    kept_pairs = {i: results[i][1] for i in sorted(keep) if i < n_pairs}
+    return records, kept_pairs

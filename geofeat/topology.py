@@ -1,0 +1,110 @@
+"""Mesh topology in one place: edges, connected components and triangle areas.
+
+Plain functions of ``verts (V, 3) float64`` and ``faces (F, 3) int64`` arrays, used by
+`geofeat.mesh.Mesh`, the geometry layer (geodesics, partial shapes) and the heads'
+surface operators, so that every layer derives the same edges and components the same way.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.sparse.csgraph import connected_components
+
+__all__ = ["corner_edges", "edge_counts", "face_components", "triangle_areas", "unique_edges", "vertex_components"]
+
+
+def triangle_areas(verts: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Areas of the triangles.
+
+    Parameters
+    ----------
+    verts : numpy.ndarray, shape (V, 3), float64
+    faces : numpy.ndarray, shape (F, 3), int
+
+    Returns
+    -------
+    numpy.ndarray, shape (F,), float64
+        Half the norm of the cross product of two edge vectors (0 for a degenerate face).
+    """
+    tri = verts[faces]
+    return 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+
+
+def corner_edges(faces: np.ndarray) -> np.ndarray:
+    """The three edges of every face, smaller vertex index first (repeats and self edges kept).
+
+    Returns
+    -------
+    numpy.ndarray, shape (3F, 2), int
+        Rows ``3f``, ``3f + 1``, ``3f + 2`` are the edges (0, 1), (1, 2), (2, 0) of face ``f``.
+    """
+    return np.sort(faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
+
+
+def unique_edges(faces: np.ndarray) -> np.ndarray:
+    """The undirected edges of the triangles, each once, without self edges.
+
+    Returns
+    -------
+    numpy.ndarray, shape (E, 2), int64
+        Smaller vertex index first, rows in lexicographic order.
+    """
+    pairs = corner_edges(faces)
+    pairs = pairs[pairs[:, 0] != pairs[:, 1]]
+    return np.unique(pairs, axis=0).astype(np.int64)
+
+
+def edge_counts(faces: np.ndarray) -> np.ndarray:
+    """How many face corners use each distinct edge (a count above 2 is a non-manifold edge).
+
+    Returns
+    -------
+    numpy.ndarray, shape (E',), int64
+        One count per distinct row of `corner_edges` (self edges of degenerate faces included).
+    """
+    if len(faces) == 0:
+        return np.zeros(0, dtype=np.int64)
+    return np.unique(corner_edges(faces), axis=0, return_counts=True)[1].astype(np.int64)
+
+
+def vertex_components(n_vertices: int, faces: np.ndarray) -> tuple[int, np.ndarray]:
+    """Connected components of the vertices, joined by the triangle edges.
+
+    Parameters
+    ----------
+    n_vertices : int
+        V; vertices in no face are components of their own.
+    faces : numpy.ndarray, shape (F, 3), int
+
+    Returns
+    -------
+    n_components : int
+    labels : numpy.ndarray, shape (V,), int32
+        Component of each vertex, numbered in order of each component's lowest vertex index.
+    """
+    pairs = corner_edges(faces)
+    graph = sp.coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n_vertices, n_vertices))
+    n_components, labels = connected_components(graph, directed=False)
+    return int(n_components), labels
+
+
+def face_components(faces: np.ndarray) -> np.ndarray:
+    """Component label of each face, faces joined through shared edges (not through a lone vertex).
+
+    Parameters
+    ----------
+    faces : numpy.ndarray, shape (K, 3), int
+        K >= 1.
+
+    Returns
+    -------
+    numpy.ndarray, shape (K,), int32
+    """
+    _, edge_ids = np.unique(corner_edges(faces), axis=0, return_inverse=True)
+    face_of_edge = np.repeat(np.arange(len(faces)), 3)
+    incidence = sp.csr_matrix(
+        (np.ones(face_of_edge.size), (face_of_edge, edge_ids.ravel())), shape=(len(faces), int(edge_ids.max()) + 1)
+    )
+    _, labels = connected_components(incidence @ incidence.T, directed=False)
+    return labels

@@ -1,0 +1,105 @@
+"""GeodesicStore: geodesic matrices on disk by mesh content, checked on every read."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from shapes import bumpy
+
+import geofeat
+from geofeat.errors import MeshError
+from geofeat.geometry import geodesic
+from geofeat.geometry.geodesic import GeodesicStore, geodesic_matrix
+
+
+@pytest.fixture
+def computations(monkeypatch):
+    """Counts the matrices the store computes."""
+    calls = []
+    original = geodesic.geodesic_matrix
+
+    def counting(mesh, *args, **kwargs):
+        calls.append(mesh.name)
+        return original(mesh, *args, **kwargs)
+
+    monkeypatch.setattr(geodesic, "geodesic_matrix", counting)
+    return calls
+
+
+def test_miss_computes_and_stores_then_hit_reads_back(tmp_path, computations):
+    store = GeodesicStore(tmp_path / "g")
+    mesh = bumpy(0, 2)
+    assert store.path(mesh) is None
+    first = store.load(mesh)
+    path = store.path(mesh)
+    assert computations == [mesh.name] and path.parent == tmp_path / "g"
+    assert path.name.startswith(f"{mesh.hash}-float32-v{geodesic.STORE_VERSION}-") and path.suffix == ".npy"
+    again = GeodesicStore(tmp_path / "g").load(mesh)  # a new store (another process) finds the entry
+    assert computations == [mesh.name]
+    np.testing.assert_array_equal(again, first)
+    np.testing.assert_array_equal(again, geodesic_matrix(mesh, normalize=True))  # float32: exactly the matrix
+    assert again.dtype == np.float32 and not again.flags.writeable
+    assert store.ensure(mesh) == path and computations == [mesh.name]
+    assert [p.name for p in (tmp_path / "g").iterdir()] == [path.name]  # no temporary file left
+
+
+def test_key_is_the_mesh_content_not_its_name(tmp_path, computations):
+    store = GeodesicStore(tmp_path)
+    mesh = bumpy(0, 2)
+    store.load(mesh)
+    store.load(mesh.renamed("another name"))
+    assert len(computations) == 1
+    other = bumpy(1, 2)  # same connectivity, other vertices
+    store.load(other)
+    assert len(computations) == 2 and store.path(other) != store.path(mesh)
+    half = GeodesicStore(tmp_path, dtype="float16")  # another precision is another entry
+    half.load(mesh)
+    assert len(computations) == 3 and np.load(half.path(mesh)).dtype == np.float16
+
+
+@pytest.mark.parametrize(
+    "damage",
+    ["garbage", "truncated", "flipped byte", "wrong shape"],
+)
+def test_damaged_entry_is_detected_and_recomputed_never_returned(tmp_path, computations, caplog, damage):
+    store = GeodesicStore(tmp_path)
+    mesh = bumpy(0, 2)
+    good = store.load(mesh)
+    path = store.path(mesh)
+    data = bytearray(path.read_bytes())
+    if damage == "garbage":
+        path.write_bytes(b"not a numpy file")
+    elif damage == "truncated":
+        path.write_bytes(bytes(data[: len(data) // 2]))
+    elif damage == "flipped byte":  # same size, valid header: only the checksum sees it
+        data[-7] ^= 0x10
+        path.write_bytes(bytes(data))
+    else:
+        with open(path, "wb") as handle:
+            np.save(handle, np.zeros((3, 3), dtype=np.float32))
+    again = store.load(mesh)
+    np.testing.assert_array_equal(again, good)
+    assert computations == [mesh.name, mesh.name]
+    assert "recomputing" in caplog.text and str(path) in caplog.text
+    np.testing.assert_array_equal(np.load(store.path(mesh)), good)  # repaired on disk
+
+
+def test_float16_store_rounds_and_connected_store_refuses_pieces(tmp_path):
+    mesh = bumpy(0, 2)
+    half = GeodesicStore(tmp_path, dtype="float16").load(mesh)
+    np.testing.assert_allclose(half, geodesic_matrix(mesh), rtol=2e-3, atol=1e-4)
+    assert half.dtype == np.float32
+    two = geofeat.Mesh(
+        np.concatenate([mesh.verts, mesh.verts + 10.0]), np.concatenate([mesh.faces, mesh.faces + mesh.n_vertices]), "two"
+    )
+    assert np.isinf(GeodesicStore(tmp_path).load(two)).any()  # evaluation accepts pieces
+    with pytest.raises(MeshError, match="not connected"):
+        GeodesicStore(tmp_path / "c", connected=True).load(two)
+    with pytest.raises(MeshError, match="float32"):
+        GeodesicStore(tmp_path, dtype="float64")
+
+
+def test_default_folder_follows_the_cache_setting(tmp_path, isolated_cache):
+    assert GeodesicStore().folder == isolated_cache / "geodesics"
+    geofeat.set_cache_dir(tmp_path / "elsewhere")
+    assert GeodesicStore().folder == tmp_path / "elsewhere" / "geodesics"

@@ -1,0 +1,181 @@
+"""geofeat.evaluation: per-pair records, both protocols, the benchmark summary and the dataset loop."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+
+import geofeat
+from geofeat import metrics
+from geofeat.datasets import Match, ShapePair, load_dataset
+from geofeat.errors import DatasetError, MetricError
+from geofeat.evaluation import (
+    BenchmarkSummary,
+    PairEvaluation,
+    evaluate_dataset,
+    evaluate_pair,
+    pair_targets,
+    summarize,
+)
+from geofeat.geometry.geodesic import GeodesicStore, geodesic_matrix
+
+
+def unit_square() -> geofeat.Mesh:
+    """Two triangles of a unit square (area 1): edge-Dijkstra d(0,2) = sqrt(2), d(1,3) = 2, sides 1."""
+    verts = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], dtype=float)
+    return geofeat.Mesh(verts, np.array([[0, 1, 2], [0, 2, 3]]), name="square")
+
+
+def square_pair(**fields) -> ShapePair:
+    square = unit_square()
+    settings = dict(
+        x=square,
+        y=square.renamed("square_y"),
+        map_yx=np.arange(4),
+        map_yx_sym=np.array([1, 0, 3, 2]),  # the mirror x -> 1 - x
+        overlap_x=np.array([True, True, False, False]),
+        protocol="f2f",
+    )
+    return ShapePair(**(settings | fields))
+
+
+SWAPPED = np.array([0, 3, 2, 1])  # vertices 1 and 3 swapped: errors 0, 2, 0, 2
+
+
+def test_hand_computed_square_vertices_protocol():
+    dist = geodesic_matrix(unit_square())
+    assert dist[0, 2] == pytest.approx(math.sqrt(2)) and dist[1, 3] == pytest.approx(2.0)
+    match = Match(SWAPPED, np.ones(4, dtype=bool), np.array([True, False, False, False]), None, np.array([0.9, 0.2, 0.1, 0.3]))
+    record = evaluate_pair(square_pair(), match)
+    assert isinstance(record, PairEvaluation) and record.pair == "square_y->square"
+    np.testing.assert_allclose(record.errors, [0.0, 2.0, 0.0, 2.0], rtol=1e-6)
+    assert record.errors.dtype == np.float64 and record.n_evaluated == 4
+    assert record.geodesic_error == pytest.approx(100.0)
+    # v0, v2 land on their counterpart; v1 -> 3 and v3 -> 1 lie nearer the mirror images (0 and 2)
+    assert record.chirality_accuracy == 0.5
+    assert record.iou == 0.5  # only x has a ground-truth overlap: {0} against {0, 1}
+    # overlap AUC of x: positives 0.9, 0.2 against negatives 0.1, 0.3: three of four pairs ranked right
+    assert record.overlap_auc == 0.75
+    assert list(record.to_dict()) == ["pair", "n_evaluated", "chirality_accuracy", "iou", "overlap_auc", "geodesic_error"]
+
+
+def test_hand_computed_square_template_protocol():
+    pair = square_pair(corr_x=np.array([0, 1, 2]), corr_y=np.array([0, 1, 2]), corr_x_sym=np.array([1, 0, 3]))
+    record = evaluate_pair(pair, Match(SWAPPED, np.ones(4, dtype=bool)), protocol="template")
+    np.testing.assert_allclose(record.errors, [0.0, 2.0, 0.0], rtol=1e-6)  # the map read at the 3 template points
+    assert record.n_evaluated == 3 and record.geodesic_error == pytest.approx(200 / 3)
+    assert record.chirality_accuracy == pytest.approx(2 / 3)
+    assert record.overlap_auc is None and record.iou == 0.5  # no predicted overlap counts as all of x, against {0, 1}
+    row = record.to_dict()
+    assert "overlap_auc" not in row and row["n_evaluated"] == 3
+
+
+def test_protocol_errors_name_the_fix():
+    with pytest.raises(DatasetError, match="template points"):
+        evaluate_pair(square_pair(), Match(SWAPPED, np.ones(4, dtype=bool)), protocol="template")
+    with pytest.raises(MetricError, match="protocol must be one of"):
+        evaluate_pair(square_pair(), Match(SWAPPED, np.ones(4, dtype=bool)), protocol="points")
+    with pytest.raises(MetricError, match=r"\(V_x, V_x\) = \(4, 4\)"):
+        evaluate_pair(square_pair(), Match(SWAPPED, np.ones(4, dtype=bool)), distances=np.zeros((3, 3)))
+    with pytest.raises(MetricError, match="at least one"):
+        summarize([])
+
+
+def test_given_distances_are_used_as_they_are():
+    scaled = 10 * np.asarray(geodesic_matrix(unit_square()))
+    record = evaluate_pair(square_pair(), Match(SWAPPED, np.ones(4, dtype=bool)), distances=scaled)
+    assert record.geodesic_error == pytest.approx(1000.0)
+
+
+def _old_summary(records: list[dict]) -> dict:
+    """The summary of benchmarks/run.py before the evaluation module, on its dict records."""
+    errors = [r["errors"] for r in records]
+    thresholds, fractions = metrics.pck_curve(np.concatenate(errors))
+    summary = {
+        "n_pairs": len(records),
+        "n_evaluated_vertices": int(sum(r["n_evaluated"] for r in records)),
+        "geodesic_error": metrics.mean_geodesic_error(errors),
+        "pck_auc": metrics.pck_auc(np.concatenate(errors)),
+        "pck_thresholds": thresholds.tolist(),
+        "pck": fractions.tolist(),
+    }
+    with_chirality = [r for r in records if "chirality_accuracy" in r]
+    if with_chirality:
+        weights = np.array([r["n_evaluated"] for r in with_chirality], dtype=float)
+        values = np.array([r["chirality_accuracy"] for r in with_chirality])
+        summary["chirality_accuracy"] = float((weights * values).sum() / weights.sum())
+    for key, name in (("iou", "miou"), ("overlap_auc", "overlap_auc")):
+        values = [r[key] for r in records if key in r]
+        if values:
+            summary[name] = float(np.mean(values))
+    return summary
+
+
+def test_summary_equals_the_former_run_py_summary_to_the_bit():
+    rng = np.random.default_rng(0)
+    records = [
+        PairEvaluation("a->x", rng.uniform(0, 0.4, 50), chirality_accuracy=0.7, iou=0.8),
+        PairEvaluation("b->x", rng.uniform(0, 0.4, 7), chirality_accuracy=0.2, overlap_auc=0.9),
+        PairEvaluation("c->z", rng.uniform(0, 0.4, 31), iou=0.5),
+    ]
+    as_dicts = [{"errors": r.errors, **r.to_dict()} for r in records]
+    summary = summarize(records)
+    assert isinstance(summary, BenchmarkSummary)
+    assert summary.to_dict() == _old_summary(as_dicts)
+    assert list(summary.to_dict()) == list(_old_summary(as_dicts))  # the key order of results.json too
+    assert summary.n_pairs == 3 and summary.n_evaluated_vertices == 88
+    assert summary.chirality_accuracy == pytest.approx((50 * 0.7 + 7 * 0.2) / 57)
+    assert summary.miou == pytest.approx(0.65) and summary.overlap_auc == 0.9
+    thresholds, fractions = summary.pck_curve
+    assert thresholds.dtype == fractions.dtype == np.float64 and thresholds.shape == fractions.shape
+    no_extras = summarize([dataclasses.replace(records[0], chirality_accuracy=None, iou=None)])
+    assert {"chirality_accuracy", "miou", "overlap_auc"}.isdisjoint(no_extras.to_dict())
+
+
+def test_overlap_metrics_average_every_shape_with_ground_truth():
+    pair = load_dataset("synthetic_cuts")[0]  # P2F: the ground truth overlap of the full shape x
+    assert pair.overlap_y.all() and 0 < pair.overlap_x.mean() < 1
+    all_y = np.ones(pair.y.n_vertices, dtype=bool)
+    no_prediction = evaluate_pair(pair, Match(pair.map_yx, all_y))
+    assert no_prediction.iou == pytest.approx((1.0 + pair.overlap_x.mean()) / 2)
+    assert no_prediction.overlap_auc is None  # no probabilities, no ranking
+    scores = pair.overlap_x + np.random.default_rng(0).uniform(0, 0.5, pair.x.n_vertices)  # ranks the truth perfectly
+    exact = evaluate_pair(pair, Match(pair.map_yx, all_y, pair.overlap_x.copy(), None, scores))
+    assert exact.iou == 1.0 and exact.overlap_auc == 1.0  # only x has both classes
+    summary = summarize([no_prediction, exact])
+    assert summary.overlap_auc == 1.0 and summary.miou == pytest.approx((no_prediction.iou + 1.0) / 2)
+
+
+def test_pair_targets_group_pairs_without_loading_meshes():
+    dataset = load_dataset("synthetic_cuts")
+    targets = pair_targets(dataset, 12)
+    assert targets == [name.rsplit("->", 1)[1] for name in dataset.pair_names[:12]]
+    assert pair_targets([object(), object()], 2) == [0, 1]
+
+
+def test_dataset_evaluation_is_the_same_in_one_process_and_in_workers(tmp_path):
+    dataset = load_dataset("synthetic_cuts")
+    n = 4
+
+    def shifted_truth(index: int, pair: ShapePair) -> Match:  # a deterministic, imperfect matcher
+        predicted = np.where(pair.map_yx >= 0, pair.map_yx, 0)
+        return Match(np.roll(predicted, index + 1), np.ones(pair.y.n_vertices, dtype=bool))
+
+    store = GeodesicStore(tmp_path / "geodesics")
+    one, kept = evaluate_dataset(dataset, shifted_truth, n, store=store, workers=1, keep=[0, 2], progress=False)
+    two, kept_two = evaluate_dataset(dataset, shifted_truth, n, store=store, workers=2, keep=[0, 2], progress=False)
+    assert [r.pair for r in one] == [dataset[i].name for i in range(n)]  # in pair order, whatever the grouping
+    for a, b in zip(one, two, strict=True):
+        assert a.to_dict() == b.to_dict()
+        np.testing.assert_array_equal(a.errors, b.errors)
+    assert sorted(kept) == sorted(kept_two) == [0, 2]
+    pair, match = kept[2]
+    assert pair.name == dataset[2].name
+    np.testing.assert_array_equal(match.map_yx, shifted_truth(2, dataset[2]).map_yx)
+    # the same records as pair-by-pair evaluation with in-memory distances
+    direct = evaluate_pair(dataset[1], shifted_truth(1, dataset[1]))
+    np.testing.assert_array_equal(direct.errors, one[1].errors)
+    assert direct.to_dict() == one[1].to_dict()
