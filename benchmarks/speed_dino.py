@@ -28,15 +28,13 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from common import DEFAULT_DATA, faust_test_shapes, machine
+
+from geofeat.backbones import DinoBackbone
+from geofeat.render import make_cameras, multiview_features, render_phong
+from geofeat.report import plot_mesh_colors
 
 HERE = Path(__file__).resolve().parent
-sys.path.insert(0, str(HERE))
-
-from common import DEFAULT_DATA, faust_test_shapes, machine  # noqa: E402
-
-from geofeat.backbones import DinoBackbone  # noqa: E402
-from geofeat.render import make_cameras, multiview_features, render_phong  # noqa: E402
-from geofeat.report import plot_mesh_colors  # noqa: E402
 
 BACKBONES = {
     "tiny (2 layers, width 32)": dict(hidden_size=32, intermediate_size=64, num_hidden_layers=2, num_attention_heads=2),

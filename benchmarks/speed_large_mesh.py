@@ -23,6 +23,7 @@ import json
 import subprocess
 import sys
 import tempfile
+import time
 from pathlib import Path
 
 import numpy as np
@@ -68,12 +69,15 @@ def make_mesh(data_root: Path, n_vertices: int) -> tuple[np.ndarray, np.ndarray]
 
 
 def run(path: Path, which: str, timeout: float) -> dict:
+    """One fresh process; a failed run records its error and how long it took to fail."""
+    start = time.perf_counter()
     try:
         done = subprocess.run([sys.executable, "-c", _RUN, str(path), which], capture_output=True, text=True, timeout=timeout)
     except subprocess.TimeoutExpired:
         return {"seconds": None, "error": f"did not finish within {timeout:.0f} s"}
     if done.returncode != 0:
-        return {"seconds": None, "error": done.stderr.strip().splitlines()[-1] if done.stderr.strip() else "failed"}
+        error = done.stderr.strip().splitlines()[-1] if done.stderr.strip() else "failed"
+        return {"seconds": None, "failed_after": time.perf_counter() - start, "error": error}
     return json.loads(done.stdout.strip().splitlines()[-1])
 
 
@@ -114,7 +118,9 @@ def main(argv=None) -> int:
         if result is None:
             return "-"
         if result.get("seconds") is None:
-            return result.get("error", "failed")
+            error = result.get("error", "failed").split(":")[0].rsplit(".", 1)[-1]  # the exception's name
+            after = f" after {result['failed_after']:.0f} s" if "failed_after" in result else ""
+            return f"{error}{after} (see results.json)"
         return f"{result['seconds']:.1f} s / {result['peak_gb']:.2f} GB"
 
     for row in rows:

@@ -37,7 +37,7 @@ ZERO_EIGENVALUE_TOL = 1e-6
 #: (``ncv``); an attempt that has not converged by then is abandoned as failed. A converging
 #: solve takes about 1.3 ``ncv`` (323 solves for k=128 on 5,000 and on 200,000 vertices).
 #: Counted, not timed, so the outcome never depends on the machine or its load.
-SPARSE_SOLVES_PER_VECTOR = 10
+SPARSE_SOLVES_PER_VECTOR = 5
 #: A sparse solve that runs longer than this shows a progress bar (linear solves done).
 PROGRESS_AFTER_SECONDS = 5.0
 _CACHE_SIZE = 8
