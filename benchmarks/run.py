@@ -157,28 +157,19 @@ class _Pairs:
         return self.dataset[i]
 
 
-def _pair_count(text: str) -> int:
-    """argparse type of ``--limit``: a positive whole number of pairs."""
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a positive whole number of pairs, found {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(
-            f"expected a positive number of pairs (at least 1), found {value}; leave --limit out for all pairs"
-        )
-    return value
+def _positive_count(unit: str, hint: str = ""):
+    """argparse type: a whole number >= 1 of ``unit`` (``hint`` follows the message for a number below 1)."""
 
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected a positive whole number of {unit}, found {text!r}") from None
+        if value < 1:
+            raise argparse.ArgumentTypeError(f"expected a positive number of {unit} (at least 1), found {value}{hint}")
+        return value
 
-def _worker_count(text: str) -> int:
-    """argparse type of ``--workers``: a positive whole number of processes."""
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a positive whole number of processes, found {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"expected at least 1 process, found {value}")
-    return value
+    return parse
 
 
 def parse_args(argv=None) -> argparse.Namespace:
@@ -218,12 +209,17 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument("--quick", action="store_true", help="smoke run: tiny head, few pairs, under 2 minutes on a CPU")
     parser.add_argument("--data-root", default=os.environ.get("GEOFEAT_DATA", str(HERE.parent.parent / "shared" / "data")))
     parser.add_argument("--split", default="test")
-    parser.add_argument("--limit", type=_pair_count, default=None, help="evaluate the first N pairs only (N >= 1)")
+    parser.add_argument(
+        "--limit",
+        type=_positive_count("pairs", "; leave --limit out for all pairs"),
+        default=None,
+        help="evaluate the first N pairs only (N >= 1)",
+    )
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", default=None)
     parser.add_argument(
         "--workers",
-        type=_worker_count,
+        type=_positive_count("processes"),
         default=None,
         help="processes that evaluate target shapes side by side (default: the usable CPU cores; 1 for learned heads)",
     )
