@@ -6,9 +6,12 @@ import errno
 import logging
 import os
 import tempfile
+import zlib
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
+
+import numpy as np
 
 from geofeat.errors import GeofeatError
 
@@ -156,3 +159,9 @@ def load_torch_file(
             f"could not read {path} as {what}: {reason}. The file is missing, truncated (an interrupted copy or "
             "write) or not written by torch.save; copy or write it again."
         ) from exc
+
+
+def array_crc32(array: np.ndarray) -> int:
+    """CRC-32 of an array's dtype, shape and bytes (C order): catches truncation, bit rot and garbage, and is fast."""
+    header = f"{array.dtype.str}{array.shape}".encode()
+    return zlib.crc32(np.ascontiguousarray(array).data, zlib.crc32(header))

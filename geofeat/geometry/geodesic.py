@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import logging
 import os
-import zlib
 from pathlib import Path
 
 import numpy as np
@@ -33,7 +32,7 @@ from tqdm.auto import tqdm
 
 from geofeat.config import cache_dir
 from geofeat.errors import MeshError
-from geofeat.files import atomic_write
+from geofeat.files import array_crc32, atomic_write
 from geofeat.lru import LRUCache
 from geofeat.mesh import Mesh
 from geofeat.topology import unique_edges, vertex_components
@@ -462,7 +461,7 @@ class GeodesicStore:
                 "(geofeat.geometry.partial.largest_component_submesh keeps its largest piece)."
             )
         stored = np.ascontiguousarray(dist, dtype=self.dtype)
-        path = self.folder / f"{self._prefix(mesh)}{_array_crc(stored):08x}.npy"
+        path = self.folder / f"{self._prefix(mesh)}{array_crc32(stored):08x}.npy"
 
         def write(tmp: Path) -> None:
             with open(tmp, "wb") as handle:  # a handle: np.save would append ".npy" to the temporary name
@@ -483,7 +482,7 @@ class GeodesicStore:
             expected = path.stem.rsplit("-", 1)[1]
             if stored.shape != (n, n) or stored.dtype != self.dtype:
                 problem = f"holds a {stored.dtype} {stored.shape} array; expected {self.dtype.name} ({n}, {n})"
-            elif f"{_array_crc(stored):08x}" != expected:
+            elif f"{array_crc32(stored):08x}" != expected:
                 problem = f"fails its checksum (expected {expected})"
             else:
                 dist = np.array(stored, dtype=np.float32)  # a copy: the file may be replaced later
@@ -494,9 +493,3 @@ class GeodesicStore:
         log.warning("geodesic store entry %s of %r %s; recomputing it", path, mesh.name, problem)
         path.unlink(missing_ok=True)
         return None
-
-
-def _array_crc(array: np.ndarray) -> int:
-    """CRC-32 of an array's dtype, shape and bytes (C order)."""
-    header = f"{array.dtype.str}{array.shape}".encode()
-    return zlib.crc32(np.ascontiguousarray(array).data, zlib.crc32(header))
