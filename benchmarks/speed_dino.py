@@ -53,19 +53,27 @@ def random_dinov3(seed: int, **sizes) -> DinoBackbone:
     return DinoBackbone(DINOv3ViTModel(config), kind="dinov3")
 
 
-def run_stages(mesh, cameras, backbone: DinoBackbone, batch_size: int) -> tuple[dict, np.ndarray]:
+def run_stages(mesh, cameras, backbone: DinoBackbone, batch_size: int, autocast: bool = False) -> tuple[dict, np.ndarray]:
     """Seconds per stage and the vertex features (V, C) of one pass through the multi-view path."""
     seconds = {"render": 0.0, "forward": 0.0, "backproject": 0.0}
 
+    def synchronize() -> None:  # CUDA work is queued: wait for it so that each stage owns its time
+        if backbone.device.type == "cuda":
+            torch.cuda.synchronize(backbone.device)
+
     @contextlib.contextmanager
     def timer(phase: str):
+        synchronize()
         start = time.perf_counter()
         try:
             yield
         finally:
+            synchronize()
             seconds[phase] += time.perf_counter() - start
 
-    features, _ = multiview_features(mesh, cameras, backbone, backproject="ball", batch_size=batch_size, timer=timer)
+    features, _ = multiview_features(
+        mesh, cameras, backbone, backproject="ball", batch_size=batch_size, autocast=autocast, timer=timer
+    )
     return {"render": seconds["render"], "backbone": seconds["forward"], "backproject": seconds["backproject"]}, (
         features.cpu().numpy()
     )
@@ -105,6 +113,8 @@ def main(argv=None) -> int:
     parser.add_argument("--image-size", type=int, default=512)
     parser.add_argument("--batch-size", type=int, default=7)
     parser.add_argument("--device", default="auto")
+    parser.add_argument("--autocast", action="store_true", help="bfloat16 autocast of the backbone (the trainer's CUDA setting)")
+    parser.add_argument("--repeats", type=int, default=1, help="timed passes per backbone; the median is reported")
     parser.add_argument(
         "--out", default=str(HERE / "results" / "speed_dino"), help="writes OUT.json, OUT.md, OUT_views.png, OUT_pca.png"
     )
@@ -120,12 +130,14 @@ def main(argv=None) -> int:
             torch.device(args.device if args.device != "auto" else ("cuda" if torch.cuda.is_available() else "cpu"))
         )
         cameras = make_cameras(mesh, args.views, layout="official", image_size=args.image_size, device=backbone.device)
-        run_stages(mesh, cameras[:1], backbone, 1)  # warm-up: first-call allocations
-        seconds, features = run_stages(mesh, cameras, backbone, args.batch_size)
-        rows.append({"name": label, **seconds, "total": sum(seconds.values())})
+        run_stages(mesh, cameras[:1], backbone, 1, args.autocast)  # warm-up: first-call allocations
+        passes = [run_stages(mesh, cameras, backbone, args.batch_size, args.autocast) for _ in range(args.repeats)]
+        features = passes[-1][1]
+        seconds = {stage: float(np.median([p[0][stage] for p in passes])) for stage in passes[0][0]}
+        rows.append({"name": label, **seconds, "total": float(np.median([sum(p[0].values()) for p in passes]))})
         print(f"{label}: " + ", ".join(f"{k} {v:.2f} s" for k, v in rows[-1].items() if k != "name"), flush=True)
         features_for_figure = features
-    images_for_figure = list(render_phong(mesh, None, cameras).images.numpy())  # for the figure, not timed
+    images_for_figure = list(render_phong(mesh, None, cameras).images.cpu().numpy())  # for the figure, not timed
 
     result = {
         "date": datetime.date.today().isoformat(),
@@ -136,11 +148,15 @@ def main(argv=None) -> int:
         "views": args.views,
         "image_size": args.image_size,
         "batch_size": args.batch_size,
+        "autocast": args.autocast,
+        "repeats": args.repeats,
+        "gpu": torch.cuda.get_device_name(backbone.device) if backbone.device.type == "cuda" else None,
         "rows": rows,
     }
     lines = [
         f"One FAUST_r shape ({mesh.name}, {mesh.n_vertices} vertices), {args.views} views at {args.image_size} x {args.image_size}, "
-        f"batches of {args.batch_size} views, device {result['device']}, {result['date']}, {result['machine']}",
+        f"batches of {args.batch_size} views, device {result['device']} ({result['gpu'] or 'CPU'}), "
+        f"{'bfloat16 autocast' if args.autocast else 'float32'}, median of {args.repeats} pass(es), {result['date']}, {result['machine']}",
         "",
         "| backbone (random DINOv3 weights) | render | backbone | back-project (ball) | render + back-project | total |",
         "|---|---|---|---|---|---|",
