@@ -22,16 +22,16 @@ from geofeat.geometry.spectral import SpectralBasis
 #: Laplacian commutativity penalties accepted by `laplacian_mask`.
 MASK_KINDS = ("resolvent", "squared")
 #: Entries of the (query x reference) distance block computed at once by `nearest_neighbors`.
-NN_BLOCK_ENTRIES = 1 << 24
-#: Float32 candidates per query that `nearest_neighbors` re-ranks in float64.
-NN_CANDIDATES = 4
+NN_BLOCK_ENTRIES = 1 << 20
+#: Share of the reference's variance that `nearest_neighbors` may leave out of its screening axes.
+NN_SCREEN_RESIDUAL = 1e-4
 
 
 # ----------------------------------------------------------------------------- nearest neighbours
 
 
 def nearest_neighbors(reference, queries, device: str | torch.device = "cpu") -> np.ndarray:
-    """Index of the nearest reference point of every query point (Euclidean).
+    """Index of the nearest reference point of every query point (Euclidean, exact).
 
     Parameters
     ----------
@@ -40,20 +40,26 @@ def nearest_neighbors(reference, queries, device: str | torch.device = "cpu") ->
     queries : array_like, shape (M, D)
         Points looked up.
     device : str or torch.device
-        Where to compute (``"auto"``: CUDA when available).
+        Where the screening runs (``"auto"``: CUDA when available).
 
     Returns
     -------
     numpy.ndarray, shape (M,), int64
-        Indices into ``reference``.
+        Indices into ``reference``; on exact ties the smallest index.
 
     Notes
     -----
-    Distances are screened in float32 in blocks of about `NN_BLOCK_ENTRIES` entries (bounded
-    memory, fast on CPU and GPU); the `NN_CANDIDATES` best candidates of each query are then
-    re-ranked with exact float64 distances (ties to the smallest index), so the result
-    agrees with an exact search (a kd-tree) unless float32 rounding pushes the true
-    neighbour out of the candidates, and is the same on every device.
+    Exact, in two passes. The screening pass rotates both sets onto the principal axes of
+    the reference and keeps the first d axes (the fewest that hold all but `NN_SCREEN_RESIDUAL`
+    of its variance, all D when that is more than half of them): a distance over d axes is
+    a lower bound of the full distance. For each query it computes these bounds to every
+    reference point in float32 (blocks of about `NN_BLOCK_ENTRIES` entries, on ``device``),
+    takes the float64 distance to the point of smallest bound as an upper bound, and keeps
+    as candidates every point whose bound, less a margin for float32 rounding, is not above
+    it: the nearest point is always among them. The candidates (about one per query on
+    spectral descriptors, whose variance lies in a few axes) are then ranked by float64
+    distance in the original coordinates. The result does not depend on the device, the
+    rounding of the screening or the block size.
     """
     ref, qry = _as_points(reference, "reference"), _as_points(queries, "queries")
     if ref.shape[1] != qry.shape[1]:
@@ -62,35 +68,62 @@ def nearest_neighbors(reference, queries, device: str | torch.device = "cpu") ->
         raise FunctionalMapError("reference has no points: nothing to match to.")
     ref64 = np.ascontiguousarray(ref, dtype=np.float64)
     qry64 = np.ascontiguousarray(qry, dtype=np.float64)
-    candidates = _screen(ref64, qry64, resolve_device(device))  # (M, c), sorted by index
-    return _rerank(ref64, qry64, candidates)
-
-
-def _screen(ref: np.ndarray, qry: np.ndarray, device: torch.device) -> np.ndarray:
-    """The ``min(NN_CANDIDATES, N)`` nearest candidates of each query by float32 distance, (M, c) int64 sorted."""
-    n_candidates = min(NN_CANDIDATES, ref.shape[0])
-    ref_t = torch.from_numpy(ref.astype(np.float32)).to(device)
+    axes, centre = _screening_axes(ref64)
+    ref_t = torch.from_numpy(((ref64 - centre) @ axes).astype(np.float32)).to(resolve_device(device))
     ref_sq = (ref_t * ref_t).sum(dim=1)
-    block = max(1, NN_BLOCK_ENTRIES // ref.shape[0])
-    out = np.empty((qry.shape[0], n_candidates), dtype=np.int64)
+    # float32 rounding of a bound |q|^2 + |r|^2 - 2 q.r over d axes is below (d + 4) eps (|q|^2 + |r|^2)
+    # (the products, the sums and the float32 copies of q and r); the margin is 8 times that
+    relative_margin = 8.0 * (axes.shape[1] + 4) * float(np.finfo(np.float32).eps)
+    ref_sq_max = float(ref_sq.max())
+    best = np.empty(qry64.shape[0], dtype=np.int64)
+    block = max(1, NN_BLOCK_ENTRIES // ref64.shape[0])
     with torch.no_grad():
-        for start in range(0, qry.shape[0], block):
-            q = torch.from_numpy(qry[start : start + block].astype(np.float32)).to(device)
-            # |q - r|^2 = |r|^2 - 2 q.r + |q|^2; the last term does not change the ranking
-            scores = ref_sq[None, :] - 2.0 * (q @ ref_t.T)
-            out[start : start + block] = scores.topk(n_candidates, dim=1, largest=False).indices.cpu().numpy()
-    return np.sort(out, axis=1)
+        for start in range(0, qry64.shape[0], block):
+            q64 = qry64[start : start + block]
+            q = torch.from_numpy(((q64 - centre) @ axes).astype(np.float32)).to(ref_t.device)
+            q_sq = (q * q).sum(dim=1)
+            # bound - |q|^2 over the screening axes, (b, N): |q|^2 is the same along a row
+            bounds = torch.addmm(ref_sq[None, :], q, ref_t.T, alpha=-2.0)
+            first = bounds.argmin(dim=1).cpu().numpy()
+            upper = _squared_distances(ref64[first], q64)
+            q_sq64 = q_sq.cpu().numpy().astype(np.float64)
+            threshold = upper - q_sq64 + relative_margin * (q_sq64 + ref_sq_max)
+            rows, cols = torch.nonzero(bounds <= torch.from_numpy(threshold).to(bounds)[:, None], as_tuple=True)
+            best[start : start + block] = _nearest_candidates(ref64, q64, rows.cpu().numpy(), cols.cpu().numpy())
+    return best
 
 
-def _rerank(ref: np.ndarray, qry: np.ndarray, candidates: np.ndarray) -> np.ndarray:
-    """The candidate of each query nearest in float64 (first, i.e. smallest index, on ties), (M,) int64."""
+def _screening_axes(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Principal axes that hold all but `NN_SCREEN_RESIDUAL` of the variance, (D, d), and the mean (D,)."""
+    centre = points.mean(axis=0)
+    dim = points.shape[1]
+    centred = points - centre
+    variances, vectors = np.linalg.eigh(centred.T @ centred)
+    variances, vectors = np.clip(variances[::-1], 0.0, None), vectors[:, ::-1]
+    total = float(variances.sum())
+    left = total - np.cumsum(variances)  # variance outside the first 1, 2, ... axes
+    d = int(np.argmax(left <= NN_SCREEN_RESIDUAL * total)) + 1 if total > 0 else 1
+    if d > dim // 2:
+        return np.eye(dim), centre
+    return np.ascontiguousarray(vectors[:, :d]), centre
+
+
+def _squared_distances(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Row-wise squared Euclidean distances of two (K, D) float64 arrays, (K,)."""
+    diff = a - b
+    return np.einsum("kd,kd->k", diff, diff)
+
+
+def _nearest_candidates(ref: np.ndarray, qry: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+    """For each query, the candidate (``rows[i]`` -> ``cols[i]``) nearest in float64, the smallest index on ties, (M,)."""
+    distances = _squared_distances(ref[cols], qry[rows])
+    order = np.lexsort((cols, distances, rows))  # by query, then distance, then index
+    rows, cols = rows[order], cols[order]
+    firsts = np.flatnonzero(np.r_[True, rows[1:] != rows[:-1]])
     best = np.empty(qry.shape[0], dtype=np.int64)
-    block = max(1, NN_BLOCK_ENTRIES // (candidates.shape[1] * ref.shape[1]))
-    for start in range(0, qry.shape[0], block):
-        cand = candidates[start : start + block]
-        diffs = ref[cand] - qry[start : start + block, None, :]
-        choice = np.einsum("mcd,mcd->mc", diffs, diffs).argmin(axis=1)
-        best[start : start + block] = cand[np.arange(len(cand)), choice]
+    best[rows[firsts]] = cols[firsts]
+    if firsts.size != qry.shape[0]:  # every query keeps at least its own upper-bound point
+        raise FunctionalMapError("nearest-neighbour screening lost a query; this is a bug in geofeat.")
     return best
 
 

@@ -23,7 +23,6 @@ import logging
 from collections.abc import Iterable
 
 import numpy as np
-from scipy.stats import rankdata
 
 from geofeat.errors import GeofeatError
 
@@ -424,5 +423,7 @@ def overlap_auc(scores, gt_mask) -> float | None:
     n_neg = gt.size - n_pos
     if n_pos == 0 or n_neg == 0:
         return None
+    from scipy.stats import rankdata  # imported here: scipy.stats takes a second or two to import
+
     ranks = rankdata(values)  # average ranks: ties count half
     return float((ranks[gt].sum() - n_pos * (n_pos + 1) / 2) / (n_pos * n_neg))

@@ -72,6 +72,24 @@ def test_nearest_neighbors_is_exact(block_entries, monkeypatch):
     np.testing.assert_array_equal(fm.nearest_neighbors(tiny, np.array([[0.1, 0.0], [0.9, 0.0]])), [0, 1])  # tie -> smallest index
 
 
+@pytest.mark.parametrize("block_entries", [fm.NN_BLOCK_ENTRIES, 5000])
+def test_nearest_neighbors_is_exact_when_screening_on_few_axes(block_entries, monkeypatch):
+    monkeypatch.setattr(fm, "NN_BLOCK_ENTRIES", block_entries)
+    rng = np.random.default_rng(1)
+    # variance in 6 of 64 axes (like spectral descriptors) plus a little everywhere: screening on about 6 axes
+    spread = np.r_[np.full(6, 10.0), np.full(58, 1e-3)]
+    basis = np.linalg.qr(rng.standard_normal((64, 64)))[0]
+    reference = (rng.standard_normal((900, 64)) * spread) @ basis.T
+    queries = (rng.standard_normal((400, 64)) * spread) @ basis.T
+    axes, _ = fm._screening_axes(reference)
+    assert axes.shape == (64, 6)  # the screening really uses few axes here
+    expected = cKDTree(reference).query(queries)[1]
+    np.testing.assert_array_equal(fm.nearest_neighbors(reference, queries), expected)
+    # a duplicated reference point: the smallest index wins, whatever the screening rounding
+    doubled = np.vstack([reference, reference[:50]])
+    np.testing.assert_array_equal(fm.nearest_neighbors(doubled, reference[:50] + 1e-9), np.arange(50))
+
+
 @pytest.mark.parametrize("device", ["cpu", "auto"] + (["cuda"] if torch.cuda.is_available() else []))
 def test_nn_match_hand_example_and_output_type(device):
     feat_x = np.array([[0.0, 0.0], [10.0, 0.0], [0.0, 10.0]], dtype=np.float32)
