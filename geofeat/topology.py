@@ -52,7 +52,20 @@ def unique_edges(faces: np.ndarray) -> np.ndarray:
     """
     pairs = corner_edges(faces)
     pairs = pairs[pairs[:, 0] != pairs[:, 1]]
-    return np.unique(pairs, axis=0).astype(np.int64)
+    if len(pairs) == 0:
+        return np.zeros((0, 2), dtype=np.int64)
+    base = int(pairs.max()) + 1
+    keys = np.unique(_edge_keys(pairs, base))
+    return np.stack([keys // base, keys % base], axis=1)
+
+
+def _edge_keys(pairs: np.ndarray, base: int) -> np.ndarray:
+    """One int64 per edge row ``(a, b)``, ``a * base + b``: sorting the keys sorts the rows lexicographically.
+
+    ``base`` is above every vertex index; a 1-D `numpy.unique` of the keys is several times
+    faster than ``numpy.unique(pairs, axis=0)`` and gives the same order.
+    """
+    return pairs[:, 0].astype(np.int64) * base + pairs[:, 1].astype(np.int64)
 
 
 def edge_counts(faces: np.ndarray) -> np.ndarray:
@@ -65,7 +78,8 @@ def edge_counts(faces: np.ndarray) -> np.ndarray:
     """
     if len(faces) == 0:
         return np.zeros(0, dtype=np.int64)
-    return np.unique(corner_edges(faces), axis=0, return_counts=True)[1].astype(np.int64)
+    pairs = corner_edges(faces)
+    return np.unique(_edge_keys(pairs, int(pairs.max()) + 1), return_counts=True)[1].astype(np.int64)
 
 
 def vertex_components(n_vertices: int, faces: np.ndarray) -> tuple[int, np.ndarray]:
@@ -101,7 +115,8 @@ def face_components(faces: np.ndarray) -> np.ndarray:
     -------
     numpy.ndarray, shape (K,), int32
     """
-    _, edge_ids = np.unique(corner_edges(faces), axis=0, return_inverse=True)
+    pairs = corner_edges(faces)
+    _, edge_ids = np.unique(_edge_keys(pairs, int(pairs.max()) + 1), return_inverse=True)
     face_of_edge = np.repeat(np.arange(len(faces)), 3)
     incidence = sp.csr_matrix(
         (np.ones(face_of_edge.size), (face_of_edge, edge_ids.ravel())), shape=(len(faces), int(edge_ids.max()) + 1)
