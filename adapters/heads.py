@@ -71,6 +71,8 @@ __all__ = [
 CONFIG_FILE = "head_config.json"
 #: Meshes whose input features and operators a learned head keeps (`LearnedHead.shape_inputs`).
 _INPUTS_KEPT = 64
+#: Input feature arrays a head keeps in memory (a target shape is matched to several sources in a row).
+_FEATURES_KEPT = 4
 WEIGHTS_FILE = "weights.safetensors"
 
 
@@ -351,6 +353,7 @@ class Head:
         self.config = config
         _check_inputs(config)
         self._inputs: LRUCache[str, tuple[torch.Tensor, SurfaceOperators]] = LRUCache(_INPUTS_KEPT)
+        self._features: LRUCache[tuple[str, str, str], np.ndarray] = LRUCache(_FEATURES_KEPT)
 
     # -- inputs
 
@@ -368,8 +371,16 @@ class Head:
         return normalized_pair(pair, self.config.mesh_normalization)
 
     def features(self, mesh: Mesh) -> np.ndarray:
-        """Input features (V, C) float32 of a mesh of a prepared pair."""
-        return input_features(mesh, self.config.descriptor, self.config.descriptor_params)
+        """Input features (V, C) float32 of a mesh of a prepared pair (read-only; the last few are kept in memory)."""
+        c = self.config
+        key = (mesh.hash, c.descriptor, json.dumps(c.descriptor_params, sort_keys=True, default=repr))
+
+        def build() -> np.ndarray:
+            features = input_features(mesh, c.descriptor, c.descriptor_params)
+            features.flags.writeable = False  # shared by every later call for this mesh
+            return features
+
+        return self._features.get_or_compute(key, build)
 
     def operators(self, mesh: Mesh) -> SurfaceOperators:
         """Surface operators of a mesh of a prepared pair, on the CPU."""
@@ -380,7 +391,7 @@ class Head:
         """Input features as a tensor (V, C) and the surface operators, on the head's device (kept for 64 meshes)."""
 
         def build() -> tuple[torch.Tensor, SurfaceOperators]:
-            feats = torch.as_tensor(self.features(mesh), device=self.device)
+            feats = torch.tensor(self.features(mesh), device=self.device)  # a copy: the array is shared and read-only
             return feats, self.operators(mesh).to(self.device)
 
         return self._inputs.get_or_compute(mesh.hash, build)

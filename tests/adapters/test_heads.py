@@ -39,6 +39,19 @@ def test_nn_head_matches_a_permuted_copy_exactly_with_xyz():
     np.testing.assert_array_equal(match.map_yx, pair.map_yx)
 
 
+def test_head_keeps_recent_features_read_only_and_keyed_by_descriptor_settings():
+    mesh = bumpy(0, 3)
+    head = make_head("nn", descriptor="xyz", descriptor_params={"normalize": True})
+    first = head.features(mesh)
+    assert head.features(mesh) is first  # the target of several pairs in a row is read once
+    assert not first.flags.writeable
+    np.testing.assert_array_equal(first, input_features(mesh, "xyz", {"normalize": True}))
+    head.config.descriptor_params = {"normalize": False}
+    raw = head.features(mesh)  # other settings: not the kept array
+    np.testing.assert_array_equal(raw, mesh.verts.astype(np.float32))
+    assert not np.array_equal(raw, first)
+
+
 def test_fmap_head_settings_and_errors():
     head = make_head("fmap", descriptor="wks", k=20, n_eig=40)
     assert isinstance(head, FunctionalMapHead) and head.config.k == 20
