@@ -4,9 +4,11 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import multiprocessing
 
 import numpy as np
 import pytest
+import torch
 
 import geofeat
 from geofeat import metrics
@@ -179,3 +181,21 @@ def test_dataset_evaluation_is_the_same_in_one_process_and_in_workers(tmp_path):
     direct = evaluate_pair(dataset[1], shifted_truth(1, dataset[1]))
     np.testing.assert_array_equal(direct.errors, one[1].errors)
     assert direct.to_dict() == one[1].to_dict()
+
+
+def _thread_counts() -> tuple[list[int], int]:
+    from threadpoolctl import threadpool_info
+
+    return [pool["num_threads"] for pool in threadpool_info()], torch.get_num_threads()
+
+
+@pytest.mark.skipif("fork" not in multiprocessing.get_all_start_methods(), reason="workers are forked only where fork exists")
+def test_forked_workers_run_one_blas_and_one_torch_thread():
+    from concurrent.futures import ProcessPoolExecutor
+
+    from geofeat.evaluation import _worker_start
+
+    with ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("fork"), initializer=_worker_start) as pool:
+        blas, torch_threads = pool.submit(_thread_counts).result()
+    assert blas and all(n == 1 for n in blas), blas  # numpy/scipy's BLAS pools, lowered after the fork
+    assert torch_threads == 1
