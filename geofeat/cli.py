@@ -1,4 +1,4 @@
-"""The ``geofeat`` command line: ``cache info|verify|clear``, ``descriptors``, ``demo``, ``train-geolora``."""
+"""The ``geofeat`` command line: ``cache info|verify|clear``, ``descriptors``, ``demo``, ``train-geolora``, ``extract``."""
 
 from __future__ import annotations
 
@@ -114,17 +114,55 @@ def _add_train_flags(parser: argparse.ArgumentParser) -> None:
 
 
 def _train_command(args: argparse.Namespace) -> int:
+    from geofeat import distributed
     from geofeat.train.config import TrainConfig
     from geofeat.train.trainer import GeoLoraTrainer
 
     given = {name: getattr(args, name) for name in TrainConfig.field_names() if getattr(args, name) is not None}
     config = TrainConfig.from_file(args.config, **given) if args.config else TrainConfig(**given)  # warns of unknown keys
-    try:
-        checkpoint = GeoLoraTrainer(config).fit()
+    try:  # under torchrun: one DDP rank (gloo on the CPU, NCCL on a GPU), the group ended at the end
+        with distributed.process_group(config.device):
+            checkpoint = GeoLoraTrainer(config).fit()
+            main = distributed.is_main()
     except KeyboardInterrupt:
         return 130
-    _out(f"adapter: {checkpoint}")
+    if main:
+        _out(f"adapter: {checkpoint}")
     return 0
+
+
+def _extract_command(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    from geofeat import distributed
+    from geofeat.extract import ExportSpec, ExtractError, dataset_shapes, extract, folder_shapes, params_digest, parse_params
+
+    params = parse_params(args.param or [])
+    if args.data is not None:
+        shapes = folder_shapes(args.data)
+    else:
+        shapes, _ = dataset_shapes(args.dataset, args.data_root, split=args.split)
+    export = None
+    if args.export is not None:
+        to = Path(args.export_to) if args.export_to else None
+        export = ExportSpec(args.export, args.layout, to, args.feature_folder)
+    elif args.export_to or args.feature_folder:
+        raise ExtractError("--export-to and --feature-folder need --export npy|h5.")
+    manifest = args.manifest or f"{args.descriptor}-{params_digest(args.descriptor, params)}.manifest.json"
+    result = extract(
+        shapes, args.descriptor, params, store=args.out, manifest=manifest, export=export,
+        device=args.device, progress=not args.no_progress,
+    )  # fmt: skip
+    if distributed.is_main():
+        _out(
+            f"{result['n_shapes']} shapes: {result['n_computed']} computed, {result['n_present']} already in the store, "
+            f"{result['n_failed']} failed ({result['world_size']} process(es))"
+        )
+        _out(f"store: {result['store']}")
+        _out(f"manifest: {result['manifest']}")
+        for record in [r for r in result["shapes"] if r["status"] == "failed"][:20]:
+            _out(f"  failed: {record['shape']}: {record['error']}")
+    return 1 if result["n_failed"] else 0
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -153,6 +191,29 @@ def build_parser() -> argparse.ArgumentParser:
     train.add_argument("--config", help="settings file (.json, .yaml); keys are the flag names with underscores")
     _add_train_flags(train)
     train.set_defaults(func=_train_command)
+    ext = sub.add_parser(
+        "extract",
+        help="compute a descriptor for every shape of a folder or dataset into the feature store (torchrun: sharded)",
+        description="Compute features for a collection into the content-keyed feature store, skipping entries already "
+        "there, and write a manifest. Under torchrun (torchrun --nproc_per_node=N -m geofeat extract ...) every rank "
+        "takes every N-th shape of the sorted collection.",
+    )
+    ext.add_argument("--descriptor", required=True, help="descriptor name (see 'geofeat descriptors')")
+    ext.add_argument("--param", action="append", metavar="KEY=VALUE", help="descriptor parameter; repeat it (JSON values)")
+    source = ext.add_mutually_exclusive_group(required=True)
+    source.add_argument("--data", metavar="FOLDER", help="every .off/.obj/.ply file below FOLDER")
+    source.add_argument("--dataset", metavar="NAME", help="a geofeat dataset name (faust_r, scape_r, ...)")
+    ext.add_argument("--split", default="all", help="--dataset: which split (default all)")
+    ext.add_argument("--data-root", help="--dataset: the data folder (default $GEOFEAT_DATA)")
+    ext.add_argument("--out", metavar="DIR", help="feature store folder (default: the feature cache)")
+    ext.add_argument("--manifest", metavar="FILE", help="manifest JSON (default ./<descriptor>-<params digest>.manifest.json)")
+    ext.add_argument("--export", choices=["npy", "h5"], help="also write per-shape .npy files or one HDF5 file")
+    ext.add_argument("--layout", choices=["mirror", "beside"], default="mirror", help="npy export layout (default mirror)")
+    ext.add_argument("--export-to", metavar="PATH", help="export folder (npy) or file (h5)")
+    ext.add_argument("--feature-folder", metavar="NAME", help="--layout beside: folder name (default the descriptor name)")
+    ext.add_argument("--device", default="auto", help="auto (the rank's local GPU, else cpu), cpu, cuda, cuda:N")
+    ext.add_argument("--no-progress", action="store_true", help="hide the progress bar")
+    ext.set_defaults(func=_extract_command)
     return parser
 
 

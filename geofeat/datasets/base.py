@@ -82,6 +82,7 @@ class PairDataset(Sequence):
         self._entries: list[PairEntry] = []
         self._meshes: LRUCache[tuple[Path, str], Mesh] = LRUCache(mesh_cache_size)
         self._arrays: dict[Path, np.ndarray] = {}
+        self._mesh_files: dict[str, Path] = {}
 
     def __len__(self) -> int:
         return len(self._entries)
@@ -113,9 +114,20 @@ class PairDataset(Sequence):
     def _load_pair(self, entry) -> ShapePair:
         raise NotImplementedError
 
+    def shape_files(self) -> dict[str, Path]:
+        """The mesh file of every shape the pairs use, by shape name (the ``name`` of its `Mesh`).
+
+        This default reads every pair once (meshes and ground truth); loaders that know their
+        files without reading them override it.
+        """
+        for position in range(len(self)):
+            self[position]
+        return dict(self._mesh_files)
+
     def _mesh(self, path: Path, name: str | None = None) -> Mesh:
         """The mesh at ``path`` (named ``name``, else the file stem), read once per instance."""
         key = (Path(path), name or Path(path).stem)
+        self._mesh_files[key[1]] = key[0]
 
         def load() -> Mesh:
             mesh = load_mesh(path)

@@ -181,6 +181,10 @@ class RemeshedTemplateDataset(PairDataset):
             raise DatasetError(f"{path}: none of its {len(rows)} pairs lies in the {self.split!r} split; try split='all'.")
         return listed
 
+    def shape_files(self) -> dict[str, Path]:
+        """``off/<name>.off`` of every shape of the split, by name (nothing is read)."""
+        return {name: self.root / "off" / f"{name}.off" for name in self.shape_names}
+
     def mesh(self, name: str) -> Mesh:
         """The mesh of shape ``name`` (cached)."""
         return self._mesh(self.root / "off" / f"{name}.off")

@@ -67,6 +67,11 @@ def resolve_cache(cache: CacheArg) -> FeatureCache | None:
     raise CacheError(f"cache must be True, False, a directory path or a FeatureCache; found {type(cache).__name__}.")
 
 
+def entry_key(descriptor: Descriptor, mesh: Mesh) -> str:
+    """The feature-store key of ``descriptor`` on ``mesh`` (see `geofeat.cache.cache_key`): what `compute` looks up."""
+    return cache_key(mesh.hash, descriptor.name, descriptor.params_json(), descriptor.version, descriptor.weights_digest())
+
+
 def compute(mesh_or_path: MeshLike, name: str, cache: CacheArg = True, **params) -> np.ndarray:
     """Per-vertex features of a mesh.
 
@@ -108,7 +113,7 @@ def compute(mesh_or_path: MeshLike, name: str, cache: CacheArg = True, **params)
         return descriptor(mesh)
     params_json = descriptor.params_json()
     weights = descriptor.weights_digest()
-    key = cache_key(mesh.hash, descriptor.name, params_json, descriptor.version, weights)
+    key = entry_key(descriptor, mesh)
     hit = store.get(key)
     if hit is not None:
         log.debug("cache hit %s for %s on %r", key[:12], descriptor.name, mesh.name)

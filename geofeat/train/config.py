@@ -65,6 +65,10 @@ class TrainConfig(JsonConfig):
     backproject : {"ball", "face"}
     partials_per_shape : int
         Partial shapes cut from the full shape at every step.
+    shapes_per_rank : int
+        Full shapes each process takes per step (the global batch of a step is
+        ``shapes_per_rank`` times the number of ``torchrun`` ranks); the loss is the mean over
+        the shapes of the batch of each shape's mean partial loss.
     partial_kinds : tuple of str
         Generators drawn from uniformly (``"cuts"``, ``"holes"``, ``"ray"``).
     loss : {"geodesic", "plain"}
@@ -82,7 +86,7 @@ class TrainConfig(JsonConfig):
     seed : int
         Seeds the LoRA initialisation, the shape order, the rotations and the partial shapes.
     device : str
-        ``"auto"``: CUDA when present, else CPU.
+        ``"auto"``: CUDA when present (under ``torchrun`` the rank's local GPU), else CPU.
     checkpoint_every, validate_every : int
         Steps between checkpoints and between validations (0: only at the end).
     val_dataset : str or None
@@ -112,6 +116,7 @@ class TrainConfig(JsonConfig):
     camera_layout: str = "official"
     backproject: str = "ball"
     partials_per_shape: int = 2
+    shapes_per_rank: int = 1
     partial_kinds: tuple[str, ...] = PARTIAL_KINDS
     loss: str = "geodesic"
     temperature: float = 0.1
@@ -147,7 +152,8 @@ class TrainConfig(JsonConfig):
         unknown_kinds = sorted(set(self.partial_kinds) - set(PARTIAL_KINDS))
         if unknown_kinds or not self.partial_kinds:
             problems.append(f"partial_kinds must be a non-empty subset of {PARTIAL_KINDS}, found {list(self.partial_kinds)}")
-        for name in ("rank", "image_size", "views_full", "views_partial", "partials_per_shape", "max_vertices"):
+        positive = ("rank", "image_size", "views_full", "views_partial", "partials_per_shape", "shapes_per_rank")
+        for name in (*positive, "max_vertices"):
             if not is_integer(getattr(self, name)) or getattr(self, name) < 1:
                 problems.append(f"{name} must be a positive integer, found {getattr(self, name)!r}")
         for name in ("steps", "checkpoint_every", "validate_every", "val_pairs"):

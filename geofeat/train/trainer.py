@@ -15,8 +15,26 @@ One step (the GeoLoRA recipe):
 5. average the (geodesic-weighted) PointInfoNCE of the partial shapes, back-propagate, clip
    the gradient norm and take an Adam step.
 
-Every random draw of step ``s`` comes from ``numpy.random.default_rng([seed, s])``, so a
-run resumed from a checkpoint continues exactly as the uninterrupted run would have.
+The samples (a full shape with its rotation and partial shapes) form one seeded sequence:
+sample ``g`` is the full shape at position ``g`` of the per-epoch permutations, with every
+random draw from ``numpy.random.default_rng([seed, g])``. One process takes sample ``s`` at
+step ``s``, so a run resumed from a checkpoint continues exactly as the uninterrupted run
+would have.
+
+Several processes (``torchrun``, one rank per GPU; see `GeoLoraTrainer.sample_indices`):
+at each step rank ``r`` of ``W`` takes the ``shapes_per_rank`` samples from
+``position + r * shapes_per_rank``, where ``position`` counts the samples of the earlier
+steps (``s * W * shapes_per_rank`` when the rank count never changed). The LoRA gradients
+summed over a rank's samples are all-reduced explicitly (one flattened tensor, not
+`torch.nn.parallel.DistributedDataParallel`: the backbone is called several times a step
+inside the rendering path, a rank may have no usable partial shape, and the loss is the
+mean over the usable samples of all ranks) and divided by the number of usable samples, so
+``W`` ranks with ``k`` shapes each compute what one process with ``W * k`` shapes computes.
+Rank 0 alone reads and writes the run folder (checkpoints, ``log.csv``, validation) and
+hands the state to the others at the start. A checkpoint holds the step and the sample
+position, so a run resumes on any number of ranks and continues the sequence without
+repeating or skipping a sample (with another rank count, the grouping of samples into
+steps differs from the uninterrupted run).
 
 A run folder holds ``config.json``, ``log.csv`` (one row per step: loss, seconds per phase,
 validation error on validation steps) and ``checkpoints/step_NNNNNNN/`` (the adapter as
@@ -56,10 +74,10 @@ import numpy as np
 import torch
 from tqdm.auto import tqdm
 
+from geofeat import distributed
 from geofeat.backbones import DinoBackbone, load_backbone
 from geofeat.backbones.lora import LoraSettings, add_lora, load_adapter, save_adapter
 from geofeat.datasets.records import Match
-from geofeat.devices import resolve_device
 from geofeat.evaluation import evaluate_pair, summarize
 from geofeat.files import atomic_write, fsync_folder, fsync_tree, load_torch_file
 from geofeat.geometry.partial import make_partial
@@ -245,20 +263,33 @@ class GeoLoraTrainer:
     ``fit()`` starts a new run in ``config.out`` or, when it already holds checkpoints,
     resumes from the newest one (the saved settings must agree with ``config`` except for
     `RESUMABLE_CHANGES`).
+
+    Under ``torchrun`` (the variables RANK, WORLD_SIZE, LOCAL_RANK, MASTER_ADDR and
+    MASTER_PORT set) the constructor starts the process group unless the caller did
+    (`geofeat.distributed.init_process_group`: NCCL on a GPU, gloo on the CPU), ``device="auto"``
+    (or ``"cuda"``) is the rank's local GPU, and ``self.ranks`` (a `geofeat.distributed.RankInfo`)
+    says which rank this process is; every rank calls ``fit()``.
     """
 
     def __init__(self, config: TrainConfig, backbone: DinoBackbone | None = None, shapes: list[Mesh] | None = None):
         self.config = config
-        self.device = resolve_device(config.device)
+        self.device = distributed.local_device(config.device)
+        distributed.init_process_group(self.device)  # under torchrun, unless the caller started one
+        self.ranks = _rank_info()
+        self.progress = config.progress and self.ranks.is_main
         self.out = Path(config.out)
         self.shapes = shapes if shapes is not None else load_training_shapes(
             config.data, root=config.data_root, split=config.split, first=config.first,
-            max_vertices=config.max_vertices, progress=config.progress,
+            max_vertices=config.max_vertices, progress=self.progress,
         )  # fmt: skip
         if not self.shapes:
             raise TrainingError(f"no training shape in {config.data!r}.")
         self.geodesics = GeodesicStore(config.geodesic_cache)
-        self.backbone = backbone if backbone is not None else load_backbone(config.weights, kind="dinov3", layer=config.layer)
+        self.backbone = (
+            backbone
+            if backbone is not None
+            else load_backbone(config.weights, kind="dinov3", layer=config.layer, device=self.device)
+        )
         if self.backbone.kind != "dinov3":
             raise TrainingError(f"GeoLoRA adapts DINOv3; this backbone is {self.backbone.kind}.")
         self.backbone.model.to(self.device)
@@ -267,6 +298,7 @@ class GeoLoraTrainer:
                 f"image_size {config.image_size} is not a multiple of the backbone patch size {self.backbone.patch_size}."
             )
         self.step = 0
+        self._origin = (0, 0)  # (step, global sample index of its first shape) of the start or the checkpoint resumed
         self.optimizer: torch.optim.Optimizer | None = None
         self._validation = None
 
@@ -276,13 +308,55 @@ class GeoLoraTrainer:
         return LoraSettings(rank=self.config.rank, alpha=self.config.alpha, training=self.config.to_dict())
 
     def _start_or_resume(self) -> bool:
-        """Start a new run or resume from the newest readable checkpoint; True when resumed."""
+        """Start a new run or resume from the newest readable checkpoint; True when resumed.
+
+        With several ranks, rank 0 alone reads and writes the run folder; it hands the others
+        whether it resumed, the step and sample position and the optimizer state, and every
+        rank then holds rank 0's LoRA weights (the run folder need not be shared by the nodes).
+        """
+        if self.ranks.world_size == 1:
+            return self._start_or_resume_here()
+        outcome = None
+        if self.ranks.is_main:
+            try:
+                resumed = self._start_or_resume_here()
+            except Exception as err:
+                distributed.broadcast_from_main({"error": f"{type(err).__name__}: {err}"})
+                raise
+            optimizer = _to_cpu(self.optimizer.state_dict()) if resumed else None
+            outcome = {"error": None, "resumed": resumed, "origin": self._origin, "optimizer": optimizer}
+        outcome = distributed.broadcast_from_main(outcome)
+        if not self.ranks.is_main:
+            if outcome["error"]:
+                raise TrainingError(f"rank 0 could not start or resume the run in {self.out}: {outcome['error']}")
+            self._add_lora()
+            if outcome["resumed"]:
+                self.optimizer.load_state_dict(outcome["optimizer"])  # moved to the parameters' device
+            self._origin = tuple(outcome["origin"])
+            self.step = self._origin[0]
+        with torch.no_grad():  # rank 0's LoRA weights everywhere (the same seeded initialisation, or the checkpoint)
+            params = self._lora_parameters()
+            flat = distributed.broadcast_tensor_from_main(torch.cat([p.detach().reshape(-1) for p in params]))
+            for p, value in zip(params, flat.split([p.numel() for p in params]), strict=True):
+                p.copy_(value.view_as(p))
+        return outcome["resumed"]
+
+    def _add_lora(self) -> None:
+        torch.manual_seed(self.config.seed)  # LoRA A initialisation
+        add_lora(self.backbone, self._lora_settings())
+        self._make_optimizer()
+
+    def _lora_parameters(self) -> list[torch.nn.Parameter]:
+        """The trained (LoRA) parameters, in the optimizer's order (the same on every rank)."""
+        return [p for group in self.optimizer.param_groups for p in group["params"]]
+
+    def _start_or_resume_here(self) -> bool:
+        """`_start_or_resume` in the process that owns the run folder."""
         remove_stale_temporary_folders(self.out)
         checkpoint, state = self._readable_checkpoint()
         if checkpoint is None:
-            torch.manual_seed(self.config.seed)  # LoRA A initialisation
-            add_lora(self.backbone, self._lora_settings())
-            self._make_optimizer()
+            self._add_lora()
+            self._origin = (0, 0)
             self.out.mkdir(parents=True, exist_ok=True)
             self.config.save(self.out / "config.json")
             return False
@@ -297,8 +371,17 @@ class GeoLoraTrainer:
         self._make_optimizer()
         self.optimizer.load_state_dict(state["optimizer"])
         self.step = int(state["step"])
+        # checkpoints written before the sample position was saved come from single-process runs
+        self._origin = (self.step, int(state.get("samples", self.step * self.config.shapes_per_rank)))
         self.config.save(self.out / "config.json")
-        log.info("resumed %s at step %d from %s", self.out, self.step, checkpoint)
+        log.info("resumed %s at step %d (sample %d) from %s", self.out, self.step, self._origin[1], checkpoint)
+        saved_world = int(state.get("world_size", 1))
+        if saved_world != self.ranks.world_size:
+            log.info(
+                "the checkpoint was written by %d rank(s), this run has %d: the shape sequence continues from sample %d, "
+                "%d shape(s) a step",
+                saved_world, self.ranks.world_size, self._origin[1], self.ranks.world_size * self.config.shapes_per_rank,
+            )  # fmt: skip
         return True
 
     def _read_checkpoint(self, folder: Path) -> dict:
@@ -354,15 +437,24 @@ class GeoLoraTrainer:
         self.optimizer = torch.optim.Adam(params, lr=self.config.lr)
 
     def save_checkpoint(self, extra: dict | None = None) -> Path:
-        """Write ``checkpoints/step_NNNNNNN`` (adapter + optimizer state) atomically; returns the folder."""
+        """Write ``checkpoints/step_NNNNNNN`` (adapter + optimizer state) atomically; returns the folder.
+
+        Only rank 0 writes; on the other ranks this returns the folder without writing.
+        """
         final = self.out / "checkpoints" / f"step_{self.step:07d}"
-        if (final / _STATE_FILE).is_file():
+        if not self.ranks.is_main or (final / _STATE_FILE).is_file():
             return final
         tmp = final.with_name(f".{final.name}.tmp-{os.getpid()}")
         shutil.rmtree(tmp, ignore_errors=True)
         try:
             save_adapter(self.backbone, tmp, self._lora_settings(), extra_info={"step": self.step, **(extra or {})})
-            torch.save({"step": self.step, "optimizer": self.optimizer.state_dict()}, tmp / _STATE_FILE)
+            state = {
+                "step": self.step,
+                "samples": self._sample_position(self.step),
+                "world_size": self.ranks.world_size,
+                "optimizer": self.optimizer.state_dict(),
+            }
+            torch.save(state, tmp / _STATE_FILE)
             fsync_tree(tmp)  # the files and the folder are on disk before the rename makes them the checkpoint
         except BaseException:
             shutil.rmtree(tmp, ignore_errors=True)
@@ -454,10 +546,30 @@ class GeoLoraTrainer:
 
     # ------------------------------------------------------------------ one step
 
-    def _shape_index(self, step: int) -> int:
+    def _shape_index(self, index: int) -> int:
+        """The full shape of global sample ``index``: a seeded permutation of the shapes per epoch."""
         n = len(self.shapes)
-        order = np.random.default_rng([self.config.seed, step // n, 1]).permutation(n)
-        return int(order[step % n])
+        order = np.random.default_rng([self.config.seed, index // n, 1]).permutation(n)
+        return int(order[index % n])
+
+    def _sample_position(self, step: int) -> int:
+        """Global index of the first sample of ``step`` (the samples drawn before it, on all ranks)."""
+        origin_step, origin_sample = self._origin
+        return origin_sample + (step - origin_step) * self.ranks.world_size * self.config.shapes_per_rank
+
+    def sample_indices(self, step: int | None = None) -> range:
+        """Global sample indices this rank trains on at ``step`` (default: the next step).
+
+        Step ``s`` of a run on ``W`` ranks takes the ``W * shapes_per_rank`` samples after those
+        of the earlier steps; rank ``r`` takes ``shapes_per_rank`` consecutive ones, from
+        ``position(s) + r * shapes_per_rank``, where ``position(s) = s * W * shapes_per_rank`` for a
+        run that kept its rank count (a resumed run continues from the position saved in
+        its checkpoint). Sample ``g`` is the full shape ``_shape_index(g)`` with every draw from
+        ``numpy.random.default_rng([seed, g])``: one process (``g = s``) draws as before.
+        """
+        step = self.step if step is None else step
+        first = self._sample_position(step) + self.ranks.rank * self.config.shapes_per_rank
+        return range(first, first + self.config.shapes_per_rank)
 
     def _loss(self, feat_partial, feat_full, gt, dist, seen_partial, seen_full) -> torch.Tensor:
         options = {"seen_partial": seen_partial, "seen_full": seen_full, "temperature": self.config.temperature}
@@ -465,12 +577,15 @@ class GeoLoraTrainer:
             return geodesic_point_info_nce(feat_partial, feat_full, gt, dist, offset=self.config.offset, **options)
         return point_info_nce(feat_partial, feat_full, gt, **options)
 
-    def train_step(self) -> StepRecord:
-        """One optimisation step (see the module notes); skipped (loss NaN) when no partial shape is usable."""
-        config, step = self.config, self.step
-        timer = _Timer(self.device)
-        rng = np.random.default_rng([config.seed, step])
-        mesh = self.shapes[self._shape_index(step)]
+    def _sample_loss(self, index: int, timer: _Timer) -> tuple[torch.Tensor | None, int]:
+        """The mean loss of the partial shapes of global sample ``index`` and their number (None, 0: none usable).
+
+        Draws the full shape, its rotation, the generators, seeds and turns of its partial
+        shapes from ``numpy.random.default_rng([seed, index])``.
+        """
+        config = self.config
+        rng = np.random.default_rng([config.seed, index])
+        mesh = self.shapes[self._shape_index(index)]
         with timer("geodesics"):
             dist = self.geodesics.load(mesh, self.device)
         with timer("partial"):
@@ -482,7 +597,6 @@ class GeoLoraTrainer:
                 turned = rotate_about_up(partial.mesh, rng.uniform(0.0, 360.0))
                 gt = torch.tensor(partial.vertex_map, dtype=torch.int64, device=self.device)
                 partials.append((turned, gt))
-        self.backbone.model.eval()
         feat_full, seen_full = self.shape_features(full, config.views_full, timer)
         losses = []
         for turned, gt in partials:
@@ -491,20 +605,64 @@ class GeoLoraTrainer:
                 try:
                     losses.append(self._loss(feat_partial, feat_full, gt, dist, seen_partial, seen_full))
                 except TrainingError as err:  # e.g. no partial vertex seen: as the release, skip
-                    log.warning("step %d: skipped a partial shape of %s: %s", step, mesh.name, err)
-        self.optimizer.zero_grad(set_to_none=True)
+                    log.warning("step %d, sample %d: skipped a partial shape of %s: %s", self.step, index, mesh.name, err)
         if not losses:
+            return None, 0
+        return torch.stack(losses).mean(), len(losses)
+
+    def _average_gradients(self, n_shapes: int) -> None:
+        """Turn the gradients summed over this rank's shapes into the mean over the ``n_shapes`` of all ranks.
+
+        Several ranks: one all-reduce (sum) of all LoRA gradients flattened into one tensor
+        (zeros for a rank without a usable shape), then the division.
+        """
+        params = self._lora_parameters()
+        if self.ranks.world_size > 1:
+            flat = torch.cat([(p.grad if p.grad is not None else torch.zeros_like(p)).reshape(-1) for p in params])
+            distributed.all_reduce_sum(flat)
+            if n_shapes != 1:
+                flat.div_(n_shapes)
+            for p, grad in zip(params, flat.split([p.numel() for p in params]), strict=True):
+                p.grad = grad.view_as(p)
+        elif n_shapes != 1:
+            for p in params:
+                if p.grad is not None:
+                    p.grad.div_(n_shapes)
+
+    def train_step(self) -> StepRecord:
+        """One optimisation step (see the module notes and `sample_indices`); skipped (loss NaN) when no partial shape is usable.
+
+        The loss is the mean, over the usable samples of the step on all ranks, of each
+        sample's mean partial loss; each sample is back-propagated on its own and the summed
+        gradients are all-reduced and divided by the number of usable samples, so ``W``
+        ranks with ``shapes_per_rank=k`` train exactly as one process with ``shapes_per_rank=W*k``.
+        """
+        config = self.config
+        timer = _Timer(self.device)
+        self.backbone.model.eval()
+        self.optimizer.zero_grad(set_to_none=True)
+        loss_sum, n_shapes, n_partials = 0.0, 0, 0
+        for index in self.sample_indices():
+            loss, count = self._sample_loss(index, timer)
+            if loss is None:
+                continue
+            with timer("backward"):
+                loss.backward()
+            loss_sum, n_shapes, n_partials = loss_sum + float(loss.detach()), n_shapes + 1, n_partials + count
+        if self.ranks.world_size > 1:
+            with timer("optimizer"):
+                totals = torch.tensor([loss_sum, n_shapes, n_partials], dtype=torch.float64, device=self.device)
+                totals = distributed.all_reduce_sum(totals).tolist()
+            loss_sum, n_shapes, n_partials = totals[0], round(totals[1]), round(totals[2])
+        if n_shapes == 0:
             self.step += 1
             return StepRecord(self.step, float("nan"), 0, dict(timer.seconds))
-        loss = torch.stack(losses).mean()
-        with timer("backward"):
-            loss.backward()
         with timer("optimizer"):
-            params = [p for group in self.optimizer.param_groups for p in group["params"]]
-            torch.nn.utils.clip_grad_norm_(params, max_norm=config.grad_clip)
+            self._average_gradients(n_shapes)
+            torch.nn.utils.clip_grad_norm_(self._lora_parameters(), max_norm=config.grad_clip)
             self.optimizer.step()
         self.step += 1
-        return StepRecord(self.step, float(loss.detach()), len(losses), dict(timer.seconds))
+        return StepRecord(self.step, loss_sum / n_shapes, n_partials, dict(timer.seconds))
 
     # ------------------------------------------------------------------ validation
 
@@ -553,54 +711,118 @@ class GeoLoraTrainer:
             writer.writerow({"step": self.step, "elapsed_s": f"{elapsed:.3f}", "val_geodesic_error": f"{error:.4f}"})
         return error
 
+    def _anywhere(self, flag: bool) -> bool:
+        """True when ``flag`` is true on any rank (every rank must call this at the same point)."""
+        if self.ranks.world_size == 1:
+            return bool(flag)
+        votes = torch.tensor([float(bool(flag))], dtype=torch.float64, device=self.device)
+        return distributed.all_reduce_sum(votes).item() > 0
+
+    @contextlib.contextmanager
+    def _log_file(self):
+        """``(handle, writer)`` of ``log.csv`` opened for appending on rank 0, ``(None, None)`` on the others."""
+        if not self.ranks.is_main:
+            yield None, None
+            return
+        log_path = self.out / "log.csv"
+        new_log = not log_path.is_file()
+        with open(log_path, "a", newline="") as handle:
+            writer = csv.DictWriter(handle, fieldnames=_LOG_COLUMNS)
+            if new_log:
+                writer.writeheader()
+            yield handle, writer
+
     def fit(self) -> Path:
         """Train until ``config.steps`` (or ``config.max_minutes``); returns the last checkpoint folder.
 
         Validates at the start of a new run, every ``validate_every`` steps and at the end;
         checkpoints every ``checkpoint_every`` steps and at the end. The first Ctrl-C finishes
         the current step, saves a checkpoint and raises ``KeyboardInterrupt``.
+
+        Under ``torchrun`` every rank calls this; rank 0 alone writes ``log.csv``, validates
+        and saves checkpoints, while the others go on to the next step's all-reduce (which
+        waits for rank 0). A stop (Ctrl-C on any rank, the time budget on any rank) is agreed
+        on by all ranks before each step, so they stop after the same step; all ranks return
+        once the last checkpoint is on disk.
         """
-        config = self.config
+        config, main = self.config, self.ranks.is_main
         resumed = self._start_or_resume()
-        self._truncate_log(self.step if resumed else None)
-        for mesh in tqdm(self.shapes, desc="geodesics", unit="shape", disable=not config.progress):
+        if main:
+            self._truncate_log(self.step if resumed else None)
+        mine = distributed.shard(self.shapes, self.ranks)  # the one-off Dijkstra, shared out among the ranks
+        for mesh in tqdm(mine, desc="geodesics", unit="shape", disable=not self.progress):
             self.geodesics.ensure(mesh)
-        log_path = self.out / "log.csv"
-        new_log = not log_path.is_file()
+        distributed.barrier()  # (a rank that does not see the shared store computes what it lacks on first use)
         start = time.perf_counter()
-        with open(log_path, "a", newline="") as handle:
-            writer = csv.DictWriter(handle, fieldnames=_LOG_COLUMNS)
-            if new_log:
-                writer.writeheader()
-            if not resumed:
+        with self._log_file() as (handle, writer):
+            if not resumed and main:
                 self._validation_row(writer, 0.0)
                 self._sync_log(handle)
                 self.save_checkpoint()
-            bar = tqdm(total=config.steps, initial=self.step, desc="GeoLoRA", unit="step", disable=not config.progress)
+            bar = tqdm(total=config.steps, initial=self.step, desc="GeoLoRA", unit="step", disable=not self.progress)
             with _DeferredInterrupt() as interrupt:
-                while self.step < config.steps and not interrupt.requested:
+                while self.step < config.steps and not self._anywhere(interrupt.requested):
                     record = self.train_step()
                     elapsed = time.perf_counter() - start
-                    self._log_row(writer, record, elapsed, None)
+                    if main:
+                        self._log_row(writer, record, elapsed, None)
                     bar.update(1)
                     bar.set_postfix(loss=f"{record.loss:.4f}")
-                    out_of_time = config.max_minutes is not None and elapsed > 60.0 * config.max_minutes
-                    if config.validate_every and self.step % config.validate_every == 0 and self.step < config.steps:
+                    out_of_time = self._anywhere(config.max_minutes is not None and elapsed > 60.0 * config.max_minutes)
+                    if main and config.validate_every and self.step % config.validate_every == 0 and self.step < config.steps:
                         if not out_of_time:
                             self._validation_row(writer, elapsed)
-                    if config.checkpoint_every and self.step % config.checkpoint_every == 0:
+                    if main and config.checkpoint_every and self.step % config.checkpoint_every == 0:
                         self._sync_log(handle)
                         self.save_checkpoint()
-                    handle.flush()
+                    if main:
+                        handle.flush()
                     if out_of_time:
                         log.info("time budget of %.1f minutes spent at step %d", config.max_minutes, self.step)
                         break
+                interrupted = self._anywhere(interrupt.requested)
             bar.close()
-            if interrupt.requested:
-                self._sync_log(handle)
+            if interrupted:
+                if main:
+                    self._sync_log(handle)
                 checkpoint = self.save_checkpoint()
+                distributed.barrier()
                 log.warning("interrupted: stopped after step %d; resume with the same out folder (%s)", self.step, checkpoint)
                 raise KeyboardInterrupt
-            self._validation_row(writer, time.perf_counter() - start)
-            self._sync_log(handle)
-            return self.save_checkpoint()
+            if main:
+                self._validation_row(writer, time.perf_counter() - start)
+                self._sync_log(handle)
+            final = self.save_checkpoint()
+        distributed.barrier()  # the other ranks return once rank 0 has written the last checkpoint
+        return final
+
+
+def _rank_info() -> distributed.RankInfo:
+    """This process among the training ranks (one process unless a process group is started).
+
+    Raises
+    ------
+    distributed.DistributedError
+        ``WORLD_SIZE`` above 1 in the environment but no process group (the rendezvous
+        variables of torchrun are missing).
+    """
+    info = distributed.rank_info()
+    started = torch.distributed.is_available() and torch.distributed.is_initialized()
+    if info.world_size > 1 and not started:
+        raise distributed.DistributedError(
+            f"WORLD_SIZE={info.world_size} is set but no process group could be started (found MASTER_ADDR="
+            f"{os.environ.get('MASTER_ADDR')!r}, MASTER_PORT={os.environ.get('MASTER_PORT')!r}); launch the training with "
+            "torchrun, which sets all of RANK, WORLD_SIZE, LOCAL_RANK, MASTER_ADDR and MASTER_PORT, or unset WORLD_SIZE."
+        )
+    return info
+
+
+def _to_cpu(obj):
+    """``obj`` with every tensor in it (nested dicts, lists, tuples) moved to the CPU (to pickle it for another rank)."""
+    if isinstance(obj, torch.Tensor):
+        return obj.detach().cpu()
+    if isinstance(obj, dict):
+        return {key: _to_cpu(value) for key, value in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return type(obj)(_to_cpu(value) for value in obj)
+    return obj

@@ -1,0 +1,484 @@
+"""Features for a whole collection: the library behind ``geofeat extract``.
+
+`extract` computes one descriptor on every shape into a content-keyed feature store
+(`geofeat.FeatureCache`), skipping the shapes whose entry is already there, so a run that
+was killed is completed by running it again. It writes a manifest (one record per shape)
+and, on request, per-shape files in the layouts other pipelines read (`ExportSpec`).
+
+Under ``torchrun`` every rank takes the shapes at positions ``i % world_size == rank`` of
+the sorted collection, computes them on its own device (``device="auto"``: the GPU
+``LOCAL_RANK``) and writes into the shared store; after a barrier rank 0 gathers every
+rank's records and writes the one manifest (and the HDF5 export). Store entries are
+written atomically (`geofeat.cache`), so a rank killed mid-run leaves complete entries
+only.
+
+>>> from geofeat.extract import extract, folder_shapes
+>>> manifest = extract(folder_shapes("FAUST_r/off"), "wks", {"n_descr": 128}, store="features/")
+>>> manifest["n_computed"], manifest["n_present"]
+(100, 0)
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import os
+import time
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path, PurePosixPath
+from typing import Any
+
+import h5py
+import numpy as np
+import torch
+from tqdm.auto import tqdm
+
+from geofeat import distributed
+from geofeat._version import __version__
+from geofeat.cache import FeatureCache
+from geofeat.descriptors.compute import compute, entry_key, reusable_descriptor
+from geofeat.descriptors.registry import make_descriptor
+from geofeat.errors import GeofeatError
+from geofeat.files import atomic_write
+from geofeat.mesh import Mesh, load_mesh
+
+log = logging.getLogger(__name__)
+
+#: File types read from a folder (``--data``).
+MESH_SUFFIXES = (".off", ".obj", ".ply")
+EXPORT_FORMATS = ("npy", "h5")
+LAYOUTS = ("mirror", "beside")
+#: Version of the manifest's layout.
+MANIFEST_FORMAT = 1
+#: How long a rank waits at the barrier for the slowest rank (a shard of ViT features can take hours).
+BARRIER_TIMEOUT_MINUTES = 24 * 60.0
+
+
+class ExtractError(GeofeatError, ValueError):
+    """Bad input to `extract`: no shapes, an unknown layout, an export target that cannot be used."""
+
+
+@dataclass(frozen=True)
+class ShapeSource:
+    """One shape of a collection.
+
+    Attributes
+    ----------
+    name : str
+        Unique within the collection and the sort key of sharding: the file's path relative
+        to the collection root without its suffix, with ``/`` (``"off/tr_reg_000"``), or the
+        mesh name for shapes built in memory.
+    path : Path or None
+        The mesh file; None for a shape built in memory.
+    relative : str or None
+        The file's path relative to the collection root, suffix included (``"off/tr_reg_000.off"``).
+    mesh : Mesh or None
+        The mesh itself for shapes built in memory.
+    """
+
+    name: str
+    path: Path | None = None
+    relative: str | None = None
+    mesh: Mesh | None = None
+
+    def load(self) -> Mesh:
+        """The mesh (read from `path` now, or the one held)."""
+        return self.mesh if self.mesh is not None else load_mesh(self.path)
+
+
+def folder_shapes(folder: str | os.PathLike) -> list[ShapeSource]:
+    """Every ``.off``/``.obj``/``.ply`` file below ``folder`` (sub-folders included), sorted by relative path.
+
+    Raises
+    ------
+    ExtractError
+        The folder does not exist, is not a folder, or holds no mesh file.
+    """
+    root = Path(folder).expanduser()
+    if not root.exists():
+        raise ExtractError(f"data folder {root} does not exist; expected a folder of {'/'.join(MESH_SUFFIXES)} meshes.")
+    if not root.is_dir():
+        raise ExtractError(f"--data must be a folder of meshes; {root} is a file. Pass the folder that holds it.")
+    files = sorted(p for p in root.rglob("*") if p.suffix.lower() in MESH_SUFFIXES and p.is_file())
+    if not files:
+        raise ExtractError(
+            f"data folder {root} holds no mesh file (looked for {', '.join(MESH_SUFFIXES)} in it and its sub-folders); "
+            "pass the folder that holds the meshes (for FAUST_r: FAUST_r/off)."
+        )
+    shapes = []
+    for path in files:
+        relative = path.relative_to(root).as_posix()
+        shapes.append(ShapeSource(str(PurePosixPath(relative).with_suffix("")), path, relative))
+    return _unique(shapes, str(root))
+
+
+def dataset_shapes(name: str, root: str | os.PathLike | None = None, split: str = "all") -> tuple[list[ShapeSource], Path | None]:
+    """The shapes of a registered dataset (`geofeat.datasets.load_dataset`), and the dataset folder.
+
+    File-based datasets give their mesh files (named relative to the dataset folder, e.g.
+    ``off/tr_reg_000``); datasets built in memory (synthetic, derived partial benchmarks)
+    give their meshes, named by mesh name, and no folder.
+
+    Parameters
+    ----------
+    name : str
+        Dataset name (``"faust_r"``, ``"scape_r"``, ``"shrec16_cuts"``, ...).
+    root : path-like or None
+        Data folder; None: ``$GEOFEAT_DATA``.
+    split : str
+        ``"all"`` for every shape of FAUST_r/SCAPE_r; other datasets name their splits.
+
+    Raises
+    ------
+    DatasetError
+        Unknown dataset, split or a missing dataset folder.
+    """
+    from geofeat.datasets import load_dataset
+
+    dataset = load_dataset(name, root, split=split)
+    files = getattr(dataset, "shape_files", None)
+    if callable(files):
+        folder = Path(dataset.root)
+        shapes = []
+        for path in sorted(files().values()):
+            path = Path(path)
+            try:
+                relative = path.relative_to(folder).as_posix()
+            except ValueError:  # a mesh outside the dataset folder: name it by its file name
+                relative = path.name
+            shapes.append(ShapeSource(str(PurePosixPath(relative).with_suffix("")), path, relative))
+        return _unique(shapes, f"dataset {name!r}"), folder
+    meshes: dict[str, Mesh] = {}
+    for position in range(len(dataset)):
+        pair = dataset[position]
+        for mesh in (pair.y, pair.x):  # the same shape in several pairs counts once; a name used twice gets the hash
+            name = mesh.name or "shape"
+            if name in meshes and meshes[name].hash != mesh.hash:
+                name = f"{name}-{mesh.hash[:8]}"
+            meshes.setdefault(name, mesh)
+    return _unique([ShapeSource(key, mesh=mesh) for key, mesh in meshes.items()], f"dataset {name!r}"), None
+
+
+def _unique(shapes: list[ShapeSource], where: str) -> list[ShapeSource]:
+    if not shapes:
+        raise ExtractError(f"{where} holds no shapes; nothing to extract.")
+    names = [s.name for s in shapes]
+    repeated = sorted({n for n in names if names.count(n) > 1})
+    if repeated:
+        raise ExtractError(
+            f"{where}: several files give the shape name(s) {repeated[:5]} (the same stem with different suffixes); "
+            "keep one file per shape."
+        )
+    return sorted(shapes, key=lambda s: s.name)
+
+
+def parse_params(items: Sequence[str]) -> dict[str, Any]:
+    """``["n_descr=128", "laplacian=cotan"]`` -> ``{"n_descr": 128, "laplacian": "cotan"}``.
+
+    Each value is read as JSON when it parses (numbers, ``true``/``false``, ``null``, lists),
+    else kept as the string; the descriptor checks the values.
+
+    Raises
+    ------
+    ExtractError
+        An item without ``=`` or with an empty key, or a key given twice.
+    """
+    params: dict[str, Any] = {}
+    for item in items:
+        key, sep, text = item.partition("=")
+        key = key.strip()
+        if not sep or not key:
+            raise ExtractError(f"--param expects KEY=VALUE (for example --param n_descr=128); found {item!r}.")
+        if key in params:
+            raise ExtractError(f"--param {key} is given twice ({params[key]!r} and {text!r}); give it once.")
+        try:
+            params[key] = json.loads(text)
+        except ValueError:
+            params[key] = text
+    return params
+
+
+@dataclass(frozen=True)
+class ExportSpec:
+    """Per-shape files written besides the store.
+
+    Layouts (the arrays are float32, shape (V, C), C-contiguous, written with ``numpy.save``):
+
+    ``npy`` + ``mirror``
+        ``<to>/<relative path of the mesh, suffix .npy>``: a folder tree mirroring the input
+        (``--data FAUST_r/off`` -> ``<to>/tr_reg_000.npy``; ``--dataset faust_r`` ->
+        ``<to>/off/tr_reg_000.npy``). Shapes built in memory: ``<to>/<name>.npy``.
+    ``npy`` + ``beside``
+        ``<folder holding the mesh's folder>/<feature_folder>/<stem>.npy``, next to ``off/``
+        in a dataset folder (``FAUST_r/off/tr_reg_000.off`` -> ``FAUST_r/wks/tr_reg_000.npy``),
+        the layout of ULRSSM/DPFM-style dataset folders. With ``to``: ``<to>/<feature_folder>/<stem>.npy``.
+    ``h5``
+        One HDF5 file ``to``: one dataset per shape, named by the shape's name
+        (``off/tr_reg_000``), with attributes ``mesh_hash``, ``descriptor``, ``params``.
+
+    Attributes
+    ----------
+    format : {"npy", "h5"}
+    layout : {"mirror", "beside"}
+        For ``npy`` only.
+    to : Path or None
+        The export folder (``npy``) or file (``h5``); required except for ``beside``.
+    feature_folder : str or None
+        ``beside``: the folder name; default the descriptor name.
+    """
+
+    format: str = "npy"
+    layout: str = "mirror"
+    to: Path | None = None
+    feature_folder: str | None = None
+
+    def __post_init__(self) -> None:
+        if self.format not in EXPORT_FORMATS:
+            raise ExtractError(f"export format must be one of {', '.join(EXPORT_FORMATS)}; found {self.format!r}.")
+        if self.layout not in LAYOUTS:
+            raise ExtractError(f"export layout must be one of {', '.join(LAYOUTS)}; found {self.layout!r}.")
+        if self.to is not None:
+            object.__setattr__(self, "to", Path(self.to).expanduser())
+        if self.format == "h5" and self.to is None:
+            raise ExtractError("--export h5 needs --export-to FILE.h5 (the HDF5 file to write).")
+        if self.format == "npy" and self.layout == "mirror" and self.to is None:
+            raise ExtractError("--export npy --layout mirror needs --export-to DIR (the folder the tree is written under).")
+        if self.feature_folder is not None and (not self.feature_folder or any(c in self.feature_folder for c in "/\\")):
+            raise ExtractError(f"--feature-folder must be one folder name (no slashes); found {self.feature_folder!r}.")
+
+    def check(self, shapes: Sequence[ShapeSource]) -> None:
+        """Refuse before any work when a shape has no place in the layout (``beside`` needs mesh files)."""
+        if self.format == "npy" and self.layout == "beside" and self.to is None:
+            in_memory = [s.name for s in shapes if s.path is None]
+            if in_memory:
+                raise ExtractError(
+                    f"--layout beside writes next to the mesh files, but {len(in_memory)} shape(s) are built in memory "
+                    f"(first {in_memory[0]!r}); use --layout mirror --export-to DIR, or pass --export-to DIR."
+                )
+
+    def target(self, shape: ShapeSource, descriptor: str) -> Path | None:
+        """The ``.npy`` file of ``shape`` (None for ``h5``, written whole by `write_h5`)."""
+        if self.format != "npy":
+            return None
+        if self.layout == "mirror":
+            relative = shape.relative if shape.relative is not None else shape.name
+            return self.to / PurePosixPath(relative).with_suffix(".npy")
+        folder_name = self.feature_folder or descriptor
+        stem = shape.path.stem if shape.path is not None else PurePosixPath(shape.name).name
+        base = self.to if self.to is not None else shape.path.parent.parent
+        return base / folder_name / f"{stem}.npy"
+
+
+def save_npy(path: str | os.PathLike, features: np.ndarray) -> Path:
+    """Write ``features`` (V, C) float32 to ``path`` with ``numpy.save``, atomically (no pickle)."""
+    array = np.ascontiguousarray(features, dtype=np.float32)
+
+    def write(tmp: Path) -> None:
+        with open(tmp, "wb") as handle:
+            np.save(handle, array, allow_pickle=False)
+
+    return atomic_write(path, write)
+
+
+def write_h5(path: str | os.PathLike, records: Sequence[Mapping[str, Any]], store: FeatureCache) -> Path:
+    """One HDF5 file holding every shape's features, read from ``store`` (atomically).
+
+    Parameters
+    ----------
+    records : sequence of dict
+        Manifest records (``shape``, ``key``, ``mesh_hash``, ``descriptor``, ``params``); failed ones are skipped.
+
+    Raises
+    ------
+    ExtractError
+        An entry went missing from the store meanwhile (run again).
+    """
+
+    def write(tmp: Path) -> None:
+        with h5py.File(tmp, "w") as fh:
+            fh.attrs["geofeat_version"] = __version__
+            for record in records:
+                if record["status"] == "failed":
+                    continue
+                features = store.get(record["key"])
+                if features is None:
+                    raise ExtractError(
+                        f"the store entry of {record['shape']!r} ({record['entry']}) disappeared before the HDF5 export; run again."
+                    )
+                dataset = fh.create_dataset(record["shape"], data=np.ascontiguousarray(features, dtype=np.float32))
+                dataset.attrs["mesh_hash"] = record["mesh_hash"]
+                dataset.attrs["descriptor"] = record["descriptor"]
+                dataset.attrs["params"] = json.dumps(record["params"], sort_keys=True)
+            fh.flush()
+
+    return atomic_write(path, write)
+
+
+def params_digest(descriptor: str, params: Mapping[str, Any]) -> str:
+    """Eight hex digits naming a descriptor and its canonical parameters (the default manifest name)."""
+    text = json.dumps({"descriptor": descriptor, "params": params}, sort_keys=True, default=str)
+    return hashlib.sha256(text.encode()).hexdigest()[:8]
+
+
+def _descriptor_params(name: str, params: Mapping[str, Any], device: torch.device) -> dict[str, Any]:
+    """``params`` checked by the descriptor, with ``device`` set to this rank's device when the descriptor takes one."""
+    params = dict(params)
+    descriptor = make_descriptor(name, **params)  # unknown descriptor or parameter, bad values: fail before any work
+    if "device" in type(descriptor).param_names() and "device" not in params:
+        params["device"] = str(device)
+    return params
+
+
+def _one_shape(
+    shape: ShapeSource, name: str, params: Mapping[str, Any], store: FeatureCache, export: ExportSpec | None, rank: int
+) -> dict[str, Any]:
+    """Look up or compute one shape's entry; its manifest record."""
+    start = time.perf_counter()
+    record: dict[str, Any] = {"shape": shape.name, "path": None if shape.path is None else str(shape.path), "rank": rank}
+    try:
+        mesh = shape.load()
+        descriptor = reusable_descriptor(name, **params)
+        key = entry_key(descriptor, mesh)
+        features = store.get(key)
+        status = "present"
+        if features is None:
+            features = compute(mesh, name, cache=store, **params)
+            status = "computed"
+        target = export.target(shape, descriptor.name) if export is not None else None
+        if target is not None:
+            save_npy(target, features)
+    except GeofeatError as err:
+        log.warning("shape %s failed: %s", shape.name, err)
+        record.update(status="failed", error=f"{type(err).__name__}: {err}", seconds=round(time.perf_counter() - start, 4))
+        return record
+    record.update(
+        mesh_hash=mesh.hash,
+        n_vertices=int(features.shape[0]),
+        n_channels=int(features.shape[1]),
+        feature_shape=[int(n) for n in features.shape],
+        descriptor=descriptor.name,
+        params=descriptor.get_params(),
+        key=key,
+        entry=str(store.path(key)),
+        status=status,
+        seconds=round(time.perf_counter() - start, 4),
+        export=None if target is None else str(target),
+    )
+    return record
+
+
+def extract(
+    shapes: Sequence[ShapeSource],
+    descriptor: str,
+    params: Mapping[str, Any] | None = None,
+    *,
+    store: str | os.PathLike | FeatureCache | None = None,
+    manifest: str | os.PathLike | None = None,
+    export: ExportSpec | None = None,
+    device: str | torch.device | None = "auto",
+    progress: bool = True,
+    on_record: Callable[[dict[str, Any]], None] | None = None,
+) -> dict[str, Any]:
+    """Compute ``descriptor`` on every shape into a feature store, skipping entries already there.
+
+    Parameters
+    ----------
+    shapes : sequence of ShapeSource
+        The collection (`folder_shapes`, `dataset_shapes`); every rank must pass the same.
+    descriptor : str
+        Registered descriptor name.
+    params : mapping, optional
+        Descriptor parameters (checked by the descriptor before any work).
+    store : path or FeatureCache, optional
+        Where entries go; default the user's feature cache (``$GEOFEAT_CACHE_DIR/features``).
+    manifest : path, optional
+        JSON file to write (rank 0, atomically); None writes none.
+    export : ExportSpec, optional
+        Per-shape files to write as well.
+    device : str or torch.device
+        ``"auto"``: the GPU ``LOCAL_RANK`` when there are GPUs, else the CPU; given to
+        descriptors that take a ``device`` (it is not part of the cache key).
+    progress : bool
+        Show a tqdm bar (rank 0's shard).
+    on_record : callable, optional
+        Called with every record of this rank as it is made.
+
+    Returns
+    -------
+    dict
+        The manifest: ``descriptor``, ``params``, ``store``, ``world_size``, counts
+        ``n_shapes``/``n_computed``/``n_present``/``n_failed``, and ``shapes``: one record
+        per shape (``shape``, ``path``, ``mesh_hash``, ``n_vertices``, ``n_channels``,
+        ``feature_shape``, ``key``, ``entry``, ``status`` in ``{"computed", "present",
+        "failed"}``, ``seconds``, ``rank``, ``export``; failed ones carry ``error``). On ranks
+        other than 0 under torchrun, only that rank's records.
+
+    Raises
+    ------
+    DescriptorError
+        Unknown descriptor or parameter, bad parameter value.
+    ExtractError
+        No shapes, or an export layout the shapes cannot take.
+    CacheError
+        The store cannot be written.
+    """
+    shapes = sorted(shapes, key=lambda s: s.name)
+    if not shapes:
+        raise ExtractError("no shapes to extract; pass a folder or a dataset that holds meshes.")
+    names = [s.name for s in shapes]
+    if len(set(names)) != len(names):
+        raise ExtractError("shape names must be unique within a collection (they name manifest records and exports).")
+    store = store if isinstance(store, FeatureCache) else FeatureCache(store)
+    if export is not None:
+        export.check(shapes)
+    with distributed.process_group(device, timeout_minutes=BARRIER_TIMEOUT_MINUTES) as rank_device:
+        info = distributed.rank_info()
+        params = _descriptor_params(descriptor, params or {}, rank_device)
+        store.check_writable()
+        mine = distributed.shard(shapes, info)
+        label = f"{descriptor} features" + (f" (rank 0 of {info.world_size})" if info.world_size > 1 else "")
+        records = []
+        for shape in tqdm(mine, desc=label, unit="shape", disable=not progress or not info.is_main):
+            record = _one_shape(shape, descriptor, params, store, export, info.rank)
+            records.append(record)
+            if on_record is not None:
+                on_record(record)
+        log.info(
+            "rank %d of %d: %d shapes, %d computed",
+            info.rank,
+            info.world_size,
+            len(records),
+            sum(r["status"] == "computed" for r in records),
+        )
+        distributed.barrier()  # every rank's entries are in the store
+        gathered = distributed.gather_to_main(records)
+        if not info.is_main:
+            return _manifest(descriptor, params, store, info.world_size, records)
+        merged = sorted((r for part in gathered for r in part), key=lambda r: r["shape"])
+        result = _manifest(descriptor, params, store, info.world_size, merged)
+        if export is not None and export.format == "h5":
+            write_h5(export.to, merged, store)
+            result["export"] = str(export.to)
+        if manifest is not None:
+            atomic_write(manifest, lambda tmp: tmp.write_text(json.dumps(result, indent=1) + "\n"))
+            result["manifest"] = str(manifest)
+        return result
+
+
+def _manifest(descriptor: str, params: Mapping[str, Any], store: FeatureCache, world: int, records: list[dict]) -> dict:
+    checked = make_descriptor(descriptor, **params)
+    return {
+        "format": MANIFEST_FORMAT,
+        "geofeat_version": __version__,
+        "descriptor": checked.name,
+        "params": checked.get_params(),
+        "store": str(store.root),
+        "world_size": world,
+        "n_shapes": len(records),
+        "n_computed": sum(r["status"] == "computed" for r in records),
+        "n_present": sum(r["status"] == "present" for r in records),
+        "n_failed": sum(r["status"] == "failed" for r in records),
+        "shapes": records,
+    }
