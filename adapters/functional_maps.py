@@ -87,7 +87,8 @@ def nearest_neighbors(reference, queries, device: str | torch.device = "cpu") ->
             first = bounds.argmin(dim=1).cpu().numpy()
             upper = _squared_distances(ref64[first], q64)
             q_sq64 = q_sq.cpu().numpy().astype(np.float64)
-            threshold = upper - q_sq64 + relative_margin * (q_sq64 + ref_sq_max)
+            # the margin also covers the float32 rounding of the threshold itself, of the order of eps * upper
+            threshold = upper - q_sq64 + relative_margin * (q_sq64 + ref_sq_max + upper)
             rows, cols = torch.nonzero(bounds <= torch.from_numpy(threshold).to(bounds)[:, None], as_tuple=True)
             best[start : start + block] = _nearest_candidates(ref64, q64, rows.cpu().numpy(), cols.cpu().numpy())
     return best

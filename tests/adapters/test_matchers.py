@@ -85,6 +85,9 @@ def test_nearest_neighbors_is_exact_when_screening_on_few_axes(block_entries, mo
     assert axes.shape == (64, 6)  # the screening really uses few axes here
     expected = cKDTree(reference).query(queries)[1]
     np.testing.assert_array_equal(fm.nearest_neighbors(reference, queries), expected)
+    # queries far off the screened axes: the distances are large next to their screened parts
+    far = queries + 300.0 * basis[:, 40]
+    np.testing.assert_array_equal(fm.nearest_neighbors(reference, far), cKDTree(reference).query(far)[1])
     # a duplicated reference point: the smallest index wins, whatever the screening rounding
     doubled = np.vstack([reference, reference[:50]])
     np.testing.assert_array_equal(fm.nearest_neighbors(doubled, reference[:50] + 1e-9), np.arange(50))
