@@ -117,7 +117,11 @@ def _squared_distances(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 def _nearest_candidates(ref: np.ndarray, qry: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
     """For each query, the candidate (``rows[i]`` -> ``cols[i]``) nearest in float64, the smallest index on ties, (M,)."""
-    distances = _squared_distances(ref[cols], qry[rows])
+    distances = np.empty(rows.size, dtype=np.float64)
+    step = max(1, NN_BLOCK_ENTRIES // ref.shape[1])  # bounded memory, even when ties make every point a candidate
+    for start in range(0, rows.size, step):
+        part = slice(start, start + step)
+        distances[part] = _squared_distances(ref[cols[part]], qry[rows[part]])
     order = np.lexsort((cols, distances, rows))  # by query, then distance, then index
     rows, cols = rows[order], cols[order]
     firsts = np.flatnonzero(np.r_[True, rows[1:] != rows[:-1]])
