@@ -90,13 +90,33 @@ def rank_info() -> RankInfo:
         The variables contradict each other (a rank outside ``[0, WORLD_SIZE)``).
     """
     local = _env_int("LOCAL_RANK", 0)
-    if torch.distributed.is_available() and torch.distributed.is_initialized():
+    if _group_started():
         return RankInfo(torch.distributed.get_rank(), torch.distributed.get_world_size(), local)
     info = RankInfo(_env_int("RANK", 0), _env_int("WORLD_SIZE", 1), local)
     if info.world_size < 1 or not 0 <= info.rank < info.world_size or info.local_rank < 0:
         raise DistributedError(
             f"inconsistent torchrun environment: RANK={info.rank}, WORLD_SIZE={info.world_size}, LOCAL_RANK={info.local_rank}; "
             "expected 0 <= RANK < WORLD_SIZE and LOCAL_RANK >= 0. Start the workers with torchrun, or unset these variables."
+        )
+    return info
+
+
+def group_rank_info() -> RankInfo:
+    """`rank_info` for work that needs the process group whenever there are several ranks.
+
+    Raises
+    ------
+    DistributedError
+        ``WORLD_SIZE`` above 1 in the environment but no process group (the rendezvous
+        variables of torchrun are missing): each process would think it is one of several
+        and do only its share.
+    """
+    info = rank_info()
+    if info.world_size > 1 and not _group_started():
+        raise DistributedError(
+            f"WORLD_SIZE={info.world_size} is set but no process group could be started (found MASTER_ADDR="
+            f"{os.environ.get('MASTER_ADDR')!r}, MASTER_PORT={os.environ.get('MASTER_PORT')!r}); launch with "
+            "torchrun, which sets all of RANK, WORLD_SIZE, LOCAL_RANK, MASTER_ADDR and MASTER_PORT, or unset WORLD_SIZE."
         )
     return info
 
@@ -171,7 +191,7 @@ def init_process_group(device: torch.device | str | None = "auto", timeout_minut
     bool
         False when not under torchrun or when a group is already started (left as it is).
     """
-    if not launched_by_torchrun() or not torch.distributed.is_available() or torch.distributed.is_initialized():
+    if not launched_by_torchrun() or not torch.distributed.is_available() or _group_started():
         return False
     device = local_device(device)
     backend = _backend(device)
@@ -217,7 +237,7 @@ def _backend(device: torch.device) -> str:
 
 def barrier() -> None:
     """Wait until every rank gets here; does nothing without a process group."""
-    if not (torch.distributed.is_available() and torch.distributed.is_initialized()):
+    if not _group_started():
         return
     if torch.distributed.get_backend() == "nccl":
         torch.distributed.barrier(device_ids=[torch.cuda.current_device()])
@@ -227,7 +247,7 @@ def barrier() -> None:
 
 def gather_to_main(obj: T) -> list[T]:
     """Every rank's ``obj`` (picklable), in rank order, on rank 0; ``[]`` on the other ranks, ``[obj]`` without a group."""
-    if not (torch.distributed.is_available() and torch.distributed.is_initialized()):
+    if not _group_started():
         return [obj]
     info = rank_info()
     gathered: list[T] | None = [None] * info.world_size if info.is_main else None  # type: ignore[list-item]
@@ -236,6 +256,7 @@ def gather_to_main(obj: T) -> list[T]:
 
 
 def _group_started() -> bool:
+    """True when a default process group is running in this process."""
     return torch.distributed.is_available() and torch.distributed.is_initialized()
 
 
@@ -264,7 +285,7 @@ def all_reduce_sum(tensor: torch.Tensor) -> torch.Tensor:
 
 def destroy_process_group() -> None:
     """End the default process group, if one is started."""
-    if torch.distributed.is_available() and torch.distributed.is_initialized():
+    if _group_started():
         torch.distributed.destroy_process_group()
 
 

@@ -434,7 +434,7 @@ def extract(
     if export is not None:
         export.check(shapes)
     with distributed.process_group(device, timeout_minutes=BARRIER_TIMEOUT_MINUTES) as rank_device:
-        info = distributed.rank_info()
+        info = distributed.group_rank_info()
         params = _descriptor_params(descriptor, params or {}, rank_device)
         store.check_writable()
         mine = distributed.shard(shapes, info)

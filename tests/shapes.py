@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import socket
 from pathlib import Path
 
 import numpy as np
@@ -25,6 +26,13 @@ CHECKPOINTS_ENV = "GEOFEAT_CHECKPOINTS"
 def checkpoints_root() -> Path:
     """``$GEOFEAT_CHECKPOINTS``, else ``../shared/checkpoints`` beside the repository (the authors' release weights)."""
     return Path(os.environ.get(CHECKPOINTS_ENV, REPO.parent / "shared" / "checkpoints"))
+
+
+def free_port() -> int:
+    """A TCP port free on this machine now, for the rendezvous of test ranks (torchrun's MASTER_PORT)."""
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return sock.getsockname()[1]
 
 
 def sphere(subdivisions: int = 3, radius: float = 1.0) -> geofeat.Mesh:

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import json
 import os
-import socket
 import subprocess
 import sys
 import textwrap
@@ -13,7 +12,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 import pytest
-from shapes import bumpy
+from shapes import bumpy, free_port
 
 import geofeat
 from geofeat import distributed
@@ -193,7 +192,7 @@ def test_nccl_only_when_every_local_rank_has_its_own_gpu(monkeypatch):
     assert distributed._backend(torch.device("cuda", 0)) == "gloo"
 
 
-def test_shard_and_rank_environment(monkeypatch):
+def test_shard_and_rank_environment(monkeypatch, tmp_path):
     for name in distributed.TORCHRUN_VARIABLES:
         monkeypatch.delenv(name, raising=False)
     assert distributed.rank_info() == distributed.RankInfo(0, 1, 0) and not distributed.launched_by_torchrun()
@@ -206,6 +205,11 @@ def test_shard_and_rank_environment(monkeypatch):
     monkeypatch.setenv("LOCAL_RANK", "1")
     assert distributed.rank_info() == distributed.RankInfo(1, 2, 1) and distributed.world_size() == 2
     assert distributed.local_device("cpu").type == "cpu"
+    # WORLD_SIZE without the rendezvous variables: no group, so the work that needs one refuses to take half
+    with pytest.raises(distributed.DistributedError, match="WORLD_SIZE=2 is set but no process group"):
+        distributed.group_rank_info()
+    with pytest.raises(distributed.DistributedError, match="WORLD_SIZE=2 is set but no process group"):
+        extract([ShapeSource("blob", mesh=bumpy(0, subdivisions=1))], "hks", {}, store=tmp_path / "s", progress=False)
     monkeypatch.setenv("RANK", "2")
     with pytest.raises(distributed.DistributedError, match="0 <= RANK < WORLD_SIZE"):
         distributed.rank_info()
@@ -234,12 +238,6 @@ class KilledHKS(HKS):
 register(RegistryEntry("killed_hks", KilledHKS))
 sys.exit(main())
 """
-
-
-def free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return sock.getsockname()[1]
 
 
 def torchrun(args: list[str], script: Path | None = None, nproc: int = 2, **env) -> subprocess.CompletedProcess:

@@ -275,7 +275,7 @@ class GeoLoraTrainer:
         self.config = config
         self.device = distributed.local_device(config.device)
         distributed.init_process_group(self.device)  # under torchrun, unless the caller started one
-        self.ranks = _rank_info()
+        self.ranks = distributed.group_rank_info()
         self.progress = config.progress and self.ranks.is_main
         self.out = Path(config.out)
         self.shapes = shapes if shapes is not None else load_training_shapes(
@@ -795,26 +795,6 @@ class GeoLoraTrainer:
             final = self.save_checkpoint()
         distributed.barrier()  # the other ranks return once rank 0 has written the last checkpoint
         return final
-
-
-def _rank_info() -> distributed.RankInfo:
-    """This process among the training ranks (one process unless a process group is started).
-
-    Raises
-    ------
-    distributed.DistributedError
-        ``WORLD_SIZE`` above 1 in the environment but no process group (the rendezvous
-        variables of torchrun are missing).
-    """
-    info = distributed.rank_info()
-    started = torch.distributed.is_available() and torch.distributed.is_initialized()
-    if info.world_size > 1 and not started:
-        raise distributed.DistributedError(
-            f"WORLD_SIZE={info.world_size} is set but no process group could be started (found MASTER_ADDR="
-            f"{os.environ.get('MASTER_ADDR')!r}, MASTER_PORT={os.environ.get('MASTER_PORT')!r}); launch the training with "
-            "torchrun, which sets all of RANK, WORLD_SIZE, LOCAL_RANK, MASTER_ADDR and MASTER_PORT, or unset WORLD_SIZE."
-        )
-    return info
 
 
 def _to_cpu(obj):

@@ -15,7 +15,6 @@ import io
 import json
 import logging
 import os
-import socket
 from pathlib import Path
 
 import pytest
@@ -23,7 +22,7 @@ import safetensors.torch
 import torch
 import torch.multiprocessing as mp
 import trimesh
-from shapes import bumpy
+from shapes import bumpy, free_port
 from tiny_models import tiny_dinov3
 
 import geofeat.train.trainer as trainer_module
@@ -36,12 +35,6 @@ log = logging.getLogger(__name__)
 pytestmark = pytest.mark.skipif(not torch.distributed.is_available(), reason="torch.distributed is not built in")
 
 _VALIDATION = ["--val-dataset", "synthetic_cuts", "--val-pairs", "1"]
-
-
-def _free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return sock.getsockname()[1]
 
 
 def _argv(root: Path, out: str, steps: int, *extra: str) -> list[str]:
@@ -96,7 +89,7 @@ def runs(tmp_path_factory):
         for name in distributed.TORCHRUN_VARIABLES:
             patch.delenv(name, raising=False)
         assert main(_argv(root, "grow", 1)) == 0  # one process takes step 1 (global sample 0)
-        mp.spawn(_rank_main, args=(2, _free_port(), root), nprocs=2, join=True)
+        mp.spawn(_rank_main, args=(2, free_port(), root), nprocs=2, join=True)
     return root, [json.loads((root / f"rank{r}.json").read_text()) for r in (0, 1)]
 
 
