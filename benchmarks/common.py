@@ -1,7 +1,8 @@
-"""Helpers shared by the benchmark scripts: the machine description and the FAUST_r shapes."""
+"""Helpers shared by the benchmark scripts: the machine description, the FAUST_r shapes, writing results."""
 
 from __future__ import annotations
 
+import json
 import os
 import platform
 from pathlib import Path
@@ -39,3 +40,12 @@ def faust_test_shapes(data: str | os.PathLike, n_shapes: int) -> list[geofeat.Me
     if missing:
         raise SystemExit(f"FAUST_r shapes not found (first missing: {missing[0]}); pass --data or set GEOFEAT_DATA")
     return [geofeat.load_mesh(p) for p in paths]
+
+
+def write_results(out: str | os.PathLike, result: dict, table: str) -> None:
+    """Write ``OUT.json`` (the result record) and ``OUT.md`` (its table), creating the folder; print the table."""
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.with_suffix(".json").write_text(json.dumps(result, indent=2) + "\n")
+    out.with_suffix(".md").write_text(table + "\n")
+    print(table)

@@ -21,14 +21,13 @@ from __future__ import annotations
 import argparse
 import contextlib
 import datetime
-import json
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
 import torch
-from common import DEFAULT_DATA, faust_test_shapes, machine
+from common import DEFAULT_DATA, faust_test_shapes, machine, write_results
 
 from geofeat.backbones import DinoBackbone
 from geofeat.render import make_cameras, multiview_features, render_phong
@@ -166,13 +165,11 @@ def main(argv=None) -> int:
             f"| {row['name']} | {row['render']:.2f} s | {row['backbone']:.2f} s | {row['backproject']:.2f} s | "
             f"{row['render'] + row['backproject']:.2f} s | {row['total']:.2f} s |"
         )
-    out.with_suffix(".json").write_text(json.dumps(result, indent=2) + "\n")
-    out.with_suffix(".md").write_text("\n".join(lines) + "\n")
+    write_results(out, result, "\n".join(lines))
     save_view_grid(images_for_figure, out.parent / f"{out.name}_views.png")
     plot_mesh_colors(
         mesh, pca_colors(features_for_figure), out.parent / f"{out.name}_pca.png", "PCA of back-projected features (random ViT-B)"
     )
-    print("\n".join(lines))
     return 0
 
 

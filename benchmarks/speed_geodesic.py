@@ -27,7 +27,6 @@ from __future__ import annotations
 
 import argparse
 import datetime
-import json
 import os
 import statistics
 import sys
@@ -36,7 +35,7 @@ from pathlib import Path
 
 import numpy as np
 import scipy.sparse as sp
-from common import DEFAULT_DATA, faust_test_shapes, machine
+from common import DEFAULT_DATA, faust_test_shapes, machine, write_results
 from scipy.sparse.csgraph import dijkstra
 
 import geofeat
@@ -177,12 +176,7 @@ def main(argv=None) -> int:
         print(f"{mesh.name} ({mesh.n_vertices} vertices): {times}", flush=True)
 
     result = summarise(args, shapes, per_shape, load_before)
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.with_suffix(".json").write_text(json.dumps(result, indent=2) + "\n")
-    table = markdown(result)
-    out.with_suffix(".md").write_text(table + "\n")
-    print(table)
+    write_results(args.out, result, markdown(result))
     return 0
 
 

@@ -17,13 +17,12 @@ from __future__ import annotations
 
 import argparse
 import datetime
-import json
 import sys
 import time
 from pathlib import Path
 
 import torch
-from common import DEFAULT_DATA, machine
+from common import DEFAULT_DATA, machine, write_results
 
 from geofeat.adapters.heads import make_head
 from geofeat.datasets import load_dataset
@@ -107,11 +106,7 @@ def main(argv=None) -> int:
             f"| {row['head']} | {row['preset']} | {row['dataset']} | {row['steps']} | {row['steps_per_second']:.2f} | "
             f"{row['first_pass_seconds']:.1f} s | {row['parameters']:,} | {memory} |"
         )
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.with_suffix(".json").write_text(json.dumps(result, indent=2) + "\n")
-    out.with_suffix(".md").write_text("\n".join(lines) + "\n")
-    print("\n".join(lines))
+    write_results(args.out, result, "\n".join(lines))
     return 0
 
 

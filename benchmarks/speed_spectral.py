@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import argparse
 import datetime
-import json
 import statistics
 import sys
 import tempfile
@@ -31,7 +30,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from common import DEFAULT_DATA, faust_test_shapes, machine
+from common import DEFAULT_DATA, faust_test_shapes, machine, write_results
 
 import geofeat
 from geofeat.geometry.spectral import clear_basis_cache
@@ -167,11 +166,7 @@ def main(argv=None) -> int:
         f"Agreement with pyFM (cotan, channels not normalised): largest difference / largest value = "
         f"{result['max_relative_error_wks']:.1e} (WKS), {result['max_relative_error_hks']:.1e} (HKS).",
     ]
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.with_suffix(".json").write_text(json.dumps(result, indent=2) + "\n")
-    out.with_suffix(".md").write_text("\n".join(table) + "\n")
-    print("\n".join(table))
+    write_results(args.out, result, "\n".join(table))
     return 0
 
 
