@@ -53,7 +53,6 @@ import contextlib
 import hashlib
 import json
 import os
-import platform
 import shutil
 import subprocess
 import sys
@@ -63,10 +62,12 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from common import machine
 from parity_common import reference_import
 
 import geofeat
 from geofeat.adapters.ulrssm import ULRSSMHead
+from geofeat.extract import save_npy
 
 HERE = Path(__file__).resolve().parent
 TEST_SHAPES = [f"tr_reg_{i:03d}" for i in range(80, 100)]
@@ -126,7 +127,7 @@ def geofeat_features(staged: Path, features: Path | None) -> Path:
         path = folder / f"{name}.npy"
         if not path.is_file():
             mesh = geofeat.load_mesh(staged / "off" / f"{name}.off")
-            np.save(path, geofeat.compute(mesh, "wks", cache=False, **WKS_PARAMS))
+            save_npy(path, geofeat.compute(mesh, "wks", cache=False, **WKS_PARAMS))  # atomic: never a half-written file
     return folder
 
 
@@ -301,7 +302,7 @@ def _summary(pairs, feature_rows, order, timer, staging_s, total_s, checkpoint, 
         "max_point_map_fraction_differs": max((r["point_map_differs"] for r in pairs), default=0.0),
         "seconds": {"total": total_s, "staging_and_features": staging_s, "map_own_avg": timer["own"].get_avg_time(),
                     "map_geofeat_avg": timer["geofeat"].get_avg_time()},
-        "threads": torch.get_num_threads(), "machine": f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores",
+        "threads": torch.get_num_threads(), "machine": machine(),
         "date": time.strftime("%Y-%m-%d"), "per_pair": pairs, "per_shape_features": list(feature_rows.values()),
     }  # fmt: skip
 
