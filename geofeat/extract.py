@@ -317,7 +317,7 @@ def write_h5(path: str | os.PathLike, records: Sequence[Mapping[str, Any]], stor
 
 
 def params_digest(descriptor: str, params: Mapping[str, Any]) -> str:
-    """Eight hex digits naming a descriptor and its canonical parameters (the default manifest name)."""
+    """Eight hex digits naming a descriptor and its parameters as given (the default manifest name; defaults spelled out give another name)."""
     text = json.dumps({"descriptor": descriptor, "params": params}, sort_keys=True, default=str)
     return hashlib.sha256(text.encode()).hexdigest()[:8]
 
