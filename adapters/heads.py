@@ -12,6 +12,9 @@ subclass `LearnedHead`: they build a torch module from the input width, give a t
 for a pair and a prediction for a pair; the loop (Adam, optional cosine annealing, time
 budget, progress bar) and the checkpoint format (``head_config.json`` + ``weights.safetensors``)
 are shared.
+
+torch is imported inside the methods that need it, not at the top: the training-free heads
+(``nn``, ``fmap``) and the evaluation workers never load it (about 2 s of start-up).
 """
 
 from __future__ import annotations
@@ -26,10 +29,9 @@ import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, ClassVar
+from typing import TYPE_CHECKING, Any, ClassVar
 
 import numpy as np
-import torch
 from tqdm.auto import tqdm
 
 from geofeat._version import __version__
@@ -45,7 +47,11 @@ from geofeat.mesh import Mesh
 from geofeat.registry import LazyEntry, lookup
 
 from . import matchers
-from .operators import SurfaceOperators, surface_operators
+
+if TYPE_CHECKING:
+    import torch
+
+    from .operators import SurfaceOperators
 
 log = logging.getLogger(__name__)
 
@@ -384,11 +390,14 @@ class Head:
 
     def operators(self, mesh: Mesh) -> SurfaceOperators:
         """Surface operators of a mesh of a prepared pair, on the CPU."""
+        from .operators import surface_operators
+
         c = self.config
         return surface_operators(mesh, c.n_eig, laplacian_kind=c.laplacian, construction=c.operators)
 
     def shape_inputs(self, mesh: Mesh) -> tuple[torch.Tensor, SurfaceOperators]:
         """Input features as a tensor (V, C) and the surface operators, on the head's device (kept for 64 meshes)."""
+        import torch
 
         def build() -> tuple[torch.Tensor, SurfaceOperators]:
             feats = torch.tensor(self.features(mesh), device=self.device)  # a copy: the array is shared and read-only
@@ -414,6 +423,8 @@ class Head:
                 f"use_inputs: features (V, C) and operators must be of mesh {mesh.name!r} with {mesh.n_vertices} vertices; "
                 f"found features {tuple(features.shape)} and operators of {operators.n_vertices} vertices."
             )
+        import torch
+
         self._inputs.put(mesh.hash, (features.to(self.device, torch.float32), operators.to(self.device)))
 
     # -- the interface
@@ -497,6 +508,8 @@ class LearnedHead(Head):
         raise NotImplementedError
 
     def _ensure_model(self, mesh: Mesh) -> torch.nn.Module:
+        import torch
+
         if self.model is None:
             torch.manual_seed(self.config.seed)
             self.in_channels = int(self.shape_inputs(mesh)[0].shape[1])
@@ -507,6 +520,8 @@ class LearnedHead(Head):
         """Adam over ``epochs`` passes of the pairs in a seeded order; returns the loss of every step."""
         if len(pairs) == 0:
             raise HeadError(f"head {self.name!r}: no training pairs.")
+        import torch
+
         config = self.config
         model = self._ensure_model(pairs[0].x)
         optimizer = torch.optim.Adam([p for p in model.parameters() if p.requires_grad], lr=config.lr)
@@ -545,6 +560,8 @@ class LearnedHead(Head):
 
     def match(self, pair: ShapePair) -> Match:
         """`predict` the prepared pair with gradients off and the module in evaluation mode."""
+        import torch
+
         pair = self.prepare(pair)
         self._ensure_model(pair.x).eval()
         with torch.no_grad():

@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
-import torch
+from typing import TYPE_CHECKING
 
 from geofeat.errors import DeviceError
+
+if TYPE_CHECKING:
+    import torch
 
 
 def resolve_device(device: str | torch.device | None = "auto") -> torch.device:
@@ -15,6 +18,8 @@ def resolve_device(device: str | torch.device | None = "auto") -> torch.device:
     DeviceError
         An unparsable device, or CUDA asked for where there is none.
     """
+    import torch  # here, not at the top: the training-free pipelines never load torch
+
     if device is None or (isinstance(device, str) and device == "auto"):
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
     try:

@@ -23,6 +23,7 @@ from __future__ import annotations
 import logging
 import multiprocessing
 import os
+import sys
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -350,13 +351,18 @@ def _worker_start() -> None:
     The BLAS of numpy/scipy was started in the parent with its own thread count, so the
     environment variables come too late: `threadpoolctl` lowers it in place. Workers that
     each keep several BLAS threads on the same cores wait on each other (a cold main job
-    took 117 s instead of about 40 s on 2 cores).
+    took 117 s instead of about 40 s on 2 cores). torch is lowered too where the parent had
+    loaded it; where not (the training-free pipelines never load it), ``OMP_NUM_THREADS``
+    makes a later import in the worker start with one thread.
     """
-    import torch
     from threadpoolctl import threadpool_limits
 
-    torch.set_num_threads(1)
     threadpool_limits(1)
+    torch = sys.modules.get("torch")
+    if torch is None:
+        os.environ["OMP_NUM_THREADS"] = "1"
+    else:
+        torch.set_num_threads(1)
 
 
 def default_workers() -> int:

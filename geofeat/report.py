@@ -125,6 +125,11 @@ def _draw(ax, mesh: Mesh, colors: np.ndarray, title: str) -> None:
     ax.set_title(title, fontsize=8)
 
 
+def _fill(fig) -> None:
+    """Let the 3D panels fill the figure (``tight_layout`` would draw every mesh once more to measure them)."""
+    fig.subplots_adjust(left=0, right=1, bottom=0, top=0.96, wspace=0, hspace=0.08)
+
+
 def plot_pairs(pairs: list[tuple], path: str | os.PathLike) -> None:
     """Pictures of pairs: X in position colours, Y coloured through the predicted map, and through the truth.
 
@@ -145,7 +150,7 @@ def plot_pairs(pairs: list[tuple], path: str | os.PathLike) -> None:
         for col, (mesh, colors, title) in enumerate(panels):
             ax = fig.add_subplot(len(pairs), 3, 3 * row + col + 1, projection="3d")
             _draw(ax, mesh, colors, title)
-    fig.tight_layout()
+    _fill(fig)
     fig.savefig(Path(path), dpi=110)
 
 
@@ -156,5 +161,5 @@ def plot_mesh_colors(mesh: Mesh, colors: np.ndarray, path: str | os.PathLike, ti
         ax = fig.add_subplot(1, 2, col + 1, projection="3d")
         _draw(ax, mesh, colors, f"{title}, {side}" if col == 0 else side)
         ax.view_init(elev=10, azim=azimuth)
-    fig.tight_layout()
+    _fill(fig)
     fig.savefig(Path(path), dpi=110)
