@@ -10,6 +10,7 @@ import hashlib
 import logging
 import os
 from dataclasses import dataclass, field
+from functools import cached_property
 from pathlib import Path
 from typing import Any
 
@@ -85,10 +86,35 @@ class Mesh:
         return clone
 
     def face_areas(self) -> np.ndarray:
-        """Triangle areas, shape (F,) float64."""
+        """Triangle areas, shape (F,) float64, read-only (computed once per mesh)."""
         if self.faces is None:
             raise MeshError(f"mesh {self.name!r} is a point cloud: it has no faces, so no face areas")
-        return triangle_areas(self.verts, self.faces)
+        return self._face_areas
+
+    @cached_property
+    def _face_areas(self) -> np.ndarray:
+        areas = triangle_areas(self.verts, self.faces)
+        areas.flags.writeable = False
+        return areas
+
+    def centroid(self) -> np.ndarray:
+        """The area-weighted centroid of the triangles, shape (3,) float64, read-only (computed once per mesh).
+
+        Raises
+        ------
+        MeshError
+            For a point cloud, or a mesh of zero surface area.
+        """
+        return self._centroid
+
+    @cached_property
+    def _centroid(self) -> np.ndarray:
+        areas = self.face_areas()
+        if not areas.sum() > 0:
+            raise MeshError(f"mesh {self.name!r} has zero surface area; it has no area-weighted centroid.")
+        centroid = (self.verts[self.faces].mean(axis=1) * areas[:, None]).sum(axis=0) / areas.sum()
+        centroid.flags.writeable = False
+        return centroid
 
     def area(self) -> float:
         """Total surface area of the triangles."""
@@ -224,10 +250,7 @@ def normalize(mesh: Mesh, center: bool = True) -> Mesh:
         raise MeshError(f"mesh {mesh.name!r} has zero surface area; it cannot be normalised to unit area.")
     verts = mesh.verts
     if center:
-        face_centers = verts[mesh.faces].mean(axis=1)
-        weights = mesh.face_areas()
-        centroid = (face_centers * weights[:, None]).sum(axis=0) / weights.sum()
-        verts = verts - centroid
+        verts = verts - mesh.centroid()
     return Mesh(verts / np.sqrt(area), mesh.faces, name=mesh.name)
 
 

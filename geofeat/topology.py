@@ -27,8 +27,8 @@ def triangle_areas(verts: np.ndarray, faces: np.ndarray) -> np.ndarray:
     numpy.ndarray, shape (F,), float64
         Half the norm of the cross product of two edge vectors (0 for a degenerate face).
     """
-    tri = verts[faces]
-    return 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    first = verts[faces[:, 0]]
+    return 0.5 * np.linalg.norm(np.cross(verts[faces[:, 1]] - first, verts[faces[:, 2]] - first), axis=1)
 
 
 def corner_edges(faces: np.ndarray) -> np.ndarray:
@@ -39,7 +39,9 @@ def corner_edges(faces: np.ndarray) -> np.ndarray:
     numpy.ndarray, shape (3F, 2), int
         Rows ``3f``, ``3f + 1``, ``3f + 2`` are the edges (0, 1), (1, 2), (2, 0) of face ``f``.
     """
-    return np.sort(faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
+    faces = np.asarray(faces)
+    rolled = faces[:, [1, 2, 0]]  # corner k's edge goes to corner k + 1
+    return np.stack([np.minimum(faces, rolled), np.maximum(faces, rolled)], axis=-1).reshape(-1, 2)
 
 
 def unique_edges(faces: np.ndarray) -> np.ndarray:
@@ -79,7 +81,9 @@ def edge_counts(faces: np.ndarray) -> np.ndarray:
     if len(faces) == 0:
         return np.zeros(0, dtype=np.int64)
     pairs = corner_edges(faces)
-    return np.unique(_edge_keys(pairs, int(pairs.max()) + 1), return_counts=True)[1].astype(np.int64)
+    keys = np.sort(_edge_keys(pairs, int(pairs.max()) + 1), kind="stable")  # stable: fast on the runs faces make
+    starts = np.flatnonzero(keys[1:] != keys[:-1]) + 1  # where a new edge begins
+    return np.diff(starts, prepend=0, append=keys.size).astype(np.int64)
 
 
 def vertex_components(n_vertices: int, faces: np.ndarray) -> tuple[int, np.ndarray]:
@@ -98,7 +102,7 @@ def vertex_components(n_vertices: int, faces: np.ndarray) -> tuple[int, np.ndarr
         Component of each vertex, numbered in order of each component's lowest vertex index.
     """
     pairs = corner_edges(faces)
-    graph = sp.coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n_vertices, n_vertices))
+    graph = sp.csr_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n_vertices, n_vertices))
     n_components, labels = connected_components(graph, directed=False)
     return int(n_components), labels
 
@@ -116,10 +120,12 @@ def face_components(faces: np.ndarray) -> np.ndarray:
     numpy.ndarray, shape (K,), int32
     """
     pairs = corner_edges(faces)
-    _, edge_ids = np.unique(_edge_keys(pairs, int(pairs.max()) + 1), return_inverse=True)
-    face_of_edge = np.repeat(np.arange(len(faces)), 3)
-    incidence = sp.csr_matrix(
-        (np.ones(face_of_edge.size), (face_of_edge, edge_ids.ravel())), shape=(len(faces), int(edge_ids.max()) + 1)
-    )
-    _, labels = connected_components(incidence @ incidence.T, directed=False)
+    keys = _edge_keys(pairs, int(pairs.max()) + 1)
+    order = np.argsort(keys, kind="stable")  # the corners of one edge become neighbours
+    same_edge = keys[order[1:]] == keys[order[:-1]]
+    face_of_corner = order // 3  # row 3f + k of corner_edges is a corner of face f
+    # Joining each face to the next face on the same edge joins all faces of that edge.
+    rows, cols = face_of_corner[:-1][same_edge], face_of_corner[1:][same_edge]
+    graph = sp.csr_matrix((np.ones(rows.size), (rows, cols)), shape=(len(faces), len(faces)))
+    _, labels = connected_components(graph, directed=False)
     return labels

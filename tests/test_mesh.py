@@ -173,3 +173,21 @@ def test_normalize_gives_unit_area_and_keeps_order():
     np.testing.assert_array_equal(unit.faces, mesh.faces)
     with pytest.raises(MeshError, match="point cloud"):
         geofeat.normalize(Mesh(mesh.verts))
+
+
+def test_face_areas_and_centroid_are_computed_once_read_only_and_true():
+    mesh = bumpy(0, 2)
+    areas, centroid = mesh.face_areas(), mesh.centroid()
+    assert mesh.face_areas() is areas and mesh.centroid() is centroid  # kept on the mesh
+    assert not areas.flags.writeable and not centroid.flags.writeable
+    tri = mesh.verts[mesh.faces]
+    expected = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    np.testing.assert_allclose(areas, expected, rtol=1e-12)
+    np.testing.assert_allclose(centroid, (tri.mean(axis=1) * expected[:, None]).sum(axis=0) / expected.sum(), rtol=1e-12)
+    renamed = mesh.renamed("other")
+    np.testing.assert_array_equal(renamed.face_areas(), areas)
+    flat = geofeat.Mesh(np.zeros((3, 3)), np.array([[0, 1, 2]]), name="flat")
+    with pytest.raises(MeshError, match="zero surface area"):
+        flat.centroid()
+    with pytest.raises(MeshError, match="point cloud"):
+        geofeat.Mesh(np.zeros((3, 3))).centroid()

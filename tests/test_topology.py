@@ -40,3 +40,31 @@ def test_components_match_a_direct_derivation():
     mesh = Mesh(VERTS, FACES, "toy")
     assert mesh.n_components() == 2  # the unreferenced vertex is not counted
     assert any("non-manifold" in p for p in Mesh(VERTS, np.vstack([FACES, [[0, 1, 9]]]), "nm").report())
+
+
+def _plain_face_components(faces: np.ndarray) -> np.ndarray:
+    """Faces joined through shared edges, from the face-edge incidence matrix (every face pair of an edge)."""
+    pairs = np.sort(faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
+    _, edge_ids = np.unique(pairs, axis=0, return_inverse=True)
+    incidence = sp.csr_matrix((np.ones(pairs.shape[0]), (np.repeat(np.arange(len(faces)), 3), edge_ids.ravel())))
+    return connected_components(incidence @ incidence.T, directed=False)[1]
+
+
+def test_fast_topology_matches_plain_derivations():
+    rng = np.random.default_rng(0)
+    n = 12
+    grid = np.arange((n + 1) ** 2).reshape(n + 1, n + 1)
+    a, b, c, d = grid[:-1, :-1].ravel(), grid[1:, :-1].ravel(), grid[1:, 1:].ravel(), grid[:-1, 1:].ravel()
+    plate = np.concatenate([np.column_stack([a, b, c]), np.column_stack([a, c, d])])
+    extra = np.array([[0, 1, 200], [0, 1, 201], [5, 5, 7]])  # edge (0, 1) gets three faces; a degenerate face
+    faces = np.concatenate([plate, extra])
+    for _ in range(20):
+        subset = faces[rng.random(len(faces)) < 0.6]
+        subset = subset[rng.permutation(len(subset))]
+        assert np.array_equal(corner_edges(subset), np.sort(subset[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1))
+        assert np.array_equal(face_components(subset), _plain_face_components(subset))
+        _, counts = np.unique(np.sort(subset[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1), axis=0, return_counts=True)
+        assert np.array_equal(edge_counts(subset), counts)
+    # faces on the non-manifold edge are one component even when the faces between them are gone
+    assert len(set(face_components(extra[:2]).tolist())) == 1
+    assert np.array_equal(edge_counts(extra), [2, 1, 1, 1, 1, 1, 2])  # (0, 1) ... (5, 5), (5, 7)

@@ -52,7 +52,7 @@ from geofeat.errors import MeshError
 from geofeat.geometry.geodesic import distances_from
 from geofeat.geometry.visibility import CENTER_KINDS, Centre, shape_centre, visible_faces
 from geofeat.mesh import Mesh, require_faces
-from geofeat.topology import face_components, triangle_areas
+from geofeat.topology import face_components
 
 log = logging.getLogger(__name__)
 
@@ -209,11 +209,11 @@ def largest_component(mesh: Mesh, face_ids: np.ndarray) -> np.ndarray:
         The faces of the largest component, in increasing order; empty when K is 0.
     """
     faces = require_faces(mesh, "a face subset")
-    face_ids = np.unique(np.asarray(face_ids, dtype=np.int64))
+    face_ids = _sorted_unique(face_ids)
     if face_ids.size == 0:
         return face_ids
     labels = face_components(faces[face_ids])
-    areas = triangle_areas(mesh.verts, faces[face_ids])
+    areas = mesh.face_areas()[face_ids]
     return face_ids[labels == np.argmax(np.bincount(labels, weights=areas))]
 
 
@@ -237,13 +237,29 @@ def submesh(mesh: Mesh, face_ids: np.ndarray, name: str | None = None) -> tuple[
         Source index of each vertex of the new mesh.
     """
     faces = require_faces(mesh, "a face subset")
-    face_ids = np.unique(np.asarray(face_ids, dtype=np.int64))
+    face_ids = _sorted_unique(face_ids)
     if face_ids.size == 0:
         raise MeshError(f"cannot make a sub-mesh of {mesh.name!r} from no faces; keep at least one face.")
     kept_faces = faces[face_ids]
-    vertex_map = np.unique(kept_faces)
-    new_faces = np.searchsorted(vertex_map, kept_faces)
-    return Mesh(mesh.verts[vertex_map], new_faces, name=mesh.name if name is None else name), vertex_map
+    vertex_map = _used_vertices(kept_faces, mesh.n_vertices)
+    new_index = np.empty(mesh.n_vertices, dtype=np.int64)  # only entries at vertex_map are read
+    new_index[vertex_map] = np.arange(vertex_map.size)
+    return Mesh(mesh.verts[vertex_map], new_index[kept_faces], name=mesh.name if name is None else name), vertex_map
+
+
+def _sorted_unique(ids) -> np.ndarray:
+    """``numpy.unique`` of an index array as int64, without its sort when ``ids`` is already strictly increasing."""
+    ids = np.asarray(ids, dtype=np.int64)
+    if ids.ndim == 1 and np.all(ids[1:] > ids[:-1]):
+        return ids
+    return np.unique(ids)
+
+
+def _used_vertices(faces: np.ndarray, n_vertices: int) -> np.ndarray:
+    """The vertices used by ``faces`` (K, 3), in increasing order: ``numpy.unique(faces)`` for valid indices."""
+    used = np.zeros(n_vertices, dtype=bool)
+    used[faces] = True
+    return np.flatnonzero(used)
 
 
 def largest_component_submesh(
@@ -510,7 +526,7 @@ def _first_accepted(mesh: Mesh, kind: str, draw: _Draw, keep_range: tuple[float,
     fractions = []
     for attempt in range(1, max_tries + 1):
         face_ids, drawn = draw()
-        n_kept = np.unique(mesh.faces[face_ids]).size
+        n_kept = _used_vertices(mesh.faces[face_ids], mesh.n_vertices).size
         fraction = n_kept / mesh.n_vertices
         fractions.append(fraction)
         if face_ids.size and lo <= fraction <= hi:

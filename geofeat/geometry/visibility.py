@@ -27,15 +27,14 @@ Centre = Literal["centroid", "bbox"]
 
 def shape_centre(mesh: Mesh, how: Centre = "centroid") -> np.ndarray:
     """The area-weighted centroid of the surface, or the bounding-box centre; shape (3,) float64."""
-    faces = require_faces(mesh, "a centre")
+    require_faces(mesh, "a centre")
     if how == "bbox":
         return 0.5 * (mesh.verts.min(axis=0) + mesh.verts.max(axis=0))
     if how != "centroid":
         raise MeshError(f"unknown centre {how!r}; expected one of {CENTER_KINDS}.")
-    areas = mesh.face_areas()
-    if not areas.sum() > 0:
+    if not mesh.area() > 0:
         raise MeshError(f"mesh {mesh.name!r} has zero surface area; it has no area-weighted centroid. Use center='bbox'.")
-    return (mesh.verts[faces].mean(axis=1) * areas[:, None]).sum(axis=0) / areas.sum()
+    return mesh.centroid()
 
 
 def visible_faces(mesh: Mesh, eye, target=None) -> np.ndarray:

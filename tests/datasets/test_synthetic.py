@@ -50,3 +50,15 @@ def test_random_poses_mirror_left_and_right_ranges():
     assert pose.shape == (len(synthetic.SKELETON), 3, 3)
     np.testing.assert_allclose(pose @ pose.transpose(0, 2, 1), np.repeat(np.eye(3)[None], len(pose), 0), atol=1e-12)
     assert np.allclose(pose[[b.name for b in synthetic.SKELETON].index("nose")], np.eye(3))
+
+
+def test_segment_distance_is_the_norm_of_the_offset_to_the_closest_point():
+    points = np.random.default_rng(0).uniform(-1, 2, size=(5000, 3))
+    head, tail = np.array([0.1, 0.2, -0.3]), np.array([0.9, 1.1, 0.4])
+    distance, t = synthetic._segment_distance(points, head, tail)
+    axis = tail - head
+    plain_t = np.clip((points - head) @ axis / (axis @ axis), 0.0, 1.0)
+    np.testing.assert_array_equal(t, plain_t)
+    assert 0 < (t == 0).sum() and 0 < (t == 1).sum() and 0 < ((t > 0) & (t < 1)).sum()  # both ends and the middle
+    plain = np.linalg.norm(points - (head + plain_t[:, None] * axis), axis=1)
+    np.testing.assert_allclose(distance, plain, rtol=1e-15, atol=0)

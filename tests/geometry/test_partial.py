@@ -257,6 +257,28 @@ def test_subset_helper_reindexes_and_drops_unreferenced_vertices():
         largest_component_submesh(mesh, keep_vertices=np.ones(3, bool))
 
 
+def test_helpers_sort_and_deduplicate_face_ids():
+    mesh = two_plates(big=(4, 1.0, 0.0), small=(2, 0.1, 1.0))
+    ids = np.array([9, 3, 3, 0, 39, 9, 1, 2])
+    expected_mesh, expected_map = submesh(mesh, np.unique(ids))
+    shuffled_mesh, shuffled_map = submesh(mesh, ids)
+    assert np.array_equal(shuffled_map, expected_map) and np.array_equal(shuffled_map, np.unique(mesh.faces[np.unique(ids)]))
+    assert np.array_equal(shuffled_mesh.faces, expected_mesh.faces) and np.array_equal(shuffled_mesh.verts, expected_mesh.verts)
+    assert np.array_equal(expected_map[expected_mesh.faces], mesh.faces[np.unique(ids)])
+    assert np.array_equal(largest_component(mesh, ids), largest_component(mesh, np.unique(ids)))
+
+
+def test_cuts_of_one_mesh_object_equal_cuts_of_a_fresh_copy():
+    """The full shape's centroid and face areas are computed once per Mesh (cut for many pairs); same cuts."""
+    mesh = sphere(3)
+    first = cut_partial(mesh, 5)
+    again = cut_partial(mesh, 5)  # the mesh's kept centroid and areas
+    fresh = cut_partial(sphere(3), 5)  # another Mesh object: computed anew
+    for other in (again, fresh):
+        np.testing.assert_array_equal(other.face_map, first.face_map)
+        np.testing.assert_array_equal(other.info["plane_point"], first.info["plane_point"])
+
+
 # --- failures ---------------------------------------------------------------------------------------
 
 
