@@ -11,20 +11,24 @@ function on the target ``x`` to those of a function on the source ``y``:
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
-import torch
 
 from geofeat.adapters.errors import FunctionalMapError
 from geofeat.checks import check_integer
-from geofeat.devices import resolve_device
 from geofeat.geometry.spectral import SpectralBasis
+
+if TYPE_CHECKING:
+    import torch
 
 #: Laplacian commutativity penalties accepted by `laplacian_mask`.
 MASK_KINDS = ("resolvent", "squared")
-#: Entries of the (query x reference) distance block computed at once by `nearest_neighbors`.
+#: Entries of the (query x reference) block of screening bounds computed at once by `NearestNeighborIndex`.
 NN_BLOCK_ENTRIES = 1 << 20
-#: Share of the reference's variance that `nearest_neighbors` may leave out of its screening axes.
-NN_SCREEN_RESIDUAL = 1e-4
+#: Share of the reference's variance that `NearestNeighborIndex` may leave out of its screening
+#: axes (1e-5: on the main job's WKS, 14-15 of 128 axes and 2.8 candidates per query; 5.2 at 1e-4).
+NN_SCREEN_RESIDUAL = 1e-5
 
 
 # ----------------------------------------------------------------------------- nearest neighbours
@@ -40,7 +44,8 @@ def nearest_neighbors(reference, queries, device: str | torch.device = "cpu") ->
     queries : array_like, shape (M, D)
         Points looked up.
     device : str or torch.device
-        Where the screening runs (``"auto"``: CUDA when available).
+        Where the screening runs: ``"cpu"`` (numpy), ``"cuda"`` (torch) or ``"auto"`` (CUDA
+        when available).
 
     Returns
     -------
@@ -49,49 +54,162 @@ def nearest_neighbors(reference, queries, device: str | torch.device = "cpu") ->
 
     Notes
     -----
-    Exact, in two passes. The screening pass rotates both sets onto the principal axes of
-    the reference and keeps the first d axes (the fewest that hold all but `NN_SCREEN_RESIDUAL`
-    of its variance, all D when that is more than half of them): a distance over d axes is
-    a lower bound of the full distance. For each query it computes these bounds to every
-    reference point in float32 (blocks of about `NN_BLOCK_ENTRIES` entries, on ``device``),
-    takes the float64 distance to the point of smallest bound as an upper bound, and keeps
-    as candidates every point whose bound, less a margin for float32 rounding, is not above
-    it: the nearest point is always among them. The candidates (about one per query on
-    spectral descriptors, whose variance lies in a few axes) are then ranked by float64
-    distance in the original coordinates. The result does not depend on the device, the
-    rounding of the screening or the block size.
+    A one-off search: `NearestNeighborIndex` holds the work that depends on the reference
+    alone, to be reused when one reference meets several query sets; see it for the method.
     """
-    ref, qry = _as_points(reference, "reference"), _as_points(queries, "queries")
-    if ref.shape[1] != qry.shape[1]:
-        raise FunctionalMapError(f"reference and queries must have the same dimension; found {ref.shape[1]} and {qry.shape[1]}.")
-    if ref.shape[0] == 0:
-        raise FunctionalMapError("reference has no points: nothing to match to.")
-    ref64 = np.ascontiguousarray(ref, dtype=np.float64)
-    qry64 = np.ascontiguousarray(qry, dtype=np.float64)
-    axes, centre = _screening_axes(ref64)
-    ref_t = torch.from_numpy(((ref64 - centre) @ axes).astype(np.float32)).to(resolve_device(device))
-    ref_sq = (ref_t * ref_t).sum(dim=1)
-    # float32 rounding of a bound |q|^2 + |r|^2 - 2 q.r over d axes is below (d + 4) eps (|q|^2 + |r|^2)
-    # (the products, the sums and the float32 copies of q and r); the margin is 8 times that
-    relative_margin = 8.0 * (axes.shape[1] + 4) * float(np.finfo(np.float32).eps)
-    ref_sq_max = float(ref_sq.max())
-    best = np.empty(qry64.shape[0], dtype=np.int64)
-    block = max(1, NN_BLOCK_ENTRIES // ref64.shape[0])
-    with torch.no_grad():
+    return NearestNeighborIndex(reference).query(queries, device=device)
+
+
+class NearestNeighborIndex:
+    """Exact Euclidean nearest-neighbour search in a fixed set of reference points.
+
+    Parameters
+    ----------
+    reference : array_like, shape (N, D)
+        Points searched.
+
+    Attributes
+    ----------
+    points : numpy.ndarray, shape (N, D), float64
+        The reference points.
+    axes : numpy.ndarray, shape (D, d)
+        The screening axes (orthonormal columns).
+    centre : numpy.ndarray, shape (D,)
+        The mean of the reference points.
+
+    Notes
+    -----
+    Exact, in two passes. Building the index finds the principal axes of the reference and
+    keeps the first d (the fewest that hold all but `NN_SCREEN_RESIDUAL` of its variance, all
+    D when that is more than half of them), with the centred reference's coordinates on them
+    in float32: a squared distance over d axes is a lower bound (a *bound*) of the full one.
+    `query` screens the queries in blocks of about `NN_BLOCK_ENTRIES` (query, point) entries,
+    with numpy on the CPU and torch on CUDA. One float32 matrix product gives the bounds of a
+    block less each query's constant ``|q|^2``, as ``[-2 q, 1] . [r, |r|^2]``; the float64
+    distance to the point of smallest bound is an upper bound of the nearest distance, and
+    the candidates are every point whose bound, less a margin for float32 rounding, is not
+    above it (one comparison of the block, read as flat indices): the nearest point is
+    always among them. The candidates (a few per query on spectral descriptors, whose
+    variance lies in a few axes) are then ranked by float64 distance in the original
+    coordinates, ties to the smallest index. The result does not depend on the device, the
+    rounding of the screening, the number of screening axes or the block size.
+    """
+
+    def __init__(self, reference) -> None:
+        ref = _as_points(reference, "reference")
+        if ref.shape[0] == 0:
+            raise FunctionalMapError("reference has no points: nothing to match to.")
+        self.points = np.ascontiguousarray(ref, dtype=np.float64)  # (N, D)
+        self.axes, self.centre = _screening_axes(self.points)  # (D, d), (D,)
+        screened = ((self.points - self.centre) @ self.axes).astype(np.float32)  # (N, d)
+        squares = np.einsum("nd,nd->n", screened, screened)
+        self._lifted = np.ascontiguousarray(np.vstack([screened.T, squares]))  # (d + 1, N) float32
+        self._squares_max = float(squares.max())
+
+    @property
+    def n_points(self) -> int:
+        """Number of reference points N."""
+        return int(self.points.shape[0])
+
+    @property
+    def dim(self) -> int:
+        """Dimension D of the points."""
+        return int(self.points.shape[1])
+
+    def query(self, queries, device: str | torch.device = "cpu") -> np.ndarray:
+        """Index of the nearest reference point of every query point.
+
+        Parameters
+        ----------
+        queries : array_like, shape (M, D)
+            Points looked up.
+        device : str or torch.device
+            Where the screening runs: ``"cpu"`` (numpy), ``"cuda"`` (torch) or ``"auto"``
+            (CUDA when available).
+
+        Returns
+        -------
+        numpy.ndarray, shape (M,), int64
+            Indices of the reference points; on exact ties the smallest index.
+        """
+        qry = _as_points(queries, "queries")
+        if qry.shape[1] != self.dim:
+            raise FunctionalMapError(f"reference and queries must have the same dimension; found {self.dim} and {qry.shape[1]}.")
+        qry64 = np.ascontiguousarray(qry, dtype=np.float64)
+        screen = _NumpyScreen(self._lifted) if _is_cpu(device) else _TorchScreen(self._lifted, device)
+        # float32 rounding of a screened value [-2 q, 1] . [r, |r|^2] over d axes (the products, the
+        # sums, |r|^2, the float32 copies of q and r; -2 q is exact) and of |q|^2 is below
+        # 2 (d + 4) eps (|q|^2 + |r|^2); the margin is 4 times that
+        relative_margin = 8.0 * (self.axes.shape[1] + 4) * float(np.finfo(np.float32).eps)
+        best = np.empty(qry64.shape[0], dtype=np.int64)
+        block = max(1, NN_BLOCK_ENTRIES // self.n_points)
         for start in range(0, qry64.shape[0], block):
             q64 = qry64[start : start + block]
-            q = torch.from_numpy(((q64 - centre) @ axes).astype(np.float32)).to(ref_t.device)
-            q_sq = (q * q).sum(dim=1)
-            # bound - |q|^2 over the screening axes, (b, N): |q|^2 is the same along a row
-            bounds = torch.addmm(ref_sq[None, :], q, ref_t.T, alpha=-2.0)
-            first = bounds.argmin(dim=1).cpu().numpy()
-            upper = _squared_distances(ref64[first], q64)
-            q_sq64 = q_sq.cpu().numpy().astype(np.float64)
+            q = ((q64 - self.centre) @ self.axes).astype(np.float32)  # (b, d)
+            q_sq = np.einsum("bd,bd->b", q, q).astype(np.float64)
+            first = screen.bounds(np.hstack([-2.0 * q, np.ones((q.shape[0], 1), dtype=np.float32)]))
+            upper = _squared_distances(self.points[first], q64)
             # the margin also covers the float32 rounding of the threshold itself, of the order of eps * upper
-            threshold = upper - q_sq64 + relative_margin * (q_sq64 + ref_sq_max + upper)
-            rows, cols = torch.nonzero(bounds <= torch.from_numpy(threshold).to(bounds)[:, None], as_tuple=True)
-            best[start : start + block] = _nearest_candidates(ref64, q64, rows.cpu().numpy(), cols.cpu().numpy())
-    return best
+            threshold = upper - q_sq + relative_margin * (q_sq + self._squares_max + upper)
+            rows, cols = screen.candidates(threshold.astype(np.float32))
+            best[start : start + block] = _nearest_candidates(self.points, q64, rows, cols)
+        return best
+
+
+class _NumpyScreen:
+    """Screening of a block of queries with numpy (float32 BLAS): `bounds`, then `candidates`."""
+
+    def __init__(self, lifted: np.ndarray) -> None:
+        self._lifted = lifted  # (d + 1, N) float32
+        self._bounds = np.empty((0, lifted.shape[1]), dtype=np.float32)  # of the current block
+
+    def bounds(self, lifted_queries: np.ndarray) -> np.ndarray:
+        """Compute the block's bounds (b, N) from the lifted queries (b, d + 1); the point of smallest bound per query, (b,)."""
+        self._bounds = lifted_queries @ self._lifted
+        return self._bounds.argmin(axis=1)
+
+    def candidates(self, threshold: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(query, point) pairs of the block whose bound is not above the query's threshold (b,), by query then point."""
+        # flat indices of the C-ordered (b, N) block: np.nonzero of a 2-D array is over ten times slower
+        return np.divmod(np.flatnonzero(self._bounds <= threshold[:, None]), self._bounds.shape[1])
+
+
+class _TorchScreen:
+    """`_NumpyScreen` with torch on a device (for CUDA; torch is loaded only here)."""
+
+    def __init__(self, lifted: np.ndarray, device: str | torch.device) -> None:
+        import torch
+
+        from geofeat.devices import resolve_device
+
+        self._lifted = torch.from_numpy(lifted).to(resolve_device(device))
+        self._bounds = self._lifted[:0]
+
+    def bounds(self, lifted_queries: np.ndarray) -> np.ndarray:
+        """Same as `_NumpyScreen.bounds`."""
+        import torch
+
+        with torch.no_grad():
+            self._bounds = torch.from_numpy(lifted_queries).to(self._lifted.device) @ self._lifted
+            return self._bounds.argmin(dim=1).cpu().numpy()
+
+    def candidates(self, threshold: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Same as `_NumpyScreen.candidates`."""
+        import torch
+
+        with torch.no_grad():
+            keep = self._bounds <= torch.from_numpy(threshold).to(self._bounds)[:, None]
+            flat = torch.nonzero(keep.ravel()).ravel().cpu().numpy()
+        return np.divmod(flat, self._bounds.shape[1])
+
+
+def _is_cpu(device: str | torch.device) -> bool:
+    """Whether ``device`` is the CPU, without loading torch for ``"cpu"``."""
+    if isinstance(device, str) and device == "cpu":
+        return True
+    from geofeat.devices import resolve_device
+
+    return resolve_device(device).type == "cpu"
 
 
 def _screening_axes(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -47,6 +47,7 @@ from geofeat.mesh import Mesh
 from geofeat.registry import LazyEntry, lookup
 
 from . import matchers
+from .functional_maps import NearestNeighborIndex
 
 if TYPE_CHECKING:
     import torch
@@ -379,14 +380,18 @@ class Head:
     def features(self, mesh: Mesh) -> np.ndarray:
         """Input features (V, C) float32 of a mesh of a prepared pair (read-only; the last few are kept in memory)."""
         c = self.config
-        key = (mesh.hash, c.descriptor, json.dumps(c.descriptor_params, sort_keys=True, default=repr))
 
         def build() -> np.ndarray:
             features = input_features(mesh, c.descriptor, c.descriptor_params)
             features.flags.writeable = False  # shared by every later call for this mesh
             return features
 
-        return self._features.get_or_compute(key, build)
+        return self._features.get_or_compute(self._features_key(mesh), build)
+
+    def _features_key(self, mesh: Mesh) -> tuple[str, str, str]:
+        """What the input features of ``mesh`` depend on: its content and the descriptor settings."""
+        c = self.config
+        return mesh.hash, c.descriptor, json.dumps(c.descriptor_params, sort_keys=True, default=repr)
 
     def operators(self, mesh: Mesh) -> SurfaceOperators:
         """Surface operators of a mesh of a prepared pair, on the CPU."""
@@ -452,9 +457,15 @@ class NearestNeighbourHead(Head):
 
     name = "nn"
 
+    def __init__(self, config: HeadConfig | None = None, **settings: Any):
+        super().__init__(config, **settings)
+        # a target is matched to several sources in a row: its search index is built once
+        self._indices: LRUCache[tuple[str, str, str], NearestNeighborIndex] = LRUCache(_FEATURES_KEPT)
+
     def match(self, pair: ShapePair) -> Match:
         pair = self.prepare(pair)
-        map_yx = matchers.nn_match(self.features(pair.x), self.features(pair.y))
+        index = self._indices.get_or_compute(self._features_key(pair.x), lambda: NearestNeighborIndex(self.features(pair.x)))
+        map_yx = matchers.nn_match(index, self.features(pair.y))
         return Match(map_yx, np.ones(pair.y.n_vertices, dtype=bool))
 
 

@@ -7,14 +7,18 @@ Both take per-vertex features of any geofeat descriptor and return a complete po
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
-import torch
 
 from geofeat.geometry.spectral import spectral_basis
 from geofeat.mesh import Mesh
 
 from . import functional_maps as fm
-from .functional_maps import FunctionalMapError
+from .functional_maps import FunctionalMapError, NearestNeighborIndex
+
+if TYPE_CHECKING:
+    import torch
 
 
 def _check_features(feat, mesh: Mesh | None, name: str) -> np.ndarray:
@@ -31,8 +35,10 @@ def nn_match(feat_x, feat_y, device: str | torch.device = "cpu") -> np.ndarray:
 
     Parameters
     ----------
-    feat_x : array_like, shape (V_x, C)
-        Target features.
+    feat_x : array_like, shape (V_x, C), or NearestNeighborIndex
+        Target features, or a `NearestNeighborIndex` of them: built once, it saves the
+        reference's set-up (principal axes, float32 copy) when one target is matched to
+        several sources.
     feat_y : array_like, shape (V_y, C)
         Source features (same channels).
     device : str or torch.device
@@ -44,13 +50,13 @@ def nn_match(feat_x, feat_y, device: str | torch.device = "cpu") -> np.ndarray:
     numpy.ndarray, shape (V_y,), int64
         ``map_yx``.
     """
-    fx = _check_features(feat_x, None, "feat_x")
+    prepared = isinstance(feat_x, NearestNeighborIndex)
+    n_x = feat_x.dim if prepared else _check_features(feat_x, None, "feat_x").shape[1]
     fy = _check_features(feat_y, None, "feat_y")
-    if fx.shape[1] != fy.shape[1]:
-        raise FunctionalMapError(
-            f"feat_x and feat_y must have the same number of channels; found {fx.shape[1]} and {fy.shape[1]}."
-        )
-    return fm.nearest_neighbors(fx, fy, device=device)
+    if n_x != fy.shape[1]:
+        raise FunctionalMapError(f"feat_x and feat_y must have the same number of channels; found {n_x} and {fy.shape[1]}.")
+    index = feat_x if prepared else NearestNeighborIndex(feat_x)
+    return index.query(fy, device=device)
 
 
 def fmap_match(

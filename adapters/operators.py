@@ -10,16 +10,17 @@ and ``Y`` components, i.e. the real and imaginary parts of a complex gradient.
 
 Eigenpairs and mass come from `geofeat.geometry.spectral.spectral_basis` (the same cache, so
 they are never recomputed for a shape already seen). Everything is computed in float64 and
-handed out as float32 torch tensors.
+handed out as float32 torch tensors. torch is imported where the tensors are made, so that a
+head's settings can be checked against `CONSTRUCTIONS` without loading it.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, fields, replace
+from typing import TYPE_CHECKING
 
 import numpy as np
 import scipy.sparse as sp
-import torch
 from scipy.spatial import cKDTree
 
 from geofeat.devices import resolve_device
@@ -28,6 +29,9 @@ from geofeat.geometry.spectral import spectral_basis
 from geofeat.lru import LRUCache
 from geofeat.mesh import Mesh
 from geofeat.topology import unique_edges
+
+if TYPE_CHECKING:
+    import torch
 
 #: Neighbours of each point used for normals and gradients of a point cloud (as in DiffusionNet).
 N_NEIGHBORS_CLOUD = 30
@@ -127,6 +131,8 @@ def _same_device(a: torch.device, b: torch.device) -> bool:
         return False
     if a.type != "cuda":
         return True
+    import torch
+
     current = torch.cuda.current_device()
     return (a.index if a.index is not None else current) == (b.index if b.index is not None else current)
 
@@ -194,8 +200,8 @@ def surface_operators(
         grad_x=_sparse32(grad_x),
         grad_y=_sparse32(grad_y),
         frames=_dense32(frames),
-        faces=None if mesh.faces is None else torch.from_numpy(np.array(mesh.faces, dtype=np.int64)),
-        edges=None if edges is None else torch.from_numpy(edges),
+        faces=None if mesh.faces is None else _int64(mesh.faces),
+        edges=None if edges is None else _int64(edges),
     )
     if cache:
         _operator_cache.put(key, ops)
@@ -208,10 +214,20 @@ def clear_operator_cache() -> None:
 
 
 def _dense32(array: np.ndarray) -> torch.Tensor:
+    import torch
+
     return torch.from_numpy(np.ascontiguousarray(array, dtype=np.float32))
 
 
+def _int64(array: np.ndarray) -> torch.Tensor:
+    import torch
+
+    return torch.from_numpy(np.array(array, dtype=np.int64))
+
+
 def _sparse32(matrix: sp.spmatrix) -> torch.Tensor:
+    import torch
+
     coo = sp.coo_matrix(matrix)
     indices = torch.from_numpy(np.vstack((coo.row, coo.col)).astype(np.int64))
     values = torch.from_numpy(coo.data.astype(np.float32))

@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import multiprocessing
+import os
 
 import numpy as np
 import pytest
@@ -199,3 +200,37 @@ def test_forked_workers_run_one_blas_and_one_torch_thread():
         blas, torch_threads = pool.submit(_thread_counts).result()
     assert blas and all(n == 1 for n in blas), blas  # numpy/scipy's BLAS pools, lowered after the fork
     assert torch_threads == 1
+
+
+# A fresh interpreter: match and evaluate two pairs with the nn head in 2 forked workers, then
+# report whether torch was loaded, and the threads a worker's later torch import starts with.
+_TORCH_FREE_RUN = """
+import multiprocessing, sys
+from concurrent.futures import ProcessPoolExecutor
+from geofeat.adapters.heads import make_head
+from geofeat.datasets import load_dataset
+from geofeat.evaluation import _worker_start, evaluate_dataset
+
+head = make_head("nn", descriptor="xyz", progress=False)
+records, _ = evaluate_dataset(load_dataset("synthetic_cuts"), lambda i, pair: head.match(pair), 2, workers=2, progress=False)
+loaded = "torch" in sys.modules
+
+def later_torch_threads():
+    import torch
+    return torch.get_num_threads()
+
+with ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("fork"), initializer=_worker_start) as pool:
+    threads = pool.submit(later_torch_threads).result()
+print(len(records), loaded, threads)
+"""
+
+
+@pytest.mark.skipif("fork" not in multiprocessing.get_all_start_methods(), reason="workers are forked only where fork exists")
+def test_training_free_pipeline_never_loads_torch_and_workers_import_it_with_one_thread():
+    import subprocess
+    import sys
+
+    env = {k: v for k, v in os.environ.items() if k not in ("OMP_NUM_THREADS", "MKL_NUM_THREADS")}
+    result = subprocess.run([sys.executable, "-c", _TORCH_FREE_RUN], capture_output=True, text=True, env=env, timeout=300)
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.split() == ["2", "False", "1"]

@@ -93,6 +93,65 @@ def test_nearest_neighbors_is_exact_when_screening_on_few_axes(block_entries, mo
     np.testing.assert_array_equal(fm.nearest_neighbors(doubled, reference[:50] + 1e-9), np.arange(50))
 
 
+def _few_axes_points(seed, n_reference, n_queries):
+    """Points with their variance in 6 of 64 axes, and far queries (off those axes)."""
+    rng = np.random.default_rng(seed)
+    spread = np.r_[np.full(6, 10.0), np.full(58, 1e-3)]
+    basis = np.linalg.qr(rng.standard_normal((64, 64)))[0]
+    reference = (rng.standard_normal((n_reference, 64)) * spread) @ basis.T
+    queries = (rng.standard_normal((n_queries, 64)) * spread) @ basis.T
+    return reference, queries, queries + 300.0 * basis[:, 40]
+
+
+def test_nearest_neighbor_index_is_reusable_and_nn_match_takes_it():
+    reference, queries, far = _few_axes_points(2, 800, 300)
+    index = fm.NearestNeighborIndex(reference)
+    assert (index.n_points, index.dim) == (800, 64)
+    tree = cKDTree(reference)
+    for q in (queries, far, reference[:40] + 1e-9, queries[:1]):
+        expected = tree.query(q)[1]
+        np.testing.assert_array_equal(index.query(q), expected)
+        np.testing.assert_array_equal(nn_match(index, q), expected)
+        np.testing.assert_array_equal(fm.nearest_neighbors(reference, q), expected)
+    with pytest.raises(FunctionalMapError, match="same number of channels"):
+        nn_match(index, queries[:, :10])
+    with pytest.raises(FunctionalMapError, match="same dimension"):
+        index.query(queries[:, :10])
+    with pytest.raises(FunctionalMapError, match="no points"):
+        fm.NearestNeighborIndex(np.zeros((0, 3)))
+
+
+@pytest.mark.parametrize("residual", [0.9, 1e-9])
+def test_nearest_neighbors_do_not_depend_on_the_number_of_screening_axes(residual, monkeypatch):
+    reference, queries, far = _few_axes_points(3, 600, 300)
+    doubled = np.vstack([reference, reference[:50]])  # exact ties: the smallest index wins
+    expected = {name: fm.nearest_neighbors(doubled, q) for name, q in (("near", queries), ("far", far))}
+    monkeypatch.setattr(fm, "NN_SCREEN_RESIDUAL", residual)  # 1 axis, or all 64 (the identity)
+    assert fm._screening_axes(reference)[0].shape[1] == (1 if residual == 0.9 else 64)
+    for name, q in (("near", queries), ("far", far)):
+        np.testing.assert_array_equal(fm.nearest_neighbors(doubled, q), expected[name])
+    np.testing.assert_array_equal(fm.nearest_neighbors(doubled, reference[:50] + 1e-9), np.arange(50))
+
+
+def test_torch_screening_gives_the_numpy_result(monkeypatch):
+    """The torch screening (used on CUDA) run on the CPU gives the maps of the numpy one."""
+    reference, queries, far = _few_axes_points(4, 700, 300)
+    doubled = np.vstack([reference, reference[:50]])
+    sets = (queries, far, reference[:50] + 1e-9)
+    expected = [fm.nearest_neighbors(doubled, q) for q in sets]
+    torch_screen, screens = fm._TorchScreen, []
+
+    def spy(*args):
+        screens.append(torch_screen(*args))
+        return screens[-1]
+
+    monkeypatch.setattr(fm, "_is_cpu", lambda device: False)
+    monkeypatch.setattr(fm, "_TorchScreen", spy)
+    for q, want in zip(sets, expected, strict=True):
+        np.testing.assert_array_equal(fm.nearest_neighbors(doubled, q, device="cpu"), want)
+    assert len(screens) == len(sets)  # the torch screen really ran
+
+
 @pytest.mark.parametrize("device", ["cpu", "auto"] + (["cuda"] if torch.cuda.is_available() else []))
 def test_nn_match_hand_example_and_output_type(device):
     feat_x = np.array([[0.0, 0.0], [10.0, 0.0], [0.0, 10.0]], dtype=np.float32)
