@@ -60,7 +60,7 @@ def fsync_tree(folder: str | os.PathLike) -> None:
         fsync_folder(path)
 
 
-def atomic_write(path: str | os.PathLike, write: Callable[[Path], None]) -> Path:
+def atomic_write(path: str | os.PathLike, write: Callable[[Path], None], *, durable: bool = True) -> Path:
     """Write through a temporary file in the same folder, then rename it over ``path``.
 
     Parameters
@@ -69,13 +69,18 @@ def atomic_write(path: str | os.PathLike, write: Callable[[Path], None]) -> Path
         The final file; its folder is created when missing.
     write : callable
         ``write(tmp_path)`` writes the content to the temporary file.
+    durable : bool
+        ``fsync`` the temporary file before the rename and the folder after it, so that
+        after a crash or power cut ``path`` holds either the old or the whole new content.
+        ``False`` skips both (a 100 MB file: tens of milliseconds of waiting for the disk
+        saved): other processes still see the old or the whole new content, but a power
+        cut may leave ``path`` empty or partly written. Only for files whose readers detect
+        that (a checksum) and can make them again.
 
     Returns
     -------
     pathlib.Path
-        ``path``. The temporary file is ``fsync``-ed before the rename and the folder after
-        it, so that after a crash or power cut ``path`` holds either the old or the whole new
-        content. On any failure (an interruption included) the temporary file is removed
+        ``path``. On any failure (an interruption included) the temporary file is removed
         and an existing ``path`` is left as it was.
     """
     path = Path(path)
@@ -84,12 +89,14 @@ def atomic_write(path: str | os.PathLike, write: Callable[[Path], None]) -> Path
     os.close(handle)
     try:
         write(Path(tmp))
-        fsync_file(tmp)
+        if durable:
+            fsync_file(tmp)
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
-    fsync_folder(path.parent)
+    if durable:
+        fsync_folder(path.parent)
     return path
 
 

@@ -62,6 +62,18 @@ def test_all_pairs_dijkstra_on_random_graphs_with_zero_edges_and_components(seed
     np.testing.assert_allclose(dist[finite], expected[finite], rtol=1e-6, atol=1e-7)
 
 
+@pytest.mark.parametrize("block", [1, 7, 256, 10_000])
+def test_symmetrize_does_not_depend_on_its_block_size(monkeypatch, block):
+    rng = np.random.default_rng(block)
+    matrix = rng.uniform(0.0, 1.0, (300, 300)).astype(np.float32)
+    monkeypatch.setattr(geodesic, "_SYM_BLOCK", block)
+    smallest, mean = matrix.copy(), matrix.copy()
+    geodesic._symmetrize(smallest, np.minimum)
+    geodesic._symmetrize(mean, geodesic._mean)
+    assert np.array_equal(smallest, np.minimum(matrix, matrix.T))
+    assert np.array_equal(mean, 0.5 * (matrix + matrix.T))
+
+
 def test_heat_on_a_flat_square_is_close_to_euclidean():
     mesh = grid(41, 1 / 40)  # the unit square
     dist = geodesic_matrix(mesh, "heat", normalize=False, cache=False)

@@ -103,3 +103,27 @@ def test_default_folder_follows_the_cache_setting(tmp_path, isolated_cache):
     assert GeodesicStore().folder == isolated_cache / "geodesics"
     geofeat.set_cache_dir(tmp_path / "elsewhere")
     assert GeodesicStore().folder == tmp_path / "elsewhere" / "geodesics"
+
+
+def test_read_back_is_the_checked_file_mapped_read_only_and_outlives_its_replacement(tmp_path, computations, monkeypatch):
+    import os
+
+    store = GeodesicStore(tmp_path)
+    mesh = bumpy(0, 2)
+    synced = []
+    monkeypatch.setattr(os, "fsync", lambda fd: synced.append(fd))
+    first = store.load(mesh)
+    assert synced == []  # not fsync-ed: a torn entry fails its checksum on read instead
+    path = store.path(mesh)
+    again = GeodesicStore(tmp_path).load(mesh)
+    assert type(again) is np.ndarray and isinstance(again.base, np.memmap)  # no copy of the file
+    assert not again.flags.writeable
+    with pytest.raises(ValueError):
+        again[0, 1] = 1.0
+    np.testing.assert_array_equal(again, first)
+    path.unlink()  # the store only deletes entries or renames new ones over them: the mapping keeps its pages
+    replaced = np.full_like(first, 7.0)
+    with open(path, "wb") as handle:
+        np.save(handle, replaced)
+    np.testing.assert_array_equal(again, first)
+    assert computations == [mesh.name]
