@@ -284,8 +284,13 @@ def main(argv=None) -> int:
         match = _HeadMatch(head)
     workers = args.workers or (1 if args.pipeline in LEARNED_PIPELINES else default_workers())
     store = None if args.no_geodesic_store else GeodesicStore()
+    label = f"{args.descriptor} + {args.pipeline}"
+
+    def draw_pairs(kept: dict) -> None:  # as soon as the pictured pairs are done, while the workers go on
+        plot_pairs([(pair, m.map_yx, label) for pair, m in kept.values()], out / "pairs.png")
+
     start = time.perf_counter()
-    records, kept = evaluate_dataset(
+    records, _ = evaluate_dataset(
         dataset,
         match,
         n_pairs,
@@ -293,11 +298,11 @@ def main(argv=None) -> int:
         store=store,
         workers=workers,
         keep=range(N_PICTURES),
+        on_kept=draw_pairs,
         progress=not args.no_progress,
         desc=f"{args.pipeline} on {args.dataset}",
     )
     seconds = time.perf_counter() - start
-    pictures = [(pair, m.map_yx, f"{args.descriptor} + {args.pipeline}") for pair, m in kept.values()]
 
     summary = summarize(records)
     result = {
@@ -320,8 +325,7 @@ def main(argv=None) -> int:
     columns = [("pipeline", "pipeline", "s"), ("descriptor", "descriptor", "s"), ("dataset", "dataset", "s"), *SUMMARY_COLUMNS]
     table = markdown_table([result], columns)
     (out / "results.md").write_text(table + "\n")
-    plot_pck({f"{args.descriptor} + {args.pipeline}": summary.pck_curve}, out / "pck.png", args.dataset)
-    plot_pairs(pictures, out / "pairs.png")
+    plot_pck({label: summary.pck_curve}, out / "pck.png", args.dataset)
     print(table)
     trained = (
         f"trained {training['train_steps']} steps on {training['train_pairs']} pairs in {training['train_seconds']:.1f} s; "

@@ -382,6 +382,7 @@ def evaluate_dataset(
     store: GeodesicStore | None = None,
     workers: int = 1,
     keep: Sequence[int] = (),
+    on_kept: Callable[[dict[int, tuple[ShapePair, Match]]], None] | None = None,
     progress: bool = True,
     desc: str = "evaluating",
 ) -> tuple[list[PairEvaluation], dict[int, tuple[ShapePair, Match]]]:
@@ -405,6 +406,10 @@ def evaluate_dataset(
         not depend on the number of workers: every pair is matched and evaluated alone.
     keep : sequence of int
         Pair indices whose ``(pair, match)`` are returned too (for pictures).
+    on_kept : callable, optional
+        ``on_kept(kept)``, called once in this process as soon as every kept pair is
+        evaluated, with the ``kept`` dict returned at the end: with workers, pictures are
+        drawn while the other pairs are still evaluated. Not called when no pair is kept.
     progress : bool
         Show a tqdm progress bar (pairs).
     desc : str
@@ -426,14 +431,24 @@ def evaluate_dataset(
         log.info("no fork start method here: evaluating in one process")
         workers = 1
     results: dict[int, tuple[PairEvaluation, tuple[ShapePair, Match] | None]] = {}
-    _JOB = _Job(dataset, match, protocol, store, frozenset(keep))
+    wanted = sorted(i for i in set(keep) if 0 <= i < n_pairs)
+    waiting = set(wanted)
+
+    def collect(i: int, record: PairEvaluation, kept: tuple[ShapePair, Match] | None) -> None:
+        results[i] = (record, kept)
+        bar.update(1)
+        if i in waiting:
+            waiting.discard(i)
+            if not waiting and on_kept is not None:
+                on_kept({j: results[j][1] for j in wanted})
+
+    _JOB = _Job(dataset, match, protocol, store, frozenset(wanted))
     try:
         with tqdm(total=n_pairs, desc=desc, unit="pair", disable=not progress) as bar:
             if workers == 1:
                 for group in groups:
-                    for i, record, kept in _evaluate_group(group):
-                        results[i] = (record, kept)
-                        bar.update(1)
+                    for item in _evaluate_group(group):
+                        collect(*item)
             else:
                 from concurrent.futures import ProcessPoolExecutor, as_completed
 
@@ -443,11 +458,9 @@ def evaluate_dataset(
                 with ProcessPoolExecutor(workers, mp_context=context, initializer=_worker_start) as pool:
                     futures = [pool.submit(_evaluate_group, group) for group in order]
                     for future in as_completed(futures):
-                        for i, record, kept in future.result():
-                            results[i] = (record, kept)
-                            bar.update(1)
+                        for item in future.result():
+                            collect(*item)
     finally:
         _JOB = None
     records = [results[i][0] for i in range(n_pairs)]
-    kept_pairs = {i: results[i][1] for i in sorted(keep) if i < n_pairs}
-    return records, kept_pairs
+    return records, {i: results[i][1] for i in wanted}

@@ -168,8 +168,12 @@ def test_dataset_evaluation_is_the_same_in_one_process_and_in_workers(tmp_path):
         return Match(np.roll(predicted, index + 1), np.ones(pair.y.n_vertices, dtype=bool))
 
     store = GeodesicStore(tmp_path / "geodesics")
-    one, kept = evaluate_dataset(dataset, shifted_truth, n, store=store, workers=1, keep=[0, 2], progress=False)
-    two, kept_two = evaluate_dataset(dataset, shifted_truth, n, store=store, workers=2, keep=[0, 2], progress=False)
+    calls = []  # on_kept: once per run, with the kept pairs, before the run returns
+    settings = dict(store=store, keep=[0, 2, 99], on_kept=calls.append, progress=False)  # 99: past n, ignored
+    one, kept = evaluate_dataset(dataset, shifted_truth, n, workers=1, **settings)
+    two, kept_two = evaluate_dataset(dataset, shifted_truth, n, workers=2, **settings)
+    assert len(calls) == 2 and calls[0] is not kept and sorted(calls[0]) == sorted(calls[1]) == [0, 2]
+    np.testing.assert_array_equal(calls[1][2][1].map_yx, kept_two[2][1].map_yx)
     assert [r.pair for r in one] == [dataset[i].name for i in range(n)]  # in pair order, whatever the grouping
     for a, b in zip(one, two, strict=True):
         assert a.to_dict() == b.to_dict()
