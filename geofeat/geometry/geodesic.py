@@ -395,7 +395,11 @@ class GeodesicStore:
     entry or none, with several processes too. Every read checks shape, dtype and checksum;
     a damaged entry (truncated, overwritten, bit rot) is logged, deleted and recomputed,
     never returned. Writes are not ``fsync``-ed: an entry that a power cut left empty or
-    half written is such a damaged entry, found on its first read.
+    half written is such a damaged entry, found on its first read. A float32 entry read back
+    is its file mapped in memory: the store only ever renames a new file over an entry or
+    deletes it, which leaves a mapping intact; a file truncated or overwritten in place
+    while a process holds its array would break that array (a bus error on Linux), so
+    remove entries by deleting their files, never by editing them.
 
     Parameters
     ----------
