@@ -14,7 +14,7 @@ budget, progress bar) and the checkpoint format (``head_config.json`` + ``weight
 are shared.
 
 torch is imported inside the methods that need it, not at the top: the training-free heads
-(``nn``, ``fmap``) and the evaluation workers never load it (about 2 s of start-up).
+(``nn``, ``fmap``) and the evaluation workers never load it (1 to 2 s of start-up).
 """
 
 from __future__ import annotations
