@@ -115,7 +115,11 @@ def stage_faust_r(repo: Path, data_root: Path, work: Path) -> Path:
 
 
 def geofeat_features(staged: Path, features: Path | None) -> Path:
-    """Folder of geofeat's WKS, ``<shape>.npy`` per test shape; computed into ``staged/wks`` when not given."""
+    """Folder of geofeat's WKS, ``<shape>.npy`` per test shape; computed into ``staged/wks`` when not given.
+
+    Computed on every run (20 shapes, seconds): files left by an earlier run may come from
+    another geofeat version or other settings, and nothing in them says which.
+    """
     if features is not None:
         missing = [n for n in TEST_SHAPES if not (features / f"{n}.npy").is_file()]
         if missing:
@@ -124,10 +128,8 @@ def geofeat_features(staged: Path, features: Path | None) -> Path:
     folder = staged / "wks"
     folder.mkdir(exist_ok=True)
     for name in TEST_SHAPES:
-        path = folder / f"{name}.npy"
-        if not path.is_file():
-            mesh = geofeat.load_mesh(staged / "off" / f"{name}.off")
-            save_npy(path, geofeat.compute(mesh, "wks", cache=False, **WKS_PARAMS))  # atomic: never a half-written file
+        mesh = geofeat.load_mesh(staged / "off" / f"{name}.off")
+        save_npy(folder / f"{name}.npy", geofeat.compute(mesh, "wks", cache=False, **WKS_PARAMS))  # atomic
     return folder
 
 
