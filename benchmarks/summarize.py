@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 import sys
 from pathlib import Path
 
@@ -25,6 +26,9 @@ COLUMNS = [
     ("train_steps", "training steps", "d"),
     ("seconds", "time (s)", ".0f"),
 ]
+#: Keys every results.json of `run.py` has; other scripts' results.json (speed, parity, profile) lack them.
+RUN_KEYS = ("pipeline", "dataset", "descriptor", "date", "pck_thresholds", "pck")
+log = logging.getLogger("benchmarks.summarize")
 
 
 def matcher_label(row: dict) -> str:
@@ -38,12 +42,28 @@ def matcher_label(row: dict) -> str:
     return label
 
 
+def read_runs(paths: list[Path]) -> list[dict]:
+    """The records of `run.py` among ``paths``; other JSON files (the speed, parity and profile scripts') are skipped with a warning."""
+    rows = []
+    for path in paths:
+        row = json.loads(path.read_text())
+        missing = [key for key in RUN_KEYS if not isinstance(row, dict) or key not in row]
+        if missing:
+            log.warning("skipping %s: not a results.json of run.py (no %s)", path, ", ".join(missing))
+            continue
+        rows.append(row)
+    return rows
+
+
 def main(argv=None) -> int:
+    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(message)s")
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("results", nargs="+", type=Path, help="results.json files")
     parser.add_argument("--out", type=Path, required=True, help="writes OUT.md and OUT_pck_<dataset>.png")
     args = parser.parse_args(argv)
-    rows = [json.loads(path.read_text()) for path in args.results]
+    rows = read_runs(args.results)
+    if not rows:
+        parser.error("none of the files is a results.json of benchmarks/run.py")
     for row in rows:
         row["matcher"] = matcher_label(row)
     rows.sort(key=lambda r: (r["dataset"], r["descriptor"], r["matcher"]))

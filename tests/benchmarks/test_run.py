@@ -115,3 +115,28 @@ def test_summary_tells_the_test_time_adaptation_apart(tmp_path):
     lines = (tmp_path / "summary.md").read_text().splitlines()
     assert lines[2].startswith("| faust_r_cuts | wks | nn | 2 | 50.00 |") and lines[2].endswith("| - | - |")
     assert "| ulrssm, TTA 5 | 2 |" in lines[3] and "| ulrssm, no TTA | 2 |" in lines[4] and lines[4].endswith("| 12 | - |")
+
+
+def test_summary_skips_the_results_of_other_scripts_and_refuses_when_none_is_a_run(tmp_path):
+    run_record = {
+        "pipeline": "nn", "dataset": "faust_r", "descriptor": "wks", "date": "2026-11-24", "n_pairs": 1,
+        "geodesic_error": 25.0, "pck_thresholds": [0.0, 0.25], "pck": [0.2, 0.8], "head": None,
+    }  # fmt: skip
+    (tmp_path / "run.json").write_text(json.dumps(run_record))
+    (tmp_path / "speed.json").write_text(json.dumps({"machine": "x", "rows": []}))  # e.g. speed_extract's results.json
+    summary = REPO / "benchmarks" / "summarize.py"
+
+    def summarize(*names):
+        paths = [str(tmp_path / name) for name in names]
+        return subprocess.run(
+            [sys.executable, str(summary), *paths, "--out", str(tmp_path / "summary")], capture_output=True, text=True
+        )
+
+    result = summarize("speed.json", "run.json")
+    assert result.returncode == 0, result.stderr
+    assert "skipping" in result.stderr and "speed.json" in result.stderr
+    table = (tmp_path / "summary.md").read_text().splitlines()
+    assert table[2].startswith("| faust_r | wks | nn | 1 | 25.00 |")
+    assert [line for line in table if line.startswith("| faust_r")] == [table[2]]
+    refused = summarize("speed.json")
+    assert refused.returncode == 2 and "none of the files is a results.json of benchmarks/run.py" in refused.stderr
