@@ -33,7 +33,11 @@ STAGES = {
     "feature cache (HDF5 read/write)": [("descriptors/compute.py", "compute"), "-", ("descriptors/base.py", "__call__")],
     "nearest-neighbour matching": [("adapters/matchers.py", "nn_match")],
     "geodesic matrices (compute)": [("geometry/geodesic.py", "geodesic_matrix")],
-    "geodesic store (read/write + checksum)": [("geometry/geodesic.py", "load"), "-", ("geometry/geodesic.py", "geodesic_matrix")],
+    "geodesic store (read/write + checksum)": [
+        ("geometry/geodesic.py", "load"),
+        "-",
+        ("geometry/geodesic.py", "geodesic_matrix"),
+    ],
     "plots (pck.png, pairs.png)": [("geofeat/report.py", "plot_pck"), "+", ("geofeat/report.py", "plot_pairs")],
 }
 
