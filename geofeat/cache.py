@@ -34,26 +34,26 @@ import re
 import tempfile
 import time
 import uuid
-from dataclasses import dataclass
 from pathlib import Path
 
 import h5py
 import numpy as np
 
 from geofeat import config
-from geofeat.errors import GeofeatError
-from geofeat.files import array_crc32, fsync_file, fsync_folder
+from geofeat.files import STALE_TMP_SECONDS, EntryFolder, StoreError, StoreInfo, array_crc32, fsync_file, fsync_folder
+
+__all__ = ["STALE_TMP_SECONDS", "CacheError", "CacheInfo", "FeatureCache", "cache_key"]
 
 log = logging.getLogger(__name__)
 
 
-class CacheError(GeofeatError, OSError):
+class CacheError(StoreError):
     """The feature cache cannot be used (bad location, unwritable directory)."""
 
 
+#: What `FeatureCache.info` returns (the summary every store folder gives).
+CacheInfo = StoreInfo
 TMP_PREFIX = ".tmp-"
-#: Temporary files older than this (seconds) are taken for leftovers of killed writers.
-STALE_TMP_SECONDS = 3600.0
 #: File name of an entry: the 64 hex digits of its key and ``.h5``.
 _ENTRY_NAME = re.compile(r"[0-9a-f]{64}\.h5")
 _NOT_WRITABLE_HINT = (
@@ -72,18 +72,7 @@ def _checksum(array: np.ndarray) -> str:
     return f"crc32:{array_crc32(array):08x}"
 
 
-@dataclass(frozen=True)
-class CacheInfo:
-    """Summary of a cache directory; ``other_paths`` are what the store holds that is not an entry or temporary file."""
-
-    root: Path
-    entries: int
-    bytes: int
-    temporary_files: int
-    other_paths: tuple[Path, ...] = ()
-
-
-class FeatureCache:
+class FeatureCache(EntryFolder):
     """A directory of HDF5 feature entries, safe with several processes.
 
     Parameters
@@ -91,6 +80,9 @@ class FeatureCache:
     root : str or PathLike, optional
         Directory of the store; default ``geofeat.config.cache_dir() / "features"``.
     """
+
+    label = "the feature cache"
+    error = CacheError
 
     def __init__(self, root: str | os.PathLike | None = None):
         self.root = Path(root) if root is not None else config.cache_dir() / "features"
@@ -204,107 +196,9 @@ class FeatureCache:
                     other.append(path)
         return sorted(entries), sorted(temporary), sorted(other)
 
-    def entries(self) -> list[Path]:
-        """Paths of every complete entry (regular files ``<key[:2]>/<key>.h5``)."""
-        return self._scan()[0]
-
-    def temporary_files(self) -> list[Path]:
-        """Temporary files of writers still running or killed."""
-        return self._scan()[1]
-
-    def other_paths(self) -> list[Path]:
-        """What the store holds that is neither an entry nor a temporary file (skipped by `verify` and `clear`)."""
-        return self._scan()[2]
-
-    def info(self) -> CacheInfo:
-        """Counts and total size of the store (entries only; see ``CacheInfo.other_paths``)."""
-        entries, temporary, other = self._scan()
-        size = 0
-        for path in entries:
-            try:
-                size += path.stat().st_size
-            except FileNotFoundError:  # removed by another process meanwhile
-                pass
-        return CacheInfo(self.root, len(entries), size, len(temporary), tuple(other))
-
-    def verify(self, remove: bool = True) -> tuple[int, list[Path]]:
-        """Check every entry's checksum.
-
-        Paths that are not entry files (`other_paths`) are skipped. On a read-only store
-        damaged entries are reported but stay (a warning says so).
-
-        Parameters
-        ----------
-        remove : bool
-            Delete damaged entries and stale temporary files (older than an hour).
-
-        Returns
-        -------
-        n_ok : int
-            Entries that passed.
-        damaged : list of Path
-            Entries that did not.
-        """
-        n_ok, damaged = 0, []
-        entries, temporary, other = self._scan()
-        if other:
-            log.warning(
-                "skipped %d path(s) in %s that are not cache entries: %s", len(other), self.root, [str(p) for p in other[:5]]
-            )
-        for path in entries:
-            try:
-                with h5py.File(path, "r", locking=False) as fh:
-                    good = fh.attrs.get("checksum") == _checksum(fh["features"][()]) and fh.attrs.get("key") == path.stem
-            except (OSError, KeyError, ValueError):
-                good = False
-            if good:
-                n_ok += 1
-            else:
-                damaged.append(path)
-                if remove:
-                    self._remove(path)
-        if remove:
-            now = time.time()
-            for tmp in temporary:
-                try:
-                    stale = now - tmp.stat().st_mtime > STALE_TMP_SECONDS
-                except FileNotFoundError:
-                    continue
-                if stale:
-                    self._remove(tmp)
-        return n_ok, damaged
-
-    def clear(self) -> int:
-        """Delete every entry and temporary file; returns the number of entries removed.
-
-        Paths that are not entry files (`other_paths`) are left where they are.
-
-        Raises
-        ------
-        CacheError
-            A file cannot be deleted (read-only file system, no permission); the message
-            says how many entries were removed before.
-        """
-        entries, temporary, _ = self._scan()
-        for done, path in enumerate(entries + temporary):
-            try:
-                path.unlink()
-            except FileNotFoundError:
-                pass
-            except OSError as err:
-                raise CacheError(
-                    f"cannot clear the feature cache {self.root}: deleting {path} failed ({err}); "
-                    f"{min(done, len(entries))} of {len(entries)} entries were removed before. The store is read-only "
-                    "or not yours: clear it as its owner, or set GEOFEAT_CACHE_DIR to another folder."
-                ) from err
-        return len(entries)
-
-    @staticmethod
-    def _remove(path: Path) -> None:
-        """Delete a file; a failure (read-only store, no permission) is logged, not raised."""
+    def _is_sound(self, path: Path) -> bool:
         try:
-            path.unlink()
-        except FileNotFoundError:
-            pass
-        except OSError as err:
-            log.warning("could not delete %s (%s); it stays in the cache", path, err)
+            with h5py.File(path, "r", locking=False) as fh:
+                return fh.attrs.get("checksum") == _checksum(fh["features"][()]) and fh.attrs.get("key") == path.stem
+        except (OSError, KeyError, ValueError):
+            return False

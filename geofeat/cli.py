@@ -8,51 +8,69 @@ import logging
 import sys
 import tempfile
 
-from geofeat.cache import CacheError, FeatureCache
+from geofeat.cache import FeatureCache
 from geofeat.errors import GeofeatError
+from geofeat.files import EntryFolder, StoreError
 
 
 def _out(line: str = "") -> None:
     sys.stdout.write(line + "\n")
 
 
-def _report_others(store: FeatureCache, others) -> None:
+def _report_others(store: EntryFolder, others) -> None:
     if others:
-        _out(f"skipped {len(others)} path(s) in {store.root} that are not cache entries (left as they are):")
+        _out(f"skipped {len(others)} path(s) in {store.root} that are not entries (left as they are):")
         for path in others[:20]:
             _out(f"  not an entry: {path}" + ("/" if path.is_dir() else ""))
         if len(others) > 20:
             _out(f"  ... and {len(others) - 20} more")
 
 
+def _cache_stores(args: argparse.Namespace) -> list[tuple[str, EntryFolder]]:
+    """The stores ``geofeat cache`` works on, with their headings: both default ones, or only those named."""
+    from geofeat.geometry.geodesic import GeodesicStore
+
+    if args.dir is None and args.geodesic_dir is None:
+        return [("cache", FeatureCache()), ("geodesic store", GeodesicStore())]
+    named = [("cache", FeatureCache(args.dir))] if args.dir is not None else []
+    return named + ([("geodesic store", GeodesicStore(args.geodesic_dir))] if args.geodesic_dir is not None else [])
+
+
 def _cache_command(args: argparse.Namespace) -> int:
-    store = FeatureCache(args.dir) if args.dir else FeatureCache()
-    try:
-        if args.action == "info":
-            info = store.info()
-            _out(f"cache: {info.root}")
-            _out(f"entries: {info.entries}")
-            _out(f"size: {info.bytes / 2**20:.2f} MiB")
-            _out(f"temporary files: {info.temporary_files}")
-            _report_others(store, info.other_paths)
-        elif args.action == "verify":
-            n_ok, damaged = store.verify(remove=not args.keep)
-            kept = [p for p in damaged if p.exists()] if not args.keep else damaged
-            removed = (
-                "" if args.keep else f" ({len(damaged) - len(kept)} removed" + (f", {len(kept)} could not be)" if kept else ")")
-            )
-            _out(f"{n_ok} entries ok, {len(damaged)} damaged" + (removed if damaged else ""))
-            for path in damaged:
-                _out(f"  damaged: {path}")
-            _report_others(store, store.other_paths())
-            return 1 if damaged and args.keep else 0
-        else:
-            _out(f"removed {store.clear()} entries from {store.root}")
-            _report_others(store, store.other_paths())
-    except CacheError:
-        raise
-    except OSError as err:  # e.g. a store folder that cannot be listed
-        raise CacheError(f"cannot {args.action} the feature cache {store.root}: {err}") from err
+    stores = _cache_stores(args)
+    status = 0
+    for heading, store in stores:
+        if args.action == "info" or len(stores) > 1:
+            _out(f"{heading}: {store.root}")
+        try:
+            status = max(status, _cache_action(args, store))
+        except StoreError:
+            raise
+        except OSError as err:  # e.g. a store folder that cannot be listed
+            raise store.error(f"cannot {args.action} {store.label} {store.root}: {err}") from err
+    return status
+
+
+def _cache_action(args: argparse.Namespace, store: EntryFolder) -> int:
+    """``info``, ``verify`` or ``clear`` on one store; returns the exit status."""
+    if args.action == "info":
+        info = store.info()
+        _out(f"entries: {info.entries}")
+        _out(f"size: {info.bytes / 2**20:.2f} MiB")
+        _out(f"temporary files: {info.temporary_files}")
+        _report_others(store, info.other_paths)
+    elif args.action == "verify":
+        n_ok, damaged = store.verify(remove=not args.keep)
+        kept = [p for p in damaged if p.exists()] if not args.keep else damaged
+        removed = "" if args.keep else f" ({len(damaged) - len(kept)} removed" + (f", {len(kept)} could not be)" if kept else ")")
+        _out(f"{n_ok} entries ok, {len(damaged)} damaged" + (removed if damaged else ""))
+        for path in damaged:
+            _out(f"  damaged: {path}")
+        _report_others(store, store.other_paths())
+        return 1 if damaged and args.keep else 0
+    else:
+        _out(f"removed {store.clear()} entries from {store.root}")
+        _report_others(store, store.other_paths())
     return 0
 
 
@@ -170,9 +188,15 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="geofeat", description=__doc__)
     parser.add_argument("-v", "--verbose", action="store_true", help="log at INFO level")
     sub = parser.add_subparsers(dest="command", required=True)
-    cache = sub.add_parser("cache", help="inspect, verify or clear the feature cache")
+    cache = sub.add_parser(
+        "cache",
+        help="inspect, verify or clear the feature cache and the geodesic store",
+        description="Without --dir or --geodesic-dir: the feature cache <cache>/features and the geodesic store "
+        "<cache>/geodesics, <cache> being $GEOFEAT_CACHE_DIR or the user cache. With either: only the folders named.",
+    )
     cache.add_argument("action", choices=["info", "verify", "clear"])
-    cache.add_argument("--dir", help="cache directory (default: $GEOFEAT_CACHE_DIR or the user cache)")
+    cache.add_argument("--dir", help="a feature cache folder (default: <cache>/features)")
+    cache.add_argument("--geodesic-dir", help="a geodesic store folder (default: <cache>/geodesics)")
     cache.add_argument("--keep", action="store_true", help="verify: report damaged entries without removing them")
     cache.set_defaults(func=_cache_command)
     desc = sub.add_parser("descriptors", help="list descriptors, their availability and parameters")

@@ -44,6 +44,7 @@ from geofeat.cli import main as cli_main
 from geofeat.descriptors import registry
 from geofeat.descriptors.base import Descriptor
 from geofeat.errors import BackboneError, TrainingError
+from geofeat.geometry.geodesic import GeodesicStore
 
 TESTS = Path(__file__).resolve().parent
 
@@ -496,6 +497,15 @@ def cli_clear_read_only(ctx: Ctx):
     return code, "Traceback" in err, err.startswith("geofeat: error: cannot clear the feature cache")
 
 
+def cli_clear_read_only_geodesic_store(ctx: Ctx):
+    store = GeodesicStore(ctx.tmp / "geodesics")
+    store.load(bumpy(0, 2))
+    read_only(ctx, store.root)
+    code, out, err = cli(["cache", "clear", "--geodesic-dir", str(store.root)])
+    assert len(store.entries()) == 1
+    return code, "Traceback" in err, err.startswith("geofeat: error: cannot clear the geodesic store")
+
+
 def cli_verify_read_only(ctx: Ctx):
     store = store_with_entries(ctx)
     store.entries()[0].write_bytes(b"garbage")
@@ -688,6 +698,7 @@ CACHE = [
         "is not writable: .*Read-only file system.*cache=False",
     ),
     Row("cli-clear-read-only", "5", cli_clear_read_only, reference=lambda c: (2, False, True)),
+    Row("cli-clear-read-only-geodesic-store", "5", cli_clear_read_only_geodesic_store, reference=lambda c: (2, False, True)),
     Row(
         "cli-verify-read-only",
         "5",

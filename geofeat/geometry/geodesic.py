@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import logging
 import os
+import re
 from pathlib import Path
 
 import numpy as np
@@ -32,7 +33,7 @@ from tqdm.auto import tqdm
 
 from geofeat.config import cache_dir
 from geofeat.errors import MeshError
-from geofeat.files import array_crc32, atomic_write
+from geofeat.files import EntryFolder, array_crc32, atomic_write
 from geofeat.lru import LRUCache
 from geofeat.mesh import Mesh
 from geofeat.topology import unique_edges, vertex_components
@@ -384,9 +385,22 @@ def _face_components(mesh: Mesh) -> list[tuple[np.ndarray, np.ndarray | None]]:
 STORE_VERSION = "2"
 #: Precisions a `GeodesicStore` keeps its matrices in.
 STORE_DTYPES = ("float32", "float16")
+#: File name of an entry (any precision and layout version): mesh hash, dtype, version, CRC-32.
+_STORE_ENTRY = re.compile(r"[0-9a-f]{64}-(float32|float16)-v[0-9]+-([0-9a-f]{8})\.npy")
+#: Temporary file of `geofeat.files.atomic_write`: ``.<final name>.<random>.tmp``.
+_STORE_TEMPORARY = re.compile(r"\..+\.tmp")
 
 
-class GeodesicStore:
+def _entry_problem(stored: np.ndarray, n: int, dtype: np.dtype, crc: str) -> str | None:
+    """What is wrong with a store entry's array (expected: ``dtype``, shape (n, n), CRC-32 ``crc`` in hex), or None."""
+    if stored.shape != (n, n) or stored.dtype != dtype:
+        return f"holds a {stored.dtype} {stored.shape} array; expected {dtype.name} ({n}, {n})"
+    if f"{array_crc32(stored):08x}" != crc:
+        return f"fails its checksum (expected {crc})"
+    return None
+
+
+class GeodesicStore(EntryFolder):
     """All-pairs geodesic matrices on disk (edge Dijkstra over ``sqrt(area)``), one ``.npy`` file per mesh content.
 
     An entry is named ``<mesh hash>-<dtype>-v<version>-<crc>.npy``: a plain NumPy file whose
@@ -400,6 +414,9 @@ class GeodesicStore:
     deletes it, which leaves a mapping intact; a file truncated or overwritten in place
     while a process holds its array would break that array (a bus error on Linux), so
     remove entries by deleting their files, never by editing them.
+
+    `info`, `verify` and `clear` (``geofeat cache info|verify|clear``) see every entry of the
+    folder, whatever its precision or layout version.
 
     Parameters
     ----------
@@ -421,8 +438,37 @@ class GeodesicStore:
         self.dtype = np.dtype(dtype)
         self.connected = bool(connected)
 
+    label = "the geodesic store"
+
     def __repr__(self) -> str:
         return f"{type(self).__name__}({str(self.folder)!r}, dtype={self.dtype.name!r})"
+
+    @property
+    def root(self) -> Path:
+        """The folder (`geofeat.files.EntryFolder`'s name for it)."""
+        return self.folder
+
+    def _scan(self) -> tuple[list[Path], list[Path], list[Path]]:
+        entries, temporary, other = [], [], []
+        if self.folder.is_dir():
+            for path in self.folder.iterdir():
+                regular = path.is_file() and not path.is_symlink()
+                if regular and _STORE_ENTRY.fullmatch(path.name):
+                    entries.append(path)
+                elif regular and _STORE_TEMPORARY.fullmatch(path.name):
+                    temporary.append(path)
+                else:
+                    other.append(path)
+        return sorted(entries), sorted(temporary), sorted(other)
+
+    def _is_sound(self, path: Path) -> bool:
+        dtype, crc = _STORE_ENTRY.fullmatch(path.name).groups()
+        try:
+            stored = np.load(path, mmap_mode="r")
+            n = stored.shape[0] if stored.ndim == 2 else -1
+            return _entry_problem(stored, n, np.dtype(dtype), crc) is None
+        except (OSError, ValueError, EOFError):
+            return False
 
     def _prefix(self, mesh: Mesh) -> str:
         return f"{mesh.hash}-{self.dtype.name}-v{STORE_VERSION}-"
@@ -488,23 +534,19 @@ class GeodesicStore:
         n = mesh.n_vertices
         try:
             stored = np.load(path, mmap_mode="r")
-            expected = path.stem.rsplit("-", 1)[1]
-            if stored.shape != (n, n) or stored.dtype != self.dtype:
-                problem = f"holds a {stored.dtype} {stored.shape} array; expected {self.dtype.name} ({n}, {n})"
-            elif f"{array_crc32(stored):08x}" != expected:
-                problem = f"fails its checksum (expected {expected})"
-            elif self.dtype == np.float32:
+            problem = _entry_problem(stored, n, self.dtype, path.stem.rsplit("-", 1)[1])
+        except (OSError, ValueError, EOFError) as exc:
+            problem = f"cannot be read ({exc})"
+        if problem is None:
+            if self.dtype == np.float32:
                 # No copy: the checked pages of the file are the matrix. The store never changes
                 # a file in place (it renames a new one over it or deletes it, and a mapping
                 # keeps the old content), so the array stays as checked; a copy would cost a
                 # fresh 113 MB allocation per 5,000-vertex matrix, slower than the checksum.
                 return stored.view(np.ndarray)
-            else:
-                dist = stored.astype(np.float32)
-                dist.flags.writeable = False
-                return dist
-        except (OSError, ValueError, EOFError) as exc:
-            problem = f"cannot be read ({exc})"
+            dist = stored.astype(np.float32)
+            dist.flags.writeable = False
+            return dist
         log.warning("geodesic store entry %s of %r %s; recomputing it", path, mesh.name, problem)
         path.unlink(missing_ok=True)
         return None

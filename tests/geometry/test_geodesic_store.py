@@ -127,3 +127,54 @@ def test_read_back_is_the_checked_file_mapped_read_only_and_outlives_its_replace
         np.save(handle, replaced)
     np.testing.assert_array_equal(again, first)
     assert computations == [mesh.name]
+
+
+def test_info_verify_and_clear_see_every_entry_and_leave_other_files(tmp_path):
+    import os
+    import time
+
+    folder = tmp_path / "g"
+    single, half = GeodesicStore(folder), GeodesicStore(folder, dtype="float16")
+    meshes = [bumpy(0, 2), bumpy(1, 2)]
+    for mesh in meshes:
+        single.load(mesh)
+    half.load(meshes[0])  # another precision in the same folder: the folder's entries, whatever the store's dtype
+    stale, fresh = folder / ".old.abc.tmp", folder / ".new.def.tmp"  # atomic_write's temporary names
+    for tmp in (stale, fresh):
+        tmp.write_bytes(b"partial")
+    os.utime(stale, (time.time() - 7200, time.time() - 7200))
+    (folder / "notes.txt").write_text("mine")
+    info = single.info()
+    assert (info.root, info.entries, info.temporary_files, info.other_paths) == (folder, 3, 2, (folder / "notes.txt",))
+    assert info.bytes == sum(p.stat().st_size for p in single.entries())
+    assert single.verify(remove=False) == (3, [])
+    damaged = single.path(meshes[1])
+    raw = bytearray(damaged.read_bytes())
+    raw[-3] ^= 0x10  # one bit of the matrix
+    damaged.write_bytes(bytes(raw))
+    assert half.verify(remove=False) == (2, [damaged]) and damaged.exists()
+    assert half.verify() == (2, [damaged]) and not damaged.exists()
+    assert not stale.exists() and fresh.exists()  # only leftovers older than an hour are swept
+    assert single.clear() == 2
+    assert sorted(p.name for p in folder.iterdir()) == ["notes.txt"]
+
+
+def test_cache_command_manages_both_stores_and_only_the_folders_named(isolated_cache, capsys):
+    from geofeat.cli import main as cli_main
+
+    mesh = bumpy(0, 2)
+    geofeat.compute(mesh, "hks", n_eig=8, n_descr=4)
+    GeodesicStore().load(mesh)
+    features, geodesics = isolated_cache / "features", isolated_cache / "geodesics"
+    assert cli_main(["cache", "info"]) == 0
+    out = capsys.readouterr().out
+    assert f"cache: {features}\nentries: 1\n" in out and f"geodesic store: {geodesics}\nentries: 1\n" in out
+    assert cli_main(["cache", "clear", "--dir", str(features)]) == 0  # the feature folder only
+    assert capsys.readouterr().out == f"removed 1 entries from {features}\n"
+    assert len(GeodesicStore().entries()) == 1
+    assert cli_main(["cache", "clear", "--geodesic-dir", str(geodesics)]) == 0
+    assert capsys.readouterr().out == f"removed 1 entries from {geodesics}\n" and GeodesicStore().entries() == []
+    GeodesicStore().load(mesh)
+    geofeat.compute(mesh, "hks", n_eig=8, n_descr=4)
+    assert cli_main(["cache", "clear"]) == 0  # both by default
+    assert GeodesicStore().entries() == [] and geofeat.FeatureCache().entries() == []
