@@ -386,9 +386,10 @@ STORE_VERSION = "2"
 #: Precisions a `GeodesicStore` keeps its matrices in.
 STORE_DTYPES = ("float32", "float16")
 #: File name of an entry (any precision and layout version): mesh hash, dtype, version, CRC-32.
-_STORE_ENTRY = re.compile(r"[0-9a-f]{64}-(float32|float16)-v[0-9]+-([0-9a-f]{8})\.npy")
-#: Temporary file of `geofeat.files.atomic_write`: ``.<final name>.<random>.tmp``.
-_STORE_TEMPORARY = re.compile(r"\..+\.tmp")
+_ENTRY_PATTERN = r"[0-9a-f]{64}-(float32|float16)-v[0-9]+-([0-9a-f]{8})\.npy"
+_STORE_ENTRY = re.compile(_ENTRY_PATTERN)
+#: Temporary file of an entry being written (`geofeat.files.atomic_write`): ``.<entry name>.<random>.tmp``.
+_STORE_TEMPORARY = re.compile(rf"\.{_ENTRY_PATTERN}\.[^/]+\.tmp")
 
 
 def _entry_problem(stored: np.ndarray, n: int, dtype: np.dtype, crc: str) -> str | None:
@@ -431,14 +432,14 @@ class GeodesicStore(EntryFolder):
         Refuse meshes in several pieces (`MeshError`): their matrices hold ``inf``.
     """
 
+    label = "the geodesic store"
+
     def __init__(self, folder: str | os.PathLike | None = None, dtype: str = "float32", connected: bool = False):
         if dtype not in STORE_DTYPES:
             raise MeshError(f"GeodesicStore keeps matrices in one of {STORE_DTYPES}; found dtype={dtype!r}.")
         self.folder = Path(folder).expanduser() if folder is not None else cache_dir() / "geodesics"
         self.dtype = np.dtype(dtype)
         self.connected = bool(connected)
-
-    label = "the geodesic store"
 
     def __repr__(self) -> str:
         return f"{type(self).__name__}({str(self.folder)!r}, dtype={self.dtype.name!r})"

@@ -139,13 +139,16 @@ def test_info_verify_and_clear_see_every_entry_and_leave_other_files(tmp_path):
     for mesh in meshes:
         single.load(mesh)
     half.load(meshes[0])  # another precision in the same folder: the folder's entries, whatever the store's dtype
-    stale, fresh = folder / ".old.abc.tmp", folder / ".new.def.tmp"  # atomic_write's temporary names
+    name = single.path(meshes[0]).name
+    stale, fresh = folder / f".{name}.x1y2.tmp", folder / f".{name}.z3w4.tmp"  # atomic_write's temporary names
     for tmp in (stale, fresh):
         tmp.write_bytes(b"partial")
     os.utime(stale, (time.time() - 7200, time.time() - 7200))
     (folder / "notes.txt").write_text("mine")
+    (folder / ".notes.tmp").write_text("mine too")  # a hidden file of the user's, not a temporary of the store
     info = single.info()
-    assert (info.root, info.entries, info.temporary_files, info.other_paths) == (folder, 3, 2, (folder / "notes.txt",))
+    others = (folder / ".notes.tmp", folder / "notes.txt")
+    assert (info.root, info.entries, info.temporary_files, info.other_paths) == (folder, 3, 2, others)
     assert info.bytes == sum(p.stat().st_size for p in single.entries())
     assert single.verify(remove=False) == (3, [])
     damaged = single.path(meshes[1])
@@ -156,7 +159,7 @@ def test_info_verify_and_clear_see_every_entry_and_leave_other_files(tmp_path):
     assert half.verify() == (2, [damaged]) and not damaged.exists()
     assert not stale.exists() and fresh.exists()  # only leftovers older than an hour are swept
     assert single.clear() == 2
-    assert sorted(p.name for p in folder.iterdir()) == ["notes.txt"]
+    assert sorted(p.name for p in folder.iterdir()) == [".notes.tmp", "notes.txt"]
 
 
 def test_cache_command_manages_both_stores_and_only_the_folders_named(isolated_cache, capsys):
