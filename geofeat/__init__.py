@@ -10,7 +10,7 @@ from geofeat._version import __version__
 from geofeat.cache import CacheError, FeatureCache
 from geofeat.config import cache_dir, set_cache_dir
 from geofeat.descriptors import Descriptor, compute, compute_many, descriptors
-from geofeat.errors import DescriptorError, GeofeatError, MeshError, MissingDependencyError
+from geofeat.errors import DescriptorError, GeofeatError, MeshError, MissingDependencyError, StoreError
 from geofeat.geometry.errors import SpectralError
 from geofeat.mesh import Mesh, load_mesh, normalize
 
@@ -25,6 +25,7 @@ __all__ = [
     "MeshError",
     "MissingDependencyError",
     "SpectralError",
+    "StoreError",
     "__version__",
     "cache_dir",
     "compute",

@@ -2,7 +2,8 @@
 
 The core's own errors are defined here: `GeofeatError`, `MeshError` (meshes, files),
 `DescriptorError` (bad parameters; the default of `geofeat.checks`), `MissingDependencyError`
-(optional dependencies, `geofeat.registry`) and `DeviceError` (`geofeat.devices`). Every other
+(optional dependencies, `geofeat.registry`), `DeviceError` (`geofeat.devices`) and `StoreError`
+(stores of computed arrays on disk, `geofeat.files.EntryFolder`). Every other
 error type is defined beside the layer that raises it and is re-exported here (imported on
 first use, so this module never imports a layer above the core):
 
@@ -67,3 +68,7 @@ class MissingDependencyError(GeofeatError, ImportError):
 
 class DeviceError(GeofeatError, ValueError):
     """An unknown torch device, or CUDA requested where there is none."""
+
+
+class StoreError(GeofeatError, OSError):
+    """A store of computed arrays on disk (`geofeat.files.EntryFolder`) cannot be read, written or cleared."""

@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 
-from geofeat.errors import GeofeatError
+from geofeat.errors import GeofeatError, StoreError
 
 log = logging.getLogger(__name__)
 
@@ -187,10 +187,6 @@ def array_crc32(array: np.ndarray) -> int:
     """CRC-32 of an array's dtype, shape and bytes (C order): catches truncation, bit rot and garbage, and is fast."""
     header = f"{array.dtype.str}{array.shape}".encode()
     return zlib.crc32(np.ascontiguousarray(array).data, zlib.crc32(header))
-
-
-class StoreError(GeofeatError, OSError):
-    """A store of computed arrays (features, geodesic matrices) cannot be read, written or cleared."""
 
 
 @dataclass(frozen=True)
