@@ -40,7 +40,8 @@ import h5py
 import numpy as np
 
 from geofeat import config
-from geofeat.files import STALE_TMP_SECONDS, EntryFolder, StoreError, StoreInfo, array_crc32, fsync_file, fsync_folder
+from geofeat.errors import StoreError
+from geofeat.files import STALE_TMP_SECONDS, EntryFolder, StoreInfo, array_crc32, fsync_file, fsync_folder
 
 __all__ = ["STALE_TMP_SECONDS", "CacheError", "CacheInfo", "FeatureCache", "cache_key"]
 

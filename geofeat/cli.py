@@ -9,8 +9,8 @@ import sys
 import tempfile
 
 from geofeat.cache import FeatureCache
-from geofeat.errors import GeofeatError
-from geofeat.files import EntryFolder, StoreError
+from geofeat.errors import GeofeatError, StoreError
+from geofeat.files import EntryFolder
 
 
 def _out(line: str = "") -> None:

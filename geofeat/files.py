@@ -21,7 +21,6 @@ log = logging.getLogger(__name__)
 
 __all__ = [
     "EntryFolder",
-    "StoreError",
     "StoreInfo",
     "atomic_write",
     "fsync_file",
