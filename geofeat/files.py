@@ -1,4 +1,4 @@
-"""Writing files so that a reader never sees a half-written one, and reading PyTorch files safely."""
+"""Writing files so that a reader never sees a half-written one, folders of such checked entries (`EntryFolder`), and reading PyTorch files safely."""
 
 from __future__ import annotations
 
