@@ -41,9 +41,7 @@ import numpy as np
 
 from geofeat import config
 from geofeat.errors import StoreError
-from geofeat.files import STALE_TMP_SECONDS, EntryFolder, StoreInfo, array_crc32, fsync_file, fsync_folder
-
-__all__ = ["STALE_TMP_SECONDS", "CacheError", "CacheInfo", "FeatureCache", "cache_key"]
+from geofeat.files import EntryFolder, StoreInfo, array_crc32, fsync_file, fsync_folder
 
 log = logging.getLogger(__name__)
 
