@@ -53,6 +53,7 @@ __all__ = [
     "DinoBackbone",
     "load_backbone",
     "missing_weights_message",
+    "grid_sample_patch_features",
     "sample_patch_features",
     "state_dict_digest",
     "upsample_patch_features",
@@ -200,6 +201,49 @@ def sample_patch_features(grid: torch.Tensor, pixels: torch.Tensor, out_size: tu
     top = tap(y0, x0) * (1 - wx)[:, None] + tap(y0, x1) * wx[:, None]
     bottom = tap(y1, x0) * (1 - wx)[:, None] + tap(y1, x1) * wx[:, None]
     return F.normalize(top * (1 - wy)[:, None] + bottom * wy[:, None], dim=1)
+
+
+def grid_sample_patch_features(
+    grid: torch.Tensor, pixels: torch.Tensor, out_size: tuple[int, int], dtype: torch.dtype = torch.float16
+) -> torch.Tensor:
+    """Patch features at chosen pixels as GeoLoRA and Diff3f sample them: corner-aligned grid, `grid_sample`, L2-normalised.
+
+    Pixel ``(row, col)`` of an ``H x W`` image samples the patch grid at the normalised
+    position ``x = linspace(-1, 1, W)[col]``, ``y = linspace(-1, 1, H)[row]`` (so the first and
+    last pixels sit on the outer edges of the grid) with ``grid_sample(align_corners=False)``,
+    zero padding, in ``dtype`` (the official code casts the tokens and the grid to float16).
+    That maps pixel ``col`` to patch position ``col * w / (W - 1) - 0.5``, not to
+    ``(col + 0.5) * w / W - 0.5`` as `sample_patch_features` does. Each output pixel is
+    computed on its own, so sampling only the foreground pixels gives the values that the
+    whole image would.
+
+    Parameters
+    ----------
+    grid : torch.Tensor, shape (N, h, w, C)
+        Patch features.
+    pixels : torch.Tensor, shape (M, 3), int64
+        (view, row, column) of each wanted pixel, in flat order.
+    out_size : (int, int)
+        (H, W) of the rendered images.
+    dtype : torch.dtype
+        Precision of the tokens, the grid and the result.
+
+    Returns
+    -------
+    torch.Tensor, shape (M, C), ``dtype``, unit L2 norm per row
+    """
+    height, width = out_size
+    pixels = pixels.to(grid.device)
+    xs = torch.linspace(-1.0, 1.0, width, device=grid.device)
+    ys = torch.linspace(-1.0, 1.0, height, device=grid.device)
+    chw = grid.to(dtype).permute(0, 3, 1, 2)
+    rows = []
+    for view in range(grid.shape[0]):
+        mine = pixels[:, 0] == view
+        where = torch.stack((xs[pixels[mine, 2]], ys[pixels[mine, 1]]), dim=-1).to(dtype)  # (M_v, 2) as (x, y)
+        sampled = F.grid_sample(chw[view : view + 1], where[None, None], align_corners=False)  # (1, C, 1, M_v)
+        rows.append(F.normalize(sampled, dim=1)[0, :, 0].T)
+    return torch.cat(rows) if rows else chw.new_zeros((0, grid.shape[-1]))
 
 
 def _source_taps(index: torch.Tensor, n_in: int, n_out: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:

@@ -21,7 +21,12 @@ from geofeat.mesh import Mesh
 from geofeat.render import make_cameras, multiview_features
 from geofeat.render.backproject import BACKPROJECT_MODES
 from geofeat.render.cameras import CAMERA_LAYOUTS
-from geofeat.render.multiview import FILL_MODES
+from geofeat.render.multiview import FILL_MODES, RECIPES
+
+#: Views and render size of each preset when ``views`` / ``image_size`` are not given
+#: (``image_size`` None under "default": the kind's own, 448 for DINOv2 and 512 for DINOv3).
+PRESET_VIEWS = {"default": 49, "reference": 49, "dsmk": 100}
+PRESET_IMAGE_SIZE = {"default": None, "reference": 512, "dsmk": 512}
 
 
 class DinoFeatures(Descriptor):
@@ -29,18 +34,26 @@ class DinoFeatures(Descriptor):
 
     Parameters
     ----------
+    preset : str
+        ``"default"`` (geofeat's recipe), ``"reference"`` (the official GeoLoRA code's, stage
+        by stage) or, for ``dinov2``, ``"dsmk"`` (DeepShapeMatchingKit's); see
+        `geofeat.render.multiview.RECIPES`. The parameters below that are None take the
+        preset's value; the others override it.
     weights : str or None
         A Hugging Face model folder, an official Meta checkpoint (``.pth``) or a Hub id; None
         reads ``$GEOFEAT_DINOV2_WEIGHTS`` / ``$GEOFEAT_DINOV3_WEIGHTS`` (see
         `geofeat.backbones.load_backbone`).
-    views : int
-        Number of cameras (49 = the official 7 x 7 grid).
+    views : int or None
+        Number of cameras (49 = the official 7 x 7 grid); None: 49, or 100 under ``"dsmk"``.
     image_size : int or None
-        Render size in pixels, a multiple of the patch size; None: 448 for DINOv2 (patch 14),
-        512 for DINOv3 (patch 16).
+        Render size in pixels; None: 512 under the ``"reference"`` and ``"dsmk"`` presets
+        (resized to 518 for the backbone, as the official code does), otherwise 448 for
+        DINOv2 (patch 14) and 512 for DINOv3 (patch 16), which must then be a multiple of
+        the patch size.
     camera_layout : {"official", "uniform"}
         See `geofeat.render.make_cameras`.
-    backproject : {"ball", "face"}
+    backproject : {"ball", "face", "ball_last"} or None
+        None: the preset's (``"ball"``, or ``"ball_last"`` under ``"reference"`` and ``"dsmk"``).
     layer : int
         Transformer layer whose patch tokens are used (-1: the last, after the final norm).
     device : str
@@ -57,18 +70,21 @@ class DinoFeatures(Descriptor):
 
     kind: ClassVar[str] = ""
     default_image_size: ClassVar[int] = 0
+    presets: ClassVar[tuple[str, ...]] = ("default", "reference")
     # 2: patch features sampled at the foreground pixels (geofeat.render.multiview) instead of
     # read from upsampled whole images; equal up to float32 rounding (see README).
-    version = "2"
+    # 3: presets (the "reference" recipe of the official GeoLoRA code).
+    version = "3"
 
     def __init__(
         self,
         *,
+        preset: str = "default",
         weights: str | None = None,
-        views: int = 49,
+        views: int | None = None,
         image_size: int | None = None,
         camera_layout: str = "official",
-        backproject: str = "ball",
+        backproject: str | None = None,
         layer: int = -1,
         device: str = "auto",
         batch_size: int = 4,
@@ -77,8 +93,9 @@ class DinoFeatures(Descriptor):
         seed: int = 0,
     ):
         self._store(
-            weights=weights, views=views, image_size=image_size, camera_layout=camera_layout, backproject=backproject,
-            layer=layer, device=device, batch_size=batch_size, fill=fill, random_rotation=random_rotation, seed=seed,
+            preset=preset, weights=weights, views=views, image_size=image_size, camera_layout=camera_layout,
+            backproject=backproject, layer=layer, device=device, batch_size=batch_size, fill=fill,
+            random_rotation=random_rotation, seed=seed,
         )  # fmt: skip
 
     def _store(self, **params) -> None:
@@ -92,11 +109,13 @@ class DinoFeatures(Descriptor):
                         f"{owner}: {name} must be a path, a Hub id or None; found {params[name]!r} ({type(params[name]).__name__})."
                     )
                 checked[name] = os.fspath(params[name])  # a pathlib.Path: keep the parameters JSON-serialisable
-        checked["views"] = check_integer(params["views"], "views", owner=owner, low=1)
-        if params["image_size"] is not None:
-            checked["image_size"] = check_integer(params["image_size"], "image_size", owner=owner, low=1)
+        checked["preset"] = check_choice(params["preset"], "preset", self.presets, owner=owner)
+        for name in ("views", "image_size"):
+            if params[name] is not None:
+                checked[name] = check_integer(params[name], name, owner=owner, low=1)
         checked["camera_layout"] = check_choice(params["camera_layout"], "camera_layout", CAMERA_LAYOUTS, owner=owner)
-        checked["backproject"] = check_choice(params["backproject"], "backproject", BACKPROJECT_MODES, owner=owner)
+        if params["backproject"] is not None:
+            checked["backproject"] = check_choice(params["backproject"], "backproject", BACKPROJECT_MODES, owner=owner)
         checked["layer"] = check_integer(params["layer"], "layer", owner=owner)
         if not isinstance(params["device"], (str, torch.device)):
             raise DescriptorError(
@@ -132,15 +151,16 @@ class DinoFeatures(Descriptor):
     def compute(self, mesh: Mesh) -> np.ndarray:
         """Vertex features of shape (V, embed_dim)."""
         backbone = self.backbone()
-        image_size = self.image_size or self.default_image_size
+        views = self.views or PRESET_VIEWS[self.preset]
+        image_size = self.image_size or PRESET_IMAGE_SIZE[self.preset] or self.default_image_size
         cameras = make_cameras(
-            mesh, self.views, layout=self.camera_layout, image_size=image_size,
+            mesh, views, layout=self.camera_layout, image_size=image_size,
             random_rotation=self.random_rotation, seed=self.seed, device=backbone.device,
         )  # fmt: skip
-
         features, _ = multiview_features(
-            mesh, cameras, backbone, backproject=self.backproject, fill=self.fill, batch_size=self.batch_size, progress=True
-        )
+            mesh, cameras, backbone, recipe=RECIPES[self.preset], backproject=self.backproject, fill=self.fill,
+            batch_size=self.batch_size, progress=True,
+        )  # fmt: skip
         return features.cpu().numpy().astype(np.float32, copy=False)
 
 
@@ -150,6 +170,7 @@ class DINOv2(DinoFeatures):
     name = "dinov2"
     kind = "dinov2"
     default_image_size = 448
+    presets = ("default", "reference", "dsmk")
 
 
 class DINOv3(DinoFeatures):
@@ -170,8 +191,9 @@ class GeoLoRA(DinoFeatures):
         of ``geofeat train-geolora``, ``<run>/checkpoints/step_NNNNNNN``) or a GeoLoRA release
         checkpoint ``.pth`` (``saved_models/*.pth`` of the authors' repository, for DINOv3
         ViT-B/16).
-    weights, views, image_size, camera_layout, backproject, layer, device, batch_size, fill, random_rotation, seed
-        As for ``dinov3`` (`DinoFeatures`): 49 views of the official grid at 512 x 512 by default.
+    preset, weights, views, image_size, camera_layout, backproject, layer, device, batch_size, fill, random_rotation, seed
+        As for ``dinov3`` (`DinoFeatures`): 49 views of the official grid at 512 x 512 by
+        default; ``preset="reference"`` reproduces the official GeoLoRA code.
     """
 
     name = "geolora"
@@ -182,11 +204,12 @@ class GeoLoRA(DinoFeatures):
         self,
         *,
         checkpoint: str | None = None,
+        preset: str = "default",
         weights: str | None = None,
-        views: int = 49,
+        views: int | None = None,
         image_size: int | None = None,
         camera_layout: str = "official",
-        backproject: str = "ball",
+        backproject: str | None = None,
         layer: int = -1,
         device: str = "auto",
         batch_size: int = 4,
@@ -195,7 +218,7 @@ class GeoLoRA(DinoFeatures):
         seed: int = 0,
     ):
         self._store(
-            checkpoint=checkpoint, weights=weights, views=views, image_size=image_size, camera_layout=camera_layout,
+            checkpoint=checkpoint, preset=preset, weights=weights, views=views, image_size=image_size, camera_layout=camera_layout,
             backproject=backproject, layer=layer, device=device, batch_size=batch_size, fill=fill,
             random_rotation=random_rotation, seed=seed,
         )  # fmt: skip

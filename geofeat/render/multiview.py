@@ -17,6 +17,24 @@ Patch features are sampled at the foreground pixels (`geofeat.backbones.sample_p
 which equals upsampling the whole patch grid to the render size and reading those pixels,
 without ever forming the (N, H, W, C) feature images (7 views of 512 x 512 x 768 are 5.6 GB
 in float32).
+
+A `FeatureRecipe` says how each stage is done. `RECIPES` holds the named ones:
+
+``"default"``
+    geofeat's own: the render goes to the backbone as it is, patch features are sampled at
+    pixel centres in float32, and a vertex takes the mean of every pixel within its ball.
+``"reference"``
+    The official GeoLoRA code (vikiehm/geo-lora ``utils/dino_utils.py``), reproduced stage by
+    stage (``benchmarks/parity_geolora.py``): the 512 x 512 render is resized to 518 x 518
+    (bilinear) before the backbone, the tokens are cast to float16 and sampled on a
+    corner-aligned grid (`geofeat.backbones.grid_sample_patch_features`), pixels are lifted
+    to 3D from their depth at those corner-aligned positions, and back-projection is
+    ``"ball_last"`` (`geofeat.render.backproject`) with the radius a fraction of the shape's
+    diameter, at most 100 vertices a pixel, in float16 sums.
+``"dsmk"``
+    DeepShapeMatchingKit's DINO features (``utils/dino_util.py``, from Diff3f): as
+    ``"reference"``, but back faces are drawn, and the render is cut to 8 bits and resized
+    with Pillow before the backbone.
 """
 
 from __future__ import annotations
@@ -24,23 +42,42 @@ from __future__ import annotations
 import contextlib
 from collections.abc import Callable
 from contextlib import AbstractContextManager
+from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING, NamedTuple
 
+import numpy as np
 import torch
+import torch.nn.functional as F
 from tqdm.auto import tqdm
 
-from geofeat.backbones.dino import sample_patch_features
+from geofeat.backbones.dino import grid_sample_patch_features, sample_patch_features
 from geofeat.checks import check_choice, check_integer
 from geofeat.mesh import Mesh
-from geofeat.render.backproject import BACKPROJECT_MODES, BackprojectError, VertexFeatureAccumulator, foreground_pixels
+from geofeat.render.backproject import (
+    BACKPROJECT_MODES,
+    RADIUS_BASES,
+    BackprojectError,
+    VertexFeatureAccumulator,
+    foreground_pixels,
+)
 from geofeat.render.cameras import Cameras
 from geofeat.render.errors import RenderError
+from geofeat.render.rasterizer import RasterSettings
 from geofeat.render.shading import render_phong
 
 if TYPE_CHECKING:
     from geofeat.backbones.dino import DinoBackbone
 
-__all__ = ["FILL_MODES", "PHASES", "MultiviewFeatures", "PhaseTimer", "multiview_features"]
+__all__ = [
+    "FILL_MODES",
+    "PHASES",
+    "RECIPES",
+    "FeatureRecipe",
+    "MultiviewFeatures",
+    "PhaseTimer",
+    "backbone_input",
+    "multiview_features",
+]
 
 #: What vertices seen in no view get: the nearest seen vertex's features, or zeros.
 FILL_MODES = ("nearest", "zero")
@@ -49,6 +86,81 @@ PHASES = ("render", "forward", "backproject")
 
 #: ``timer(phase)`` returns a context manager around the work of that phase (one of `PHASES`).
 PhaseTimer = Callable[[str], AbstractContextManager]
+
+PIXEL_GRIDS = ("centers", "corners")
+INPUT_CODECS = ("float", "uint8")
+PRECISIONS = {"float32": torch.float32, "float16": torch.float16}
+
+
+@dataclass(frozen=True)
+class FeatureRecipe:
+    """How the multi-view path does each stage (see the module notes and `RECIPES`).
+
+    Parameters
+    ----------
+    backproject : {"ball", "face", "ball_last"}
+        See `geofeat.render.backproject`.
+    pixel_grid : {"centers", "corners"}
+        Where a pixel samples the patch grid and where it is lifted to 3D: its centre, or
+        GeoLoRA's corner-aligned grid (pixel ``col`` of ``W`` at ``col * W / (W - 1)``).
+    input_size : int, optional
+        Side that each render is resized to (bilinear) before the backbone, then cropped to
+        a multiple of the patch size from the top-left, as a strided patch embedding does;
+        None: the render as it is.
+    input_codec : {"float", "uint8"}
+        ``"uint8"``: the render is cut to 8 bits (truncated) and resized with Pillow, as
+        torchvision's transforms do on a PIL image.
+    precision : {"float32", "float16"}
+        Precision of the patch tokens after the backbone, their sampling and the vertex sums.
+    radius_basis : {"diagonal", "diameter"}
+        Ball radius as ``0.004 x`` the bounding-box diagonal or the largest vertex distance.
+    max_neighbours : int, optional
+        ``"ball_last"``: at most this many vertices a pixel (pytorch3d ``ball_query``'s K).
+    cull_backfaces : bool
+        Skip faces turned away from the camera.
+    """
+
+    backproject: str = "ball"
+    pixel_grid: str = "centers"
+    input_size: int | None = None
+    input_codec: str = "float"
+    precision: str = "float32"
+    radius_basis: str = "diagonal"
+    max_neighbours: int | None = None
+    cull_backfaces: bool = True
+
+    def __post_init__(self) -> None:
+        check_choice(self.backproject, "backproject", BACKPROJECT_MODES, error=BackprojectError)
+        check_choice(self.pixel_grid, "pixel_grid", PIXEL_GRIDS, error=BackprojectError)
+        check_choice(self.input_codec, "input_codec", INPUT_CODECS, error=BackprojectError)
+        check_choice(self.precision, "precision", tuple(PRECISIONS), error=BackprojectError)
+        check_choice(self.radius_basis, "radius_basis", RADIUS_BASES, error=BackprojectError)
+        if self.input_size is not None:
+            check_integer(self.input_size, "input_size", low=1, error=BackprojectError)
+        if self.max_neighbours is not None:
+            check_integer(self.max_neighbours, "max_neighbours", low=1, error=BackprojectError)
+
+    @property
+    def dtype(self) -> torch.dtype:
+        """`precision` as a torch dtype."""
+        return PRECISIONS[self.precision]
+
+
+_REFERENCE = FeatureRecipe(
+    backproject="ball_last",
+    pixel_grid="corners",
+    input_size=518,
+    precision="float16",
+    radius_basis="diameter",
+    max_neighbours=100,
+)
+#: The named recipes: geofeat's ``"default"``, the official GeoLoRA code's ``"reference"``,
+#: DeepShapeMatchingKit's ``"dsmk"`` (see the module notes).
+RECIPES = {
+    "default": FeatureRecipe(),
+    "reference": _REFERENCE,
+    "dsmk": replace(_REFERENCE, input_codec="uint8", cull_backfaces=False),
+}
 
 
 class MultiviewFeatures(NamedTuple):
@@ -77,7 +189,8 @@ def multiview_features(
     cameras: Cameras,
     backbone: DinoBackbone,
     *,
-    backproject: str = "ball",
+    recipe: FeatureRecipe | None = None,
+    backproject: str | None = None,
     fill: str = "nearest",
     batch_size: int | None = None,
     grad: bool = False,
@@ -101,8 +214,10 @@ def multiview_features(
         N views of H x W pixels, H and W multiples of ``backbone.patch_size``.
     backbone : DinoBackbone
         DINOv2 / DINOv3, with or without LoRA; C = ``backbone.embed_dim``.
-    backproject : {"ball", "face"}
-        See `geofeat.render.backproject`.
+    recipe : FeatureRecipe, optional
+        How each stage is done; default ``RECIPES["default"]``.
+    backproject : {"ball", "face", "ball_last"}, optional
+        Overrides ``recipe.backproject`` (see `geofeat.render.backproject`).
     fill : {"nearest", "zero"}
         Features of vertices seen in no view: the nearest seen vertex's, or zeros.
     batch_size : int or None
@@ -135,25 +250,102 @@ def multiview_features(
             f"{mesh.name or 'the mesh'!r} is a point cloud: multi-view features need faces to render; "
             "give a triangle mesh (or reconstruct a surface first)."
         )
-    backproject = check_choice(backproject, "backproject", BACKPROJECT_MODES, error=BackprojectError)
+    recipe = RECIPES["default"] if recipe is None else recipe
+    if backproject is not None:
+        recipe = replace(recipe, backproject=backproject)
     fill = check_choice(fill, "fill", FILL_MODES, error=BackprojectError)
     batch_size = len(cameras) if batch_size is None else check_integer(batch_size, "batch_size", low=1, error=BackprojectError)
     timer = timer or _no_timer
     device = backbone.device
     size = (cameras.height, cameras.width)
-    accumulator = VertexFeatureAccumulator(mesh.verts, mesh.faces, backbone.embed_dim, mode=backproject, device=device)
+    accumulator = VertexFeatureAccumulator(
+        mesh.verts, mesh.faces, backbone.embed_dim, mode=recipe.backproject, device=device,
+        radius_basis=recipe.radius_basis, max_neighbours=recipe.max_neighbours, dtype=recipe.dtype,
+    )  # fmt: skip
+    raster = RasterSettings(cull_backfaces=recipe.cull_backfaces)
     starts = range(0, len(cameras), batch_size)
     with torch.enable_grad() if grad else torch.no_grad():
         for start in tqdm(starts, desc=f"views of {mesh.name or 'mesh'}", unit="batch", disable=not progress):
+            views = cameras[start : start + batch_size]
             with timer("render"), torch.no_grad():  # the images do not depend on any parameter
-                rendering = render_phong(mesh, None, cameras[start : start + batch_size])
-            pix_to_face, bary = rendering.fragments.pix_to_face, rendering.fragments.bary
+                rendering = render_phong(mesh, None, views, raster)
+                images = backbone_input(rendering.images, recipe, backbone.patch_size)
+            fragments = rendering.fragments
+            pixels = foreground_pixels(fragments.pix_to_face)
             with timer("forward"):
                 amp = torch.autocast(device_type=device.type, dtype=torch.bfloat16) if autocast else contextlib.nullcontext()
                 with amp:
-                    grid = backbone.patch_features(rendering.images)  # (B, H / p, W / p, C)
-                features = sample_patch_features(grid, foreground_pixels(pix_to_face), size)  # (M, C)
+                    grid = backbone.patch_features(images)  # (B, h, w, C)
+                if recipe.pixel_grid == "centers":
+                    features = sample_patch_features(grid, pixels, size)  # (M, C)
+                else:
+                    features = grid_sample_patch_features(grid, pixels, size, recipe.dtype)
             with timer("backproject"):
-                accumulator.add_foreground(features, pix_to_face, bary)
+                points = corner_points(views, pixels, fragments.depth) if recipe.pixel_grid == "corners" else None
+                accumulator.add_foreground(features, fragments.pix_to_face, fragments.bary, points)
         with timer("backproject"):
             return MultiviewFeatures(*accumulator.result_tensor(fill=fill))
+
+
+def backbone_input(images: torch.Tensor, recipe: FeatureRecipe, patch_size: int) -> torch.Tensor:
+    """The images that the backbone sees: the renders, resized and cropped as ``recipe`` says.
+
+    Parameters
+    ----------
+    images : torch.Tensor, shape (N, H, W, 3), float in [0, 1]
+    recipe : FeatureRecipe
+    patch_size : int
+
+    Returns
+    -------
+    torch.Tensor, shape (N, H', W', 3), float32 in [0, 1]
+        ``H' = W' = input_size`` rounded down to a multiple of ``patch_size`` (the rows and
+        columns that a strided patch embedding would ignore are dropped); the images as given
+        when ``recipe.input_size`` is None.
+    """
+    if recipe.input_size is None:
+        return images
+    size = recipe.input_size
+    if recipe.input_codec == "uint8":
+        from PIL import Image
+
+        codes = (images * 255).to(torch.uint8).cpu().numpy()  # truncation, as numpy's astype(uint8)
+        resized = [np.asarray(Image.fromarray(c).resize((size, size), Image.BILINEAR)) for c in codes]
+        out = torch.as_tensor(np.stack(resized), device=images.device).float() / 255.0
+    else:
+        chw = images.permute(0, 3, 1, 2).float()
+        out = F.interpolate(chw, size=(size, size), mode="bilinear", align_corners=False, antialias=True).permute(0, 2, 3, 1)
+    keep = size // patch_size * patch_size
+    return out[:, :keep, :keep].contiguous()
+
+
+def corner_points(cameras: Cameras, pixels: torch.Tensor, depth: torch.Tensor) -> torch.Tensor:
+    """3D points of foreground pixels lifted from their depth at GeoLoRA's corner-aligned positions.
+
+    The official code unprojects pixel ``(row, col)`` at NDC ``1 - 2 col / (W - 1)``,
+    ``1 - 2 row / (H - 1)`` (pytorch3d's NDC, ``+x`` left, ``+y`` up): in our pixel
+    coordinates ``(col W / (W - 1), row H / (H - 1))``, not the centre the rasterizer sampled.
+
+    Parameters
+    ----------
+    cameras : Cameras
+        The N views.
+    pixels : torch.Tensor, shape (M, 3), int64
+        (view, row, column) of each foreground pixel.
+    depth : torch.Tensor, shape (N, H, W)
+        Camera-space depth from the rasterizer.
+
+    Returns
+    -------
+    torch.Tensor, shape (M, 3), float64, on the cameras' device
+    """
+    height, width = cameras.height, cameras.width
+    pixels = pixels.to(cameras.device)
+    points = torch.empty((pixels.shape[0], 3), dtype=torch.float64, device=cameras.device)
+    for view in range(len(cameras)):
+        mine = torch.nonzero(pixels[:, 0] == view).squeeze(1)
+        rows, cols = pixels[mine, 1], pixels[mine, 2]
+        where = torch.stack((cols * (width / (width - 1)), rows * (height / (height - 1))), dim=-1).double()
+        z = depth[view].to(cameras.device)[rows, cols].double()
+        points[mine] = cameras[view].unproject(where, z)[0]
+    return points

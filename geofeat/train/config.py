@@ -23,6 +23,8 @@ __all__ = ["LOSSES", "RESUMABLE_CHANGES", "TrainConfig"]
 
 LOSSES = ("geodesic", "plain")
 AMP_MODES = ("auto", "on", "off")
+#: Feature recipes a run can train with (`geofeat.render.multiview.RECIPES`).
+TRAIN_PRESETS = ("default", "reference")
 #: Fields that may differ between a run and its resumption (they do not change what is learned).
 RESUMABLE_CHANGES = frozenset(
     {"steps", "max_minutes", "progress", "device", "checkpoint_every", "validate_every", "val_pairs", "geodesic_cache"}
@@ -62,7 +64,11 @@ class TrainConfig(JsonConfig):
     views_full, views_partial : int
         Cameras of the official grid for the full shape and for each partial shape.
     camera_layout : {"official", "uniform"}
-    backproject : {"ball", "face"}
+    preset : {"default", "reference"}
+        Recipe of the multi-view features (`geofeat.render.multiview.RECIPES`):
+        ``"reference"`` computes them as the official GeoLoRA code does, stage by stage.
+    backproject : {"ball", "face", "ball_last"} or None
+        None: the preset's.
     partials_per_shape : int
         Partial shapes cut from the full shape at every step.
     shapes_per_rank : int
@@ -114,7 +120,8 @@ class TrainConfig(JsonConfig):
     views_full: int = 9
     views_partial: int = 4
     camera_layout: str = "official"
-    backproject: str = "ball"
+    preset: str = "default"
+    backproject: str | None = None
     partials_per_shape: int = 2
     shapes_per_rank: int = 1
     partial_kinds: tuple[str, ...] = PARTIAL_KINDS
@@ -147,6 +154,8 @@ class TrainConfig(JsonConfig):
             problems.append("data is empty: give a folder of meshes or a dataset name (faust_r, scape_r)")
         if self.loss not in LOSSES:
             problems.append(f"loss must be one of {LOSSES}, found {self.loss!r}")
+        if self.preset not in TRAIN_PRESETS:
+            problems.append(f"preset must be one of {TRAIN_PRESETS}, found {self.preset!r}")
         if self.amp not in AMP_MODES:
             problems.append(f"amp must be one of {AMP_MODES}, found {self.amp!r}")
         unknown_kinds = sorted(set(self.partial_kinds) - set(PARTIAL_KINDS))

@@ -83,6 +83,7 @@ from geofeat.files import atomic_write, fsync_folder, fsync_tree, load_torch_fil
 from geofeat.geometry.partial import make_partial
 from geofeat.mesh import Mesh
 from geofeat.render import make_cameras, multiview_features
+from geofeat.render.multiview import RECIPES
 from geofeat.train.config import RESUMABLE_CHANGES, TrainConfig
 from geofeat.train.errors import TrainingError
 from geofeat.train.losses import geodesic_point_info_nce, point_info_nce
@@ -540,8 +541,8 @@ class GeoLoraTrainer:
             mesh, n_views, layout=self.config.camera_layout, image_size=self.config.image_size, device=self.device
         )
         return multiview_features(
-            mesh, cameras, self.backbone, backproject=self.config.backproject, fill=fill,
-            grad=torch.is_grad_enabled(), autocast=self._autocast(), timer=timer,
+            mesh, cameras, self.backbone, recipe=RECIPES[self.config.preset], backproject=self.config.backproject,
+            fill=fill, grad=torch.is_grad_enabled(), autocast=self._autocast(), timer=timer,
         )  # fmt: skip
 
     # ------------------------------------------------------------------ one step
