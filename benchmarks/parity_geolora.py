@@ -184,8 +184,46 @@ def official_vit(repo: Path, kind: str, seed: int = SEED) -> torch.nn.Module:
         sys.path.remove(str(Path(repo).resolve()))
 
 
-def official_lora(model: torch.nn.Module, seed: int = SEED):
-    """peft LoRA on the fused ``qkv`` exactly as the official ``train.py`` configures it, with random A and B."""
+def tiny_official_vit(repo: Path, kind: str, seed: int = SEED) -> torch.nn.Module:
+    """The official model class at test size (width 16, 2 blocks, 2 heads), its ViT-B's other settings, random weights.
+
+    The weights are rounded to float16 values, so that a float16 copy holds them exactly.
+    """
+    sys.path.insert(0, str(Path(repo).resolve()))
+    try:
+        torch.manual_seed(seed)
+        if kind == "dinov3":
+            from dinov3.models.vision_transformer import DinoVisionTransformer
+
+            model = DinoVisionTransformer(
+                img_size=224, patch_size=16, pos_embed_rope_base=100, pos_embed_rope_normalize_coords="separate",
+                pos_embed_rope_rescale_coords=2, pos_embed_rope_dtype="fp32", embed_dim=16, depth=2, num_heads=2,
+                ffn_ratio=2.0, qkv_bias=True, layerscale_init=1.0e-05, norm_layer="layernormbf16", ffn_layer="mlp",
+                ffn_bias=True, proj_bias=True, n_storage_tokens=4, mask_k_bias=True,
+            )  # fmt: skip
+            model.init_weights()
+        else:
+            from dinov2.models.vision_transformer import DinoVisionTransformer
+
+            model = DinoVisionTransformer(
+                img_size=518, patch_size=14, embed_dim=16, depth=2, num_heads=2, mlp_ratio=2, init_values=1.0,
+                ffn_layer="mlp", block_chunks=0, num_register_tokens=0, interpolate_antialias=False, interpolate_offset=0.1,
+            )  # fmt: skip
+        generator = torch.Generator().manual_seed(seed + 1)
+        with torch.no_grad():
+            for name, param in model.named_parameters():
+                noise = torch.randn(param.shape, generator=generator)
+                value = {"gamma": 0.3 + 0.1 * noise, "bias": 0.1 * noise}.get(name.rsplit(".", 1)[-1], 0.3 * noise)
+                if "norm" in name and name.endswith("weight"):
+                    value = 1.0 + 0.1 * noise
+                param.copy_(value.half().float())
+        return model.eval()
+    finally:
+        sys.path.remove(str(Path(repo).resolve()))
+
+
+def official_lora(model: torch.nn.Module, seed: int = SEED, scale: float = 0.02):
+    """peft LoRA on the fused ``qkv`` exactly as the official ``train.py`` configures it, with random A and B (float16 values)."""
     from peft import LoraConfig, get_peft_model
 
     peft_model = get_peft_model(model, LoraConfig(r=16, lora_alpha=32, target_modules=["qkv"], bias="none"))
@@ -193,7 +231,7 @@ def official_lora(model: torch.nn.Module, seed: int = SEED):
     with torch.no_grad():
         for name, param in peft_model.named_parameters():
             if "lora_" in name:
-                param.copy_(0.02 * torch.randn(param.shape, generator=generator))
+                param.copy_((scale * torch.randn(param.shape, generator=generator)).half().float())
     return peft_model.eval()
 
 
@@ -580,6 +618,153 @@ def step_stages(
     return rows
 
 
+# ----------------------------------------------------------------------------- partial shapes
+
+
+def partial_statistics(verts: np.ndarray, faces: np.ndarray, n_full: int, sqrt_area: float) -> tuple[float, float, int]:
+    """Kept-vertex fraction, boundary length / sqrt(full area), and number of connected components of a partial shape."""
+    from geofeat.topology import corner_edges, edge_counts, vertex_components
+
+    faces = np.asarray(faces, dtype=np.int64)
+    used = np.unique(faces)
+    edges = corner_edges(faces)
+    boundary = edges[edge_counts(faces) == 1]
+    length = float(np.linalg.norm(verts[boundary[:, 0]] - verts[boundary[:, 1]], axis=1).sum()) / sqrt_area
+    n_components, labels = vertex_components(len(verts), faces)
+    return used.size / n_full, length, int(np.unique(labels[used]).size)
+
+
+def partial_stages(geolora_repo: Path, mesh: geofeat.Mesh, draws: int) -> list[Stage]:
+    """CUTS, HOLES and RAY of both codes over ``draws`` draws: the two codes cannot share a seed, so compare distributions."""
+    import open3d as o3d
+
+    from geofeat.geometry.geodesic import geodesic_matrix
+    from geofeat.topology import triangle_areas
+
+    full_area = float(triangle_areas(mesh.verts, mesh.faces).sum())
+    sqrt_area = full_area**0.5
+    with reference_path(geolora_repo):
+        shape_dataset = importlib.import_module("utils.shape_dataset")
+        dataset = object.__new__(shape_dataset.PartialShapeDataset)  # only its generators are used
+        o3d_mesh = o3d.geometry.TriangleMesh()
+        o3d_mesh.vertices = o3d.utility.Vector3dVector(mesh.verts.copy())
+        o3d_mesh.triangles = o3d.utility.Vector3iVector(mesh.faces.copy())
+        distances = torch.as_tensor(geodesic_matrix(mesh, normalize=True, cache=False), dtype=torch.float32)
+        generators = {
+            "cuts": lambda: dataset.generate_random_cut(o3d_mesh),
+            "holes": lambda: dataset.generate_random_holes(o3d_mesh, distances),
+            "ray": lambda: dataset.generate_random_view_ray(o3d_mesh),
+        }
+        np.random.seed(SEED)
+        torch.manual_seed(SEED)
+        theirs = {
+            kind: [partial_statistics(*fn(), len(mesh.verts), sqrt_area) for _ in range(draws)] for kind, fn in generators.items()
+        }
+    ours = {}
+    for kind in generators:
+        stats = []
+        for i in range(draws):
+            partial = make_partial(mesh, kind, seed=i).mesh
+            stats.append(partial_statistics(partial.verts, partial.faces, len(mesh.verts), sqrt_area))
+        ours[kind] = stats
+    rows = []
+    for kind in generators:
+        for j, what in enumerate(("kept-vertex fraction", "boundary length / sqrt(area)", "components")):
+            a = np.array([s[j] for s in ours[kind]], dtype=float)
+            b = np.array([s[j] for s in theirs[kind]], dtype=float)
+            note = (
+                f"geofeat mean {a.mean():.3f} (10-90%: {np.percentile(a, 10):.3f}-{np.percentile(a, 90):.3f}); "
+                f"reference mean {b.mean():.3f} (10-90%: {np.percentile(b, 10):.3f}-{np.percentile(b, 90):.3f})"
+            )
+            rows.append(
+                Stage(
+                    f"{kind.upper()}: {what}, {draws} draws (difference of means)", abs(a.mean() - b.mean()), abs(b.mean()), note
+                )
+            )
+    return rows
+
+
+# ----------------------------------------------------------------------------- recorded outputs for the tests
+
+#: Render size, views and shape of the recorded feature stages (small, so that the arrays stay small).
+RECORD_SIZE, RECORD_VIEWS, RECORD_EVERY = 64, 4, 10
+
+
+def record_reference(args) -> None:
+    """Run the official code on a tiny official-layout DINOv3 + LoRA and save its stage outputs for ``tests/``.
+
+    Writes ``geolora_reference.npz`` (weights, inputs and outputs, under 200 KB) and
+    ``geolora_reference_lora.pth`` (the LoRA as the official ``get_state_dict_lora`` saves it)
+    into ``args.record``. The tests (``tests/render/test_reference_recipe.py``) rebuild the
+    official weights in geofeat's loaders and compare each stage with these arrays.
+    """
+    out = Path(args.record)
+    out.mkdir(parents=True, exist_ok=True)
+    mesh = geofeat.load_mesh(args.data_root / "FAUST_r" / "off" / f"{args.shape}.off")
+    arrays: dict[str, np.ndarray] = {}
+    with reference_path(args.geolora_repo):
+        dino_utils = importlib.import_module("utils.dino_utils")
+        utils_module = importlib.import_module("utils.utils")
+        official = tiny_official_vit(args.dinov3_repo, "dinov3")
+        for key, value in official.state_dict().items():
+            arrays[f"weights/{key}"] = value.numpy()
+        peft_model = official_lora(official, scale=0.3)
+        torch.save(utils_module.get_state_dict_lora(peft_model), out / "geolora_reference_lora.pth")
+
+        # tokens of one image, without and with LoRA
+        image = torch.rand(1, 32, 32, 3, generator=torch.Generator().manual_seed(SEED)).half().float()
+        arrays["tokens/image"] = image.numpy()
+        with torch.no_grad():
+            with peft_model.disable_adapter():
+                arrays["tokens/plain"] = peft_model.get_intermediate_layers(_normalized(image), n=1)[0].numpy()
+            arrays["tokens/lora"] = peft_model.get_intermediate_layers(_normalized(image), n=1)[0].numpy()
+
+        # the feature path on a small render
+        run = ReferenceRun()
+        with recording(dino_utils, run), torch.no_grad():
+            features = dino_utils.get_features_per_vertex(
+                torch.device("cpu"), RecordingModel(peft_model), _p3d_mesh(utils_module, mesh), num_views=RECORD_VIEWS,
+                H=RECORD_SIZE, W=RECORD_SIZE, tolerance=0.004, set_missing_features=True,
+            )  # fmt: skip
+        foreground = run.depth[..., 0] != -1
+        cameras = cameras_from_pytorch3d(run.camera, RECORD_SIZE)
+        arrays["path/rotation"], arrays["path/position"] = cameras.rotation.numpy(), cameras.position.numpy()
+        arrays["path/foreground"] = foreground.numpy()
+        arrays["path/depth"] = run.depth[..., 0][foreground].numpy()
+        view0 = foreground[0].reshape(-1)
+        arrays["path/image_view0"] = run.renderings[0, ..., :3].reshape(-1, 3)[view0].numpy()
+        arrays["path/pixel_features_view0"] = run.pixel_features[0][0].T[view0].numpy()
+        arrays["path/points_view0"] = run.points[0].numpy()
+        arrays["path/features"] = features[::RECORD_EVERY].numpy()
+
+        # one training step (the official compute_features renders at 512)
+        full, partial, gt = training_pair(mesh)
+        geodesics = torch.as_tensor(utils_module.geodesic_dist_echo(full.verts.copy(), full.faces.copy()), dtype=torch.float32)
+        peft_model.zero_grad(set_to_none=True)
+        feat_full = dino_utils.compute_features(
+            torch.device("cpu"), peft_model, torch.tensor(full.verts, dtype=torch.float32), torch.tensor(full.faces).int(),
+            num_views=args.views_full,
+        ).float()  # fmt: skip
+        feat_partial = dino_utils.compute_features(
+            torch.device("cpu"), peft_model, torch.tensor(partial.verts, dtype=torch.float32), torch.tensor(partial.faces).int(),
+            num_views=args.views_partial,
+        ).float()  # fmt: skip
+        observed = feat_partial.sum(dim=1) != 0
+        loss = utils_module.weighted_contrastive_loss(
+            feat_partial[gt != -1][observed], feat_full[gt[gt != -1]][observed], feat_full, gt[gt != -1][observed], geodesics
+        )
+        loss.backward()
+        arrays["step/views"] = np.array([args.views_full, args.views_partial])
+        arrays["step/loss"] = loss.detach().numpy()
+        arrays["step/geodesics_row0"] = geodesics[0].numpy()
+        for name, param in peft_model.named_parameters():
+            if "lora_" in name:
+                arrays[f"step/grad/{name}"] = param.grad.numpy()
+    np.savez_compressed(out / "geolora_reference.npz", **arrays)
+    size = (out / "geolora_reference.npz").stat().st_size + (out / "geolora_reference_lora.pth").stat().st_size
+    print(f"recorded {len(arrays)} arrays into {out} ({size / 1024:.0f} KB)")
+
+
 # ----------------------------------------------------------------------------- driver
 
 
@@ -613,6 +798,8 @@ def geolora_sections(args) -> list[str]:
                 dino_utils, utils_module, official2, ours2, mesh, args.views, "reference", lora=False, label="DINOv2"
             )
             sections.append(markdown(rows, f"DINOv2 ViT-B/14, GeoLoRA code ({args.shape}, {args.views} views)"))
+    if args.partials:
+        sections.append(markdown(partial_stages(args.geolora_repo, mesh, args.partials), f"Partial shapes ({args.shape})"))
     if args.dsmk_repo and args.dinov2_repo:
         with reference_path(args.dsmk_repo):
             dsmk = importlib.import_module("utils.dino_util")
@@ -646,6 +833,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--views", type=int, default=4, help="views of the feature stages (a perfect square)")
     parser.add_argument("--dsmk-views", type=int, default=4, help="views of the DeepShapeMatchingKit stages (100 in its code)")
     parser.add_argument("--no-step", dest="step", action="store_false", help="skip the training step")
+    parser.add_argument("--partials", type=int, default=0, help="draws of each partial-shape generator to compare (0: none)")
     parser.add_argument("--views-full", type=int, default=9)
     parser.add_argument("--views-partial", type=int, default=4)
 
@@ -659,9 +847,15 @@ def main(argv=None) -> int:
         "--data-root", type=Path, default=Path(os.environ.get("GEOFEAT_DATA", HERE.parent.parent / "shared" / "data"))
     )
     parser.add_argument("--out", type=Path, default=HERE / "results" / "parity" / "parity_geolora.md")
+    parser.add_argument("--record", type=Path, default=None, help="instead: record the tests' arrays into this folder")
     args = parser.parse_args(argv)
     if not args.geolora_repo:
         parser.error("give --geolora-repo (and --dinov3-repo and/or --dinov2-repo)")
+    if args.record:
+        if not args.dinov3_repo:
+            parser.error("--record needs --dinov3-repo")
+        record_reference(args)
+        return 0
     text = "\n".join([f"Run {datetime.date.today().isoformat()} on {machine()}.\n", *geolora_sections(args)])
     print(text)
     args.out.parent.mkdir(parents=True, exist_ok=True)
