@@ -64,6 +64,13 @@ from geofeat.render.shading import render_phong
 HERE = Path(__file__).resolve().parent
 SIZE = 512
 SEED = 0
+#: Why the checks run on one thread (both codes, so that the times compare too).
+ONE_THREAD = (
+    "The reference's indexed in-place addition (sums[idx] += features) with repeated vertex indices is a race "
+    "between CPU threads: with two, the vertices whose candidate pixels straddle the threads' halves of a view "
+    "(about 11 of 2,400 a view) get another candidate's feature. On one thread every vertex gets its last "
+    "candidate, which the reference recipe reproduces."
+)
 
 
 # ----------------------------------------------------------------------------- importing the reference
@@ -123,6 +130,9 @@ def torchvision_stand_in() -> types.ModuleType:
 @contextlib.contextmanager
 def reference_path(*folders: Path) -> Iterator[None]:
     """Put the reference folders first on ``sys.path`` (and the torchvision stand-in in ``sys.modules``)."""
+    import peft  # noqa: F401  (imported first: their checks for torchvision must not find the stand-in)
+    import transformers  # noqa: F401
+
     stand_in = torchvision_stand_in()
     saved = {name: sys.modules.get(name) for name in ("torchvision", "torchvision.transforms")}
     sys.modules["torchvision"], sys.modules["torchvision.transforms"] = stand_in, stand_in.transforms
@@ -296,10 +306,32 @@ def recording(module, run: ReferenceRun) -> Iterator[None]:
     for name, wrapper in (("batch_render", batch_render), ("get_dino_features", get_dino_features), ("ball_query", ball_query)):
         setattr(module, name, wrapper)
     try:
-        yield
+        with contiguous_grid_sample():
+            yield
     finally:
         for name, fn in originals.items():
             setattr(module, name, fn)
+
+
+@contextlib.contextmanager
+def contiguous_grid_sample() -> Iterator[None]:
+    """The CPU patch of the reference: ``grid_sample`` gets a contiguous input.
+
+    On the CPU, float16 ``grid_sample`` returns wrong values (NaN among them) for the permuted
+    (channels-last) 768-channel token grid that the reference passes it (torch 2.13; CUDA is
+    not affected), so without this the reference's per-pixel features are garbage on a CPU.
+    Making the input contiguous changes nothing else.
+    """
+    original = F.grid_sample
+
+    def grid_sample(input, grid, *args, **kwargs):
+        return original(input.contiguous() if input.device.type == "cpu" else input, grid, *args, **kwargs)
+
+    torch.nn.functional.grid_sample = grid_sample
+    try:
+        yield
+    finally:
+        torch.nn.functional.grid_sample = original
 
 
 # ----------------------------------------------------------------------------- conversions
@@ -454,7 +486,7 @@ def feature_stages(
         pixels = torch.cat((torch.full((all_pixels.shape[0], 1), 0), all_pixels), dim=1)
         mine = grid_sample_patch_features(their_tokens[view : view + 1].float(), pixels, (SIZE, SIZE), recipe_.dtype)
         reference = run.pixel_features[view][0].T
-        worst = max(worst, float((mine.float() - reference.float()).abs().max()))
+        worst = max(worst, float((mine.float() - reference.float()).abs().nan_to_num(float("inf")).max()))
         scale = max(scale, float(reference.float().abs().max()))
     rows.append(Stage(f"{label}: per-pixel features (float16), isolated", worst, scale, "all pixels of every view"))
 
@@ -476,7 +508,14 @@ def feature_stages(
         accumulator.add_foreground(pixel_rows, fake_faces, torch.zeros(1, SIZE, SIZE, 3), torch.cat(run.points)[in_view])
     unfilled, seen = accumulator.result_tensor(fill="zero")
     filled, _ = accumulator.result_tensor(fill="nearest")
-    rows.append(compare(f"{label}: back-projected vertex features, isolated (seen vertices)", unfilled[seen], run.features[seen]))
+    rows.append(
+        compare(
+            f"{label}: back-projected vertex features, isolated (seen vertices)",
+            unfilled[seen],
+            run.features[seen],
+            f"{int(seen.sum())} seen vertices; reference on one thread",
+        )  # fmt: skip
+    )
     rows.append(
         compare(
             f"{label}: unseen-vertex fill, isolated", filled[~seen], run.features[~seen], f"{int((~seen).sum())} unseen vertices"
@@ -499,6 +538,36 @@ def feature_stages(
     )
     rows.append(Stage(f"{label}: seconds per shape ({n_views} views), reference / geofeat", run.seconds, seconds, "times"))
     return rows, run, ours_end
+
+
+def full_view_stages(dino_utils, utils_module, official_peft, ours, mesh: geofeat.Mesh, n_views: int) -> list[Stage]:
+    """End to end at full view count: the reference's features against geofeat's ``reference`` and default recipes."""
+    run = ReferenceRun()
+    start = time.perf_counter()
+    with recording(dino_utils, run), torch.no_grad():
+        theirs = dino_utils.get_features_per_vertex(
+            torch.device("cpu"), official_peft, _p3d_mesh(utils_module, mesh), num_views=n_views, H=SIZE, W=SIZE,
+            tolerance=0.004, set_missing_features=True,
+        ).float()  # fmt: skip
+    seconds_ref = time.perf_counter() - start
+    rows = []
+    cameras = make_cameras(mesh, n_views, image_size=SIZE, device="cpu")
+    for recipe in ("reference", "default"):
+        start = time.perf_counter()
+        with torch.no_grad():
+            mine, _ = multiview_features(mesh, cameras, ours, recipe=RECIPES[recipe], fill="nearest", batch_size=4)
+        seconds = time.perf_counter() - start
+        cos = cosine_rows(mine, theirs)
+        rows.append(
+            Stage(
+                f"geofeat '{recipe}' recipe: 1 - per-vertex cosine to the reference",
+                float(1 - cos.min()),
+                1.0,
+                f"cosine min {cos.min():.5f}, mean {cos.mean():.6f}, {(cos < 0.999).sum()} of {cos.size} vertices below 0.999; "
+                f"{seconds:.1f} s per shape (reference {seconds_ref:.1f} s)",
+            )  # fmt: skip
+        )
+    return rows
 
 
 def _face_edges(faces: torch.Tensor) -> torch.Tensor:
@@ -530,7 +599,7 @@ def step_stages(
 ) -> list[Stage]:
     """Loss and LoRA gradients of one GeoLoRA step on an identical pair, geofeat's trainer path against ``train.py``'s."""
     from geofeat.geometry.geodesic import geodesic_matrix
-    from geofeat.train import TrainConfig
+    from geofeat.train.config import TrainConfig
     from geofeat.train.trainer import GeoLoraTrainer
 
     rows: list[Stage] = []
@@ -541,6 +610,10 @@ def step_stages(
     rows.append(compare("step: geodesic distances of the full shape", ours_geo, theirs_geo))
 
     def official_step(train_mode: bool) -> tuple[torch.Tensor, dict[str, torch.Tensor], float]:
+        with contiguous_grid_sample():
+            return _official_step(train_mode)
+
+    def _official_step(train_mode: bool) -> tuple[torch.Tensor, dict[str, torch.Tensor], float]:
         official_peft.zero_grad(set_to_none=True)
         official_peft.train(train_mode)
         start = time.perf_counter()
@@ -615,6 +688,72 @@ def step_stages(
     rows.append(
         Stage(f"step: seconds ({views_full} + {views_partial} views), reference / geofeat", seconds_ref, seconds, "times")
     )
+    return rows
+
+
+# ----------------------------------------------------------------------------- our defaults against the reference
+
+
+#: Each deliberate difference of the default recipe: (name, the reference recipe's field set to the default's value, why).
+DIFFERENCES = (
+    (
+        "back-projection",
+        {"backproject": "ball"},
+        "the mean of every pixel within the ball, a true average; the reference keeps one pixel per view and vertex, and its gradients are not those of its result",
+    ),
+    (
+        "pixel grid",
+        {"pixel_grid": "centers"},
+        "pixel centres, where the rasterizer sampled; the reference's corner-aligned grid shifts pixels by up to half a pixel, in feature lookup and in 3D",
+    ),
+    (
+        "backbone input",
+        {"input_size": None},
+        "the render as it is (512 is a multiple of 16); the reference resizes 512 to 518 and the patch embedding then drops 6 rows and columns",
+    ),
+    ("precision", {"precision": "float32"}, "float32 sums; the reference samples and sums in float16"),
+    (
+        "radius",
+        {"radius_basis": "diagonal"},
+        "0.004 x the bounding-box diagonal, O(V); the reference's largest vertex distance needs all pairs (a sample above 35,000 vertices)",
+    ),
+    ("neighbours per pixel", {"max_neighbours": None}, "every vertex in the ball; the reference keeps the first 100 by index"),
+)
+
+
+def difference_stages(ours, mesh: geofeat.Mesh, other: geofeat.Mesh, n_views: int) -> list[Stage]:
+    """Effect of each deliberate difference: the reference recipe with that one field set to geofeat's default.
+
+    Each row: the per-vertex cosine between those features and the reference recipe's on
+    ``mesh``, and the share of ``mesh`` vertices whose nearest neighbour on ``other`` in
+    feature space is the same with both recipes. The reference recipe equals the official
+    code (the tables above), so this needs no reference code.
+    """
+    from dataclasses import replace
+
+    def features(recipe, shape):
+        cameras = make_cameras(shape, n_views, image_size=SIZE, device="cpu")
+        with torch.no_grad():
+            return multiview_features(shape, cameras, ours, recipe=recipe, fill="nearest", batch_size=4)[0]
+
+    reference = RECIPES["reference"]
+    base = (features(reference, mesh), features(reference, other))
+    rows = []
+    variants = [(name, replace(reference, **change), why) for name, change, why in DIFFERENCES]
+    variants.append(("all of them (the default recipe)", RECIPES["default"], "geofeat's default"))
+    for name, recipe, why in variants:
+        changed = (features(recipe, mesh), features(recipe, other))
+        cos = cosine_rows(changed[0], base[0])
+        agree = nn_agreement(base[1], base[0], changed[1], changed[0])
+        rows.append(
+            Stage(
+                f"default {name}",
+                float(1 - cos.mean()),
+                1.0,
+                f"cosine to the reference: mean {cos.mean():.4f}, min {cos.min():.3f}; same nearest neighbour on "
+                f"{other.name}: {agree:.1%}. Why: {why}",
+            )  # fmt: skip
+        )
     return rows
 
 
@@ -738,6 +877,8 @@ def record_reference(args) -> None:
         arrays["path/features"] = features[::RECORD_EVERY].numpy()
 
         # one training step (the official compute_features renders at 512)
+        stack = contextlib.ExitStack()
+        stack.enter_context(contiguous_grid_sample())
         full, partial, gt = training_pair(mesh)
         geodesics = torch.as_tensor(utils_module.geodesic_dist_echo(full.verts.copy(), full.faces.copy()), dtype=torch.float32)
         peft_model.zero_grad(set_to_none=True)
@@ -760,6 +901,7 @@ def record_reference(args) -> None:
         for name, param in peft_model.named_parameters():
             if "lora_" in name:
                 arrays[f"step/grad/{name}"] = param.grad.numpy()
+        stack.close()
     np.savez_compressed(out / "geolora_reference.npz", **arrays)
     size = (out / "geolora_reference.npz").stat().st_size + (out / "geolora_reference_lora.pth").stat().st_size
     print(f"recorded {len(arrays)} arrays into {out} ({size / 1024:.0f} KB)")
@@ -768,11 +910,10 @@ def record_reference(args) -> None:
 # ----------------------------------------------------------------------------- driver
 
 
-def geolora_sections(args) -> list[str]:
-    """All parity sections asked for by ``args``; each a Markdown table."""
-    sections = []
+def geolora_sections(args) -> Iterator[str]:
+    """The parity sections asked for by ``args``, each a Markdown table, as they are done."""
     mesh = geofeat.load_mesh(args.data_root / "FAUST_r" / "off" / f"{args.shape}.off")
-    torch.set_num_threads(max(1, torch.get_num_threads()))
+    torch.set_num_threads(1)  # see ONE_THREAD
     with tempfile.TemporaryDirectory() as tmp, reference_path(args.geolora_repo):
         folder = Path(tmp)
         dino_utils = importlib.import_module("utils.dino_utils")
@@ -787,19 +928,32 @@ def geolora_sections(args) -> list[str]:
             rows, _, _ = feature_stages(
                 dino_utils, utils_module, peft_model, ours, mesh, args.views, "reference", lora=True, label="DINOv3+LoRA"
             )
-            sections.append(markdown(rows, f"DINOv3 ViT-B/16 + LoRA, GeoLoRA code ({args.shape}, {args.views} views)"))
+            yield markdown(rows, f"DINOv3 ViT-B/16 + LoRA, GeoLoRA code ({args.shape}, {args.views} views)")
+            if args.differences:
+                other = geofeat.load_mesh(args.data_root / "FAUST_r" / "off" / f"{args.other}.off")
+                rows = difference_stages(ours, mesh, other, args.differences)
+                yield markdown(
+                    rows,
+                    f"geofeat's default recipe against the reference, one difference at a time ({args.shape} -> {args.other}, "
+                    f"{args.differences} views; max abs diff = 1 - mean cosine)",
+                )
+            if args.full_views:
+                yield markdown(
+                    full_view_stages(dino_utils, utils_module, peft_model, ours, mesh, args.full_views),
+                    f"DINOv3 ViT-B/16 + LoRA, {args.full_views} views ({args.shape})",
+                )
             if args.step:
                 rows = step_stages(dino_utils, utils_module, peft_model, ours, mesh, args.views_full, args.views_partial)
-                sections.append(markdown(rows, f"One GeoLoRA training step ({args.shape}, CUTS partial)"))
+                yield markdown(rows, f"One GeoLoRA training step ({args.shape}, CUTS partial)")
         if args.dinov2_repo:
             official2 = official_vit(args.dinov2_repo, "dinov2")
             ours2 = our_backbone(official2, "dinov2", folder)
             rows, _, _ = feature_stages(
                 dino_utils, utils_module, official2, ours2, mesh, args.views, "reference", lora=False, label="DINOv2"
             )
-            sections.append(markdown(rows, f"DINOv2 ViT-B/14, GeoLoRA code ({args.shape}, {args.views} views)"))
+            yield markdown(rows, f"DINOv2 ViT-B/14, GeoLoRA code ({args.shape}, {args.views} views)")
     if args.partials:
-        sections.append(markdown(partial_stages(args.geolora_repo, mesh, args.partials), f"Partial shapes ({args.shape})"))
+        yield markdown(partial_stages(args.geolora_repo, mesh, args.partials), f"Partial shapes ({args.shape})")
     if args.dsmk_repo and args.dinov2_repo:
         with reference_path(args.dsmk_repo):
             dsmk = importlib.import_module("utils.dino_util")
@@ -807,8 +961,7 @@ def geolora_sections(args) -> list[str]:
             rows, _, _ = feature_stages(
                 dsmk, utils_module, official2, ours2, mesh, args.dsmk_views, "dsmk", lora=False, label="DSMK"
             )
-            sections.append(markdown(rows, f"DINOv2 ViT-B/14, DeepShapeMatchingKit code ({args.shape}, {args.dsmk_views} views)"))
-    return sections
+            yield markdown(rows, f"DINOv2 ViT-B/14, DeepShapeMatchingKit code ({args.shape}, {args.dsmk_views} views)")
 
 
 def _dsmk_mesh(verts, faces, device):
@@ -833,6 +986,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--views", type=int, default=4, help="views of the feature stages (a perfect square)")
     parser.add_argument("--dsmk-views", type=int, default=4, help="views of the DeepShapeMatchingKit stages (100 in its code)")
     parser.add_argument("--no-step", dest="step", action="store_false", help="skip the training step")
+    parser.add_argument("--differences", type=int, default=0, help="views of the default-vs-reference table (0: none)")
+    parser.add_argument("--other", default="tr_reg_081", help="second FAUST_r shape of the nearest-neighbour agreement")
+    parser.add_argument("--full-views", type=int, default=0, help="views of the end-to-end cosine check (49; 0: none)")
     parser.add_argument("--partials", type=int, default=0, help="draws of each partial-shape generator to compare (0: none)")
     parser.add_argument("--views-full", type=int, default=9)
     parser.add_argument("--views-partial", type=int, default=4)
@@ -849,6 +1005,7 @@ def main(argv=None) -> int:
     parser.add_argument("--out", type=Path, default=HERE / "results" / "parity" / "parity_geolora.md")
     parser.add_argument("--record", type=Path, default=None, help="instead: record the tests' arrays into this folder")
     args = parser.parse_args(argv)
+    torch.set_num_threads(1)  # see ONE_THREAD
     if not args.geolora_repo:
         parser.error("give --geolora-repo (and --dinov3-repo and/or --dinov2-repo)")
     if args.record:
@@ -856,8 +1013,11 @@ def main(argv=None) -> int:
             parser.error("--record needs --dinov3-repo")
         record_reference(args)
         return 0
-    text = "\n".join([f"Run {datetime.date.today().isoformat()} on {machine()}.\n", *geolora_sections(args)])
-    print(text)
+    sections = [f"Run {datetime.date.today().isoformat()} on {machine()}, one thread. {ONE_THREAD}\n"]
+    for section in geolora_sections(args):
+        print(section, flush=True)
+        sections.append(section)
+    text = "\n".join(sections)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(text)
     return 0

@@ -236,7 +236,9 @@ def grid_sample_patch_features(
     pixels = pixels.to(grid.device)
     xs = torch.linspace(-1.0, 1.0, width, device=grid.device)
     ys = torch.linspace(-1.0, 1.0, height, device=grid.device)
-    chw = grid.to(dtype).permute(0, 3, 1, 2)
+    # contiguous: float16 grid_sample on the CPU returns wrong values (NaN among them) for a permuted
+    # (channels-last) input of many channels (torch 2.13; seen with 768 channels, not with 16).
+    chw = grid.to(dtype).permute(0, 3, 1, 2).contiguous()
     rows = []
     for view in range(grid.shape[0]):
         mine = pixels[:, 0] == view

@@ -107,7 +107,7 @@ def test_reference_recipe_stages_equal_the_official_code(recorded, official_pth,
     rendering = render_phong(mesh, None, cameras, RasterSettings(cull_backfaces=RECIPE.cull_backfaces))
     foreground = (rendering.fragments.pix_to_face >= 0).numpy()
     theirs = recorded["path/foreground"]
-    assert (foreground != theirs).mean() <= 0.002  # pixels on silhouettes may go either way
+    assert (foreground != theirs).sum() <= 2  # a pixel on a silhouette may go either way (none did when recorded)
     both = foreground & theirs
     depth_theirs = np.zeros(theirs.shape, np.float32)
     depth_theirs[theirs] = recorded["path/depth"]
@@ -123,7 +123,7 @@ def test_reference_recipe_stages_equal_the_official_code(recorded, official_pth,
         grid = backbone.patch_features(images)
     pixels0 = torch.nonzero(torch.from_numpy(theirs[:1]))
     sampled = grid_sample_patch_features(grid[:1], pixels0, (SIZE, SIZE), RECIPE.dtype).float().numpy()
-    np.testing.assert_allclose(sampled[common0], recorded["path/pixel_features_view0"][common0], atol=4e-3)
+    np.testing.assert_allclose(sampled[common0], recorded["path/pixel_features_view0"][common0], atol=1e-3)  # float16
 
     depth = torch.from_numpy(depth_theirs)
     points = corner_points(cameras, pixels0, depth).numpy()
@@ -131,10 +131,11 @@ def test_reference_recipe_stages_equal_the_official_code(recorded, official_pth,
 
     with torch.no_grad():
         features, _ = multiview_features(mesh, cameras, backbone, recipe=RECIPE, fill="nearest")
-    ours = features.numpy()[::EVERY]
     theirs_features = recorded["path/features"]
-    close = np.abs(ours - theirs_features).max(axis=1) <= 4e-3
-    assert close.mean() >= 0.99, f"{(~close).sum()} of {close.size} vertices differ"
+    np.testing.assert_allclose(features.numpy()[::EVERY], theirs_features, atol=1e-3)  # 8e-6 when recorded
+    with torch.no_grad():  # the check can tell recipes apart: geofeat's default is not the reference
+        default, _ = multiview_features(mesh, cameras, backbone, recipe=RECIPES["default"], fill="nearest")
+    assert np.abs(default.numpy()[::EVERY] - theirs_features).max() > 1e-2
 
 
 def test_reference_training_step_equals_the_official_step(recorded, official_pth, mesh):
@@ -145,7 +146,7 @@ def test_reference_training_step_equals_the_official_step(recorded, official_pth
     from parity_geolora import training_pair
 
     from geofeat.geometry.geodesic import geodesic_matrix
-    from geofeat.train import TrainConfig
+    from geofeat.train.config import TrainConfig
     from geofeat.train.trainer import GeoLoraTrainer
 
     backbone = _backbone(official_pth, lora=True)
@@ -166,7 +167,7 @@ def test_reference_training_step_equals_the_official_step(recorded, official_pth
             feat_partial, seen_partial = trainer.shape_features(partial, views_partial)
             loss = trainer._loss(feat_partial, feat_full, gt, geodesics, seen_partial, seen_full)
             loss.backward()
-    np.testing.assert_allclose(float(loss), float(recorded["step/loss"]), rtol=1e-4)
+    np.testing.assert_allclose(float(loss.detach()), float(recorded["step/loss"]), rtol=1e-5)
     named = dict(backbone.model.named_parameters())
     for key, expected in recorded.items():
         if not key.startswith("step/grad/"):
@@ -178,4 +179,5 @@ def test_reference_training_step_equals_the_official_step(recorded, official_pth
             for t in ("q_proj", "k_proj", "v_proj")
         ]
         ours = sum(parts) if which == "lora_A" else torch.cat(parts)
-        np.testing.assert_allclose(ours.numpy(), expected, rtol=2e-3, atol=2e-3 * np.abs(expected).max())
+        # float16 sums and sampling: up to 2e-3 of the largest entry when recorded
+        np.testing.assert_allclose(ours.numpy(), expected, rtol=0, atol=4e-3 * np.abs(expected).max())
