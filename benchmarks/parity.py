@@ -1,9 +1,13 @@
 """Stage-by-stage parity of geofeat's heads with the authors' code, imported from your clones.
 
     python benchmarks/parity.py --ulrssm-repo PATH --dpfm-repo PATH --dsmk-repo PATH
+    python benchmarks/parity.py --geolora-repo PATH --dinov3-repo PATH [--dinov2-repo PATH] [--dsmk-repo PATH]
 
-Each ``--*-repo`` is a local clone of a reference repository (skip a head by leaving its
-option out):
+Each ``--*-repo`` is a local clone of a reference repository (skip a check by leaving its
+option out). The features (``--geolora-repo``, with the DINO model code of ``--dinov3-repo``
+/ ``--dinov2-repo``, and DeepShapeMatchingKit's DINO features with ``--dsmk-repo``) are
+checked by `parity_geolora` (see its docstring for what it needs; tables in
+``benchmarks/results/parity/parity_geolora.md``). The heads:
 
 * ``--ulrssm-repo``: dongliangcao/Unsupervised-Learning-of-Robust-Spectral-Shape-Matching
   (MIT), with its release checkpoint ``faust_scape.pth`` (default: from ``--checkpoints``);
@@ -30,6 +34,7 @@ from pathlib import Path
 
 from common import machine
 from parity_common import markdown
+from parity_geolora import add_arguments as add_feature_arguments
 
 HERE = Path(__file__).resolve().parent
 
@@ -38,7 +43,7 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--ulrssm-repo", type=Path, default=None)
     parser.add_argument("--dpfm-repo", type=Path, default=None)
-    parser.add_argument("--dsmk-repo", type=Path, default=None, help="DeepShapeMatchingKit, for EchoMatch")
+    add_feature_arguments(parser)  # --geolora-repo, --dinov3-repo, --dinov2-repo, --dsmk-repo (EchoMatch too), ...
     parser.add_argument(
         "--checkpoints",
         type=Path,
@@ -50,9 +55,21 @@ def main(argv=None) -> int:
     )
     parser.add_argument("--no-timing", action="store_true")
     parser.add_argument("--out", type=Path, default=HERE / "results" / "parity" / "parity.md")
+    parser.add_argument(
+        "--features-out",
+        type=Path,
+        default=HERE / "results" / "parity" / "parity_geolora.md",
+        help="tables of the feature checks",
+    )
     args = parser.parse_args(argv)
-    if not (args.ulrssm_repo or args.dpfm_repo or args.dsmk_repo):
-        parser.error("give at least one of --ulrssm-repo, --dpfm-repo, --dsmk-repo")
+    if not (args.ulrssm_repo or args.dpfm_repo or args.dsmk_repo or args.geolora_repo):
+        parser.error("give at least one of --ulrssm-repo, --dpfm-repo, --dsmk-repo, --geolora-repo")
+    if args.geolora_repo:
+        import parity_geolora
+
+        parity_geolora.main(_feature_argv(args))
+    if not (args.ulrssm_repo or args.dpfm_repo or (args.dsmk_repo and not args.geolora_repo)):
+        return 0
     timing = not args.no_timing
     sections = [f"Run {datetime.date.today().isoformat()} on {machine()}.\n"]
     if args.ulrssm_repo:
@@ -79,6 +96,17 @@ def main(argv=None) -> int:
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(text)
     return 0
+
+
+def _feature_argv(args: argparse.Namespace) -> list[str]:
+    """The options of `parity_geolora` from this command line's."""
+    argv = ["--geolora-repo", str(args.geolora_repo), "--data-root", str(args.data_root), "--out", str(args.features_out)]
+    for name in ("dinov3_repo", "dinov2_repo", "dsmk_repo"):
+        if getattr(args, name):
+            argv += [f"--{name.replace('_', '-')}", str(getattr(args, name))]
+    for name in ("shape", "views", "dsmk_views", "views_full", "views_partial", "differences", "other", "full_views", "partials"):
+        argv += [f"--{name.replace('_', '-')}", str(getattr(args, name))]
+    return argv if args.step else [*argv, "--no-step"]
 
 
 def _times(times: dict[str, float]) -> str:

@@ -105,3 +105,28 @@ def test_bad_parameters():
         geofeat.compute(bumpy(0, 1), "dinov2", backproject="splat")
     with pytest.raises(geofeat.DescriptorError, match="views"):
         geofeat.compute(bumpy(0, 1), "dinov2", views=0)
+
+
+def test_presets_select_the_recipes_and_keep_explicit_parameters(tiny_dinov3_folder, isolated_cache):
+    """``preset="reference"`` is the reference recipe end to end; explicit parameters override the preset's."""
+    from geofeat.backbones import load_backbone
+    from geofeat.errors import DescriptorError
+    from geofeat.render.multiview import RECIPES
+
+    mesh = bumpy(1, 2)
+    params = {"weights": str(tiny_dinov3_folder), "views": 4, "image_size": 64, "batch_size": 2}
+    reference = geofeat.compute(mesh, "dinov3", preset="reference", **params)
+    backbone = load_backbone(str(tiny_dinov3_folder), kind="dinov3", device="cpu")
+    cameras = make_cameras(mesh, 4, image_size=64, device="cpu")
+    with torch.no_grad():
+        expected, _ = multiview_features(mesh, cameras, backbone, recipe=RECIPES["reference"], fill="nearest")
+    np.testing.assert_array_equal(reference, expected.numpy())
+    default = geofeat.compute(mesh, "dinov3", **params)
+    assert not np.allclose(default, reference, atol=1e-3)
+    overridden = geofeat.compute(mesh, "dinov3", preset="reference", backproject="ball", cache=False, **params)
+    with torch.no_grad():
+        expected, _ = multiview_features(mesh, cameras, backbone, recipe=RECIPES["reference"], backproject="ball")
+    np.testing.assert_array_equal(overridden, expected.numpy())
+    assert len(geofeat.FeatureCache().entries()) == 2  # the preset is part of the cache key
+    with pytest.raises(DescriptorError, match="preset"):
+        geofeat.compute(mesh, "dinov3", preset="dsmk", **params)  # DeepShapeMatchingKit's recipe is for DINOv2
