@@ -658,7 +658,7 @@ def step_stages(
             loss.backward()
         seconds = time.perf_counter() - start
     rows.append(compare("step: loss", loss.detach(), loss_ref))
-    ours_named = dict(ours.model.named_parameters())
+    ours_named = dict(ours.model.named_parameters(remove_duplicate=False))
     worst_a = worst_b = scale_a = scale_b = 0.0
     for name, grad in grads_ref.items():
         block = int(name.split("blocks.")[1].split(".")[0])
@@ -668,7 +668,7 @@ def step_stages(
             for t in ("q_proj", "k_proj", "v_proj")
         ]
         if which == "lora_A":  # the fused A is shared by q, k and v: its gradient is the sum of theirs
-            mine = sum(p.grad for p in parts)
+            mine = sum({id(p): p.grad for p in parts}.values())  # a shared A (one parameter) once
             worst_a, scale_a = max(worst_a, float((mine - grad).abs().max())), max(scale_a, float(grad.abs().max()))
         else:
             mine = torch.cat([p.grad for p in parts])

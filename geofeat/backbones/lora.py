@@ -124,6 +124,11 @@ class LoraSettings(JsonConfig):
     targets : tuple of str, optional
         Leaf names of the adapted modules; None means the backbone's query/key/value
         projections (`DinoBackbone.attention_projections`).
+    shared_a : bool
+        Within each block, all targets share one ``A`` (one parameter, trained once), as the
+        GeoLoRA release's LoRA on the fused ``qkv`` projection does: its ``A`` multiplies the
+        input of all three, and its ``B`` splits into one per projection. False: each target
+        has its own ``A``.
     training : dict
         JSON-serialisable training settings (learning rate, views, data, ...), stored as given.
     """
@@ -132,6 +137,7 @@ class LoraSettings(JsonConfig):
     alpha: float = 32.0
     dropout: float = 0.0
     targets: tuple[str, ...] | None = None
+    shared_a: bool = False
     training: dict[str, Any] = field(default_factory=dict)
 
     error: ClassVar[type[BackboneError]] = BackboneError
@@ -144,6 +150,8 @@ class LoraSettings(JsonConfig):
             if isinstance(self.targets, str) or not all(isinstance(t, str) and t for t in self.targets) or not self.targets:
                 raise BackboneError(f"LoRA targets must be a non-empty sequence of module names, found {self.targets!r}")
             self.targets = tuple(self.targets)
+        if not isinstance(self.shared_a, bool):
+            raise BackboneError(f"shared_a must be True or False, found {self.shared_a!r}")
         if not isinstance(self.training, dict):
             raise BackboneError(f"training settings must be a dict, found {type(self.training).__name__}")
         try:
@@ -227,6 +235,8 @@ def add_lora(backbone: DinoBackbone, config: LoraSettings | None = None) -> Dino
         param.requires_grad_("lora_" in name)
     model.eval()
     backbone.model = model
+    if settings.shared_a:
+        _share_a(backbone, targets)
     logger.info(
         "added LoRA (rank %d, alpha %g, targets %s) to %s: %d trainable parameters",
         settings.rank,
@@ -239,7 +249,7 @@ def add_lora(backbone: DinoBackbone, config: LoraSettings | None = None) -> Dino
 
 
 def _active_settings(backbone: DinoBackbone) -> LoraSettings:
-    """Rank, alpha, dropout and targets of the backbone's peft adapter."""
+    """Rank, alpha, dropout, targets and A sharing of the backbone's peft adapter."""
     if not has_lora(backbone):
         raise BackboneError("this backbone has no LoRA adapter; call add_lora(backbone) or load_adapter(backbone, folder) first")
     peft_config = getattr(backbone.model, "peft_config", None)
@@ -248,7 +258,24 @@ def _active_settings(backbone: DinoBackbone) -> LoraSettings:
     config = peft_config[_ADAPTER]
     targets = config.target_modules
     targets = tuple(sorted(targets)) if not isinstance(targets, str) else (targets,)
-    return LoraSettings(rank=int(config.r), alpha=float(config.lora_alpha), dropout=float(config.lora_dropout), targets=targets)
+    modules = _lora_modules(backbone)
+    shared = len(targets) > 1 and all(
+        modules[(block, target)].lora_A[_ADAPTER].weight is modules[(block, targets[0])].lora_A[_ADAPTER].weight
+        for block in {b for b, _ in modules}
+        for target in targets
+    )
+    return LoraSettings(
+        rank=int(config.r), alpha=float(config.lora_alpha), dropout=float(config.lora_dropout), targets=targets, shared_a=shared
+    )
+
+
+def _share_a(backbone: DinoBackbone, targets: tuple[str, ...]) -> None:
+    """Make the targets of each block use the first target's ``A`` parameter (see `LoraSettings.shared_a`)."""
+    modules = _lora_modules(backbone)
+    for block in sorted({b for b, _ in modules}):
+        first = modules[(block, targets[0])].lora_A[_ADAPTER]
+        for target in targets[1:]:
+            modules[(block, target)].lora_A[_ADAPTER].weight = first.weight
 
 
 def _lora_modules(backbone: DinoBackbone) -> dict[tuple[int, str], Any]:
@@ -290,6 +317,14 @@ def _load_lora_tensors(backbone: DinoBackbone, tensors: Mapping[str, Tensor], so
             f"the LoRA tensors from {source} do not fit this backbone's adapter: missing {missing[:6]}, unexpected "
             f"{unexpected[:6]}; the adapter was made for another architecture or other targets"
         )
+    if _active_settings(backbone).shared_a:
+        for block in sorted({b for b, _ in modules}):
+            a = [tensors[f"layer.{block}.{t}.lora_A.weight"] for (b, t) in sorted(modules) if b == block]
+            if any(not torch.equal(a[0], other) for other in a[1:]):
+                raise BackboneError(
+                    f"the adapter from {source} has different lora_A tensors for the targets of block {block}, but this "
+                    "backbone's adapter shares one A per block (shared_a); load it into an adapter with shared_a=False"
+                )
     with torch.no_grad():
         for (block, target), module in modules.items():
             for part in ("A", "B"):
@@ -459,11 +494,13 @@ def _attach(backbone: DinoBackbone, settings: LoraSettings, source: str) -> None
         return
     active = _active_settings(backbone)
     targets = settings.targets if settings.targets is not None else backbone.attention_projections
-    if (active.rank, active.alpha, set(active.targets or ())) != (settings.rank, settings.alpha, set(targets)):
+    if (active.rank, active.alpha, set(active.targets or ()), active.shared_a) != (
+        settings.rank, settings.alpha, set(targets), settings.shared_a
+    ):  # fmt: skip
         raise BackboneError(
-            f"the adapter from {source} has rank={settings.rank}, alpha={settings.alpha}, targets={list(targets)} but the "
-            f"backbone already carries rank={active.rank}, alpha={active.alpha}, targets={list(active.targets or ())}; "
-            "load it onto a fresh backbone"
+            f"the adapter from {source} has rank={settings.rank}, alpha={settings.alpha}, targets={list(targets)}, "
+            f"shared_a={settings.shared_a} but the backbone already carries rank={active.rank}, alpha={active.alpha}, "
+            f"targets={list(active.targets or ())}, shared_a={active.shared_a}; load it onto a fresh backbone"
         )
 
 
@@ -622,7 +659,7 @@ def load_official_lora(
             "the release checkpoints are for DINOv3 ViT-B/16 (12 blocks, width 768)"
         )
     rank = int(tensors[f"layer.0.{targets[0]}.lora_A.weight"].shape[0])
-    _attach(backbone, LoraSettings(rank=rank, alpha=alpha, targets=targets), source)
+    _attach(backbone, LoraSettings(rank=rank, alpha=alpha, targets=targets, shared_a=True), source)
     _load_lora_tensors(backbone, tensors, source)
     backbone.model.eval()
     logger.info("loaded GeoLoRA release checkpoint %s (rank %d, alpha %g, %d blocks)", source, rank, alpha, depth)

@@ -66,7 +66,9 @@ class TrainConfig(JsonConfig):
     camera_layout : {"official", "uniform"}
     preset : {"default", "reference"}
         Recipe of the multi-view features (`geofeat.render.multiview.RECIPES`):
-        ``"reference"`` computes them as the official GeoLoRA code does, stage by stage.
+        ``"reference"`` computes them as the official GeoLoRA code does, stage by stage, and
+        gives each block one LoRA ``A`` shared by the query, key and value projections, as the
+        official LoRA on the fused ``qkv`` has (`geofeat.backbones.LoraSettings.shared_a`).
     backproject : {"ball", "face", "ball_last"} or None
         None: the preset's.
     partials_per_shape : int

@@ -306,7 +306,12 @@ class GeoLoraTrainer:
     # ------------------------------------------------------------------ setup and checkpoints
 
     def _lora_settings(self) -> LoraSettings:
-        return LoraSettings(rank=self.config.rank, alpha=self.config.alpha, training=self.config.to_dict())
+        return LoraSettings(
+            rank=self.config.rank,
+            alpha=self.config.alpha,
+            shared_a=self.config.preset == "reference",
+            training=self.config.to_dict(),
+        )
 
     def _start_or_resume(self) -> bool:
         """Start a new run or resume from the newest readable checkpoint; True when resumed.

@@ -283,3 +283,52 @@ def test_official_unreadable_file(base_model, tmp_path):
     (tmp_path / "bad.pth").write_bytes(b"not a checkpoint")
     with pytest.raises(BackboneError, match="could not read"):
         load_official_lora(DinoBackbone(base_model, kind="dinov3"), tmp_path / "bad.pth")
+
+
+def test_shared_a_is_one_parameter_per_block_and_survives_save_and_load(base_model, images, tmp_path):
+    """``shared_a``: q, k and v of a block train one A, as the release's fused-qkv LoRA; saved and loaded as such."""
+    fresh = copy.deepcopy(base_model)
+    backbone = add_lora(DinoBackbone(base_model, kind="dinov3"), LoraSettings(shared_a=True))
+    named = dict(backbone.model.named_parameters(remove_duplicate=False))
+    for block in range(DEPTH):
+        a = [n for n in named if f"layer.{block}." in n and "lora_A" in n]
+        assert len(a) == 3 and len({id(named[n]) for n in a}) == 1
+    trainable = [p for p in backbone.model.parameters() if p.requires_grad]
+    assert sum(p.numel() for p in trainable) == DEPTH * (RANK * DIM + 3 * DIM * RANK)  # one A and three B per block
+    _randomize_lora(backbone)
+    backbone.patch_features(images).square().mean().backward()
+    torch.optim.Adam(trainable, lr=1e-2).step()  # a step keeps the three projections on one A
+    expected = backbone.pixel_features(images)
+    save_adapter(backbone, tmp_path / "adapter")
+    assert json.loads((tmp_path / "adapter" / ADAPTER_CONFIG_FILE).read_text())["shared_a"] is True
+    restored = load_adapter(DinoBackbone(fresh, kind="dinov3"), tmp_path / "adapter")
+    assert torch.equal(restored.pixel_features(images), expected)
+    named = dict(restored.model.named_parameters(remove_duplicate=False))
+    assert named["base_model.model.model.layer.0.attention.q_proj.lora_A.default.weight"] is named[
+        "base_model.model.model.layer.0.attention.v_proj.lora_A.default.weight"
+    ]
+
+
+def test_separate_a_tensors_do_not_load_into_a_shared_adapter(base_model, tmp_path):
+    backbone = add_lora(DinoBackbone(copy.deepcopy(base_model), kind="dinov3"))
+    _randomize_lora(backbone)  # three different A per block
+    save_adapter(backbone, tmp_path / "separate", LoraSettings())
+    config_path = tmp_path / "separate" / ADAPTER_CONFIG_FILE
+    config = json.loads(config_path.read_text())
+    config_path.write_text(json.dumps(config | {"shared_a": True}))
+    with pytest.raises(BackboneError, match="different lora_A tensors"):
+        load_adapter(DinoBackbone(base_model, kind="dinov3"), tmp_path / "separate")
+
+
+def test_release_checkpoints_load_with_a_shared_a(base_model, images):
+    """The fused-qkv release layout shares its A: loaded, the three projections hold one A parameter."""
+    state = {}
+    gen = torch.Generator().manual_seed(5)
+    for block in range(DEPTH):
+        prefix = f"base_model.model.blocks.{block}.attn.qkv"
+        state[f"{prefix}.lora_A.default.weight"] = torch.randn(RANK, DIM, generator=gen)
+        state[f"{prefix}.lora_B.default.weight"] = torch.randn(3 * DIM, RANK, generator=gen)
+    backbone = load_official_lora(DinoBackbone(base_model, kind="dinov3"), state)
+    named = dict(backbone.model.named_parameters(remove_duplicate=False))
+    a = [named[f"base_model.model.model.layer.1.attention.{t}.lora_A.default.weight"] for t in ("q_proj", "k_proj", "v_proj")]
+    assert a[0] is a[1] is a[2] and torch.equal(a[0], state["base_model.model.blocks.1.attn.qkv.lora_A.default.weight"])

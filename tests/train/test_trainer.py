@@ -174,3 +174,22 @@ def test_geodesic_store_round_trip_and_repair(tmp_path, caplog):
     path.write_bytes(b"not a numpy file")
     np.testing.assert_allclose(store.load(mesh).numpy(), dist)
     assert "recomputing" in caplog.text
+
+
+def test_reference_preset_trains_one_shared_a_per_block_and_resumes_exactly(tmp_path):
+    """``preset="reference"``: the official recipe, whose fused-qkv LoRA has one A per block; resume stays exact."""
+    overrides = {"preset": "reference", "backproject": None, "image_size": 32, "steps": 2, "checkpoint_every": 1}
+    straight = _trainer(tmp_path / "a", **overrides)
+    straight.fit()
+    named = dict(straight.backbone.model.named_parameters(remove_duplicate=False))
+    for block in range(straight.backbone.num_layers):
+        a = {id(p) for n, p in named.items() if f"layer.{block}." in n and "lora_A" in n}
+        assert len(a) == 1
+    state = lora_state_dict(straight.backbone)
+    assert torch.count_nonzero(state["layer.0.q_proj.lora_B.weight"]) > 0  # it trained
+    torch.testing.assert_close(state["layer.0.q_proj.lora_A.weight"], state["layer.0.v_proj.lora_A.weight"], rtol=0, atol=0)
+    _trainer(tmp_path / "b", **(overrides | {"steps": 1})).fit()
+    resumed = _trainer(tmp_path / "b", **overrides)
+    resumed.fit()
+    for name, value in lora_state_dict(resumed.backbone).items():
+        torch.testing.assert_close(value, state[name], rtol=0, atol=1e-6)
