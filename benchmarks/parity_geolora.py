@@ -925,10 +925,11 @@ def geolora_sections(args) -> Iterator[str]:
             lora_path = folder / "lora.pth"
             torch.save(utils_module.get_state_dict_lora(peft_model), lora_path)  # the official save format
             load_official_lora(ours, lora_path)
-            rows, _, _ = feature_stages(
-                dino_utils, utils_module, peft_model, ours, mesh, args.views, "reference", lora=True, label="DINOv3+LoRA"
-            )
-            yield markdown(rows, f"DINOv3 ViT-B/16 + LoRA, GeoLoRA code ({args.shape}, {args.views} views)")
+            if args.views:
+                rows, _, _ = feature_stages(
+                    dino_utils, utils_module, peft_model, ours, mesh, args.views, "reference", lora=True, label="DINOv3+LoRA"
+                )
+                yield markdown(rows, f"DINOv3 ViT-B/16 + LoRA, GeoLoRA code ({args.shape}, {args.views} views)")
             if args.differences:
                 other = geofeat.load_mesh(args.data_root / "FAUST_r" / "off" / f"{args.other}.off")
                 rows = difference_stages(ours, mesh, other, args.differences)
@@ -983,7 +984,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--dsmk-repo", type=Path, default=None, help="copy of xieyizheng/DeepShapeMatchingKit (needs --dinov2-repo)"
     )
     parser.add_argument("--shape", default="tr_reg_080", help="FAUST_r shape")
-    parser.add_argument("--views", type=int, default=4, help="views of the feature stages (a perfect square)")
+    parser.add_argument(
+        "--views", type=int, default=4, help="views of the DINOv3 feature stages (a perfect square; 0: skip them)"
+    )
     parser.add_argument("--dsmk-views", type=int, default=4, help="views of the DeepShapeMatchingKit stages (100 in its code)")
     parser.add_argument("--no-step", dest="step", action="store_false", help="skip the training step")
     parser.add_argument("--differences", type=int, default=0, help="views of the default-vs-reference table (0: none)")
@@ -1013,10 +1016,12 @@ def main(argv=None) -> int:
             parser.error("--record needs --dinov3-repo")
         record_reference(args)
         return 0
+    args.out.parent.mkdir(parents=True, exist_ok=True)
     sections = [f"Run {datetime.date.today().isoformat()} on {machine()}, one thread. {ONE_THREAD}\n"]
-    for section in geolora_sections(args):
+    for section in geolora_sections(args):  # the file is rewritten after each section: a later failure loses nothing
         print(section, flush=True)
         sections.append(section)
+        args.out.write_text("\n".join(sections))
     text = "\n".join(sections)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(text)
