@@ -1,6 +1,6 @@
 """Back-projection of per-pixel features onto mesh vertices, streamed over batches of views.
 
-Two modes:
+Three modes:
 
 * ``"ball"`` reproduces GeoLoRA and Diff3f: every foreground pixel is lifted to its 3D
   surface point and gives its feature to every vertex within ``radius`` (0.004 x the
@@ -63,7 +63,7 @@ class VertexFeatureAccumulator:
     faces : numpy.ndarray, shape (F, 3), int
     n_channels : int
         Feature channels C.
-    mode : {"ball", "face"}
+    mode : {"ball", "face", "ball_last"}
     radius : float, optional
         Ball radius in mesh units; default ``BALL_RADIUS_FRACTION`` x the size that
         ``radius_basis`` names.
