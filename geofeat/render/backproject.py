@@ -2,10 +2,10 @@
 
 Three modes:
 
-* ``"ball"`` reproduces GeoLoRA and Diff3f: every foreground pixel is lifted to its 3D
-  surface point and gives its feature to every vertex within ``radius`` (0.004 x the
-  shape's bounding-box diagonal by default) of that point; a vertex takes the mean of what
-  it received. The surface point is interpolated from the rasterizer's face index and
+* ``"ball"`` (geofeat's default; GeoLoRA's and Diff3f's ball, made a true average): every
+  foreground pixel is lifted to its 3D surface point and gives its feature to every vertex
+  within ``radius`` (0.004 x the shape's bounding-box diagonal by default) of that point; a
+  vertex takes the mean of what it received. The surface point is interpolated from the rasterizer's face index and
   perspective-correct barycentrics, which is the point that unprojecting the pixel by its
   depth gives, without the round trip through the camera.
 * ``"face"`` gives each foreground pixel's feature to the three corners of its face,
