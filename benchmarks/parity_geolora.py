@@ -762,12 +762,12 @@ def difference_stages(ours, mesh: geofeat.Mesh, other: geofeat.Mesh, n_views: in
 
 def partial_statistics(verts: np.ndarray, faces: np.ndarray, n_full: int, sqrt_area: float) -> tuple[float, float, int]:
     """Kept-vertex fraction, boundary length / sqrt(full area), and number of connected components of a partial shape."""
-    from geofeat.topology import corner_edges, edge_counts, vertex_components
+    from geofeat.topology import corner_edges, vertex_components
 
     faces = np.asarray(faces, dtype=np.int64)
     used = np.unique(faces)
-    edges = corner_edges(faces)
-    boundary = edges[edge_counts(faces) == 1]
+    edges, counts = np.unique(corner_edges(faces), axis=0, return_counts=True)
+    boundary = edges[counts == 1]  # edges of one face only
     length = float(np.linalg.norm(verts[boundary[:, 0]] - verts[boundary[:, 1]], axis=1).sum()) / sqrt_area
     n_components, labels = vertex_components(len(verts), faces)
     return used.size / n_full, length, int(np.unique(labels[used]).size)
@@ -949,12 +949,11 @@ def geolora_sections(args) -> Iterator[str]:
         if args.dinov2_repo:
             official2 = official_vit(args.dinov2_repo, "dinov2")
             ours2 = our_backbone(official2, "dinov2", folder)
-            rows, _, _ = feature_stages(
-                dino_utils, utils_module, official2, ours2, mesh, args.views, "reference", lora=False, label="DINOv2"
-            )
-            yield markdown(rows, f"DINOv2 ViT-B/14, GeoLoRA code ({args.shape}, {args.views} views)")
-    if args.partials:
-        yield markdown(partial_stages(args.geolora_repo, mesh, args.partials), f"Partial shapes ({args.shape})")
+            if args.views:
+                rows, _, _ = feature_stages(
+                    dino_utils, utils_module, official2, ours2, mesh, args.views, "reference", lora=False, label="DINOv2"
+                )
+                yield markdown(rows, f"DINOv2 ViT-B/14, GeoLoRA code ({args.shape}, {args.views} views)")
     if args.dsmk_repo and args.dinov2_repo:
         with reference_path(args.dsmk_repo):
             dsmk = importlib.import_module("utils.dino_util")
@@ -963,6 +962,8 @@ def geolora_sections(args) -> Iterator[str]:
                 dsmk, utils_module, official2, ours2, mesh, args.dsmk_views, "dsmk", lora=False, label="DSMK"
             )
             yield markdown(rows, f"DINOv2 ViT-B/14, DeepShapeMatchingKit code ({args.shape}, {args.dsmk_views} views)")
+    if args.partials:
+        yield markdown(partial_stages(args.geolora_repo, mesh, args.partials), f"Partial shapes ({args.shape})")
 
 
 def _dsmk_mesh(verts, faces, device):
@@ -985,7 +986,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--shape", default="tr_reg_080", help="FAUST_r shape")
     parser.add_argument(
-        "--views", type=int, default=4, help="views of the DINOv3 feature stages (a perfect square; 0: skip them)"
+        "--views", type=int, default=4, help="views of the DINOv3 and DINOv2 feature stages (a perfect square; 0: skip them)"
     )
     parser.add_argument("--dsmk-views", type=int, default=4, help="views of the DeepShapeMatchingKit stages (100 in its code)")
     parser.add_argument("--no-step", dest="step", action="store_false", help="skip the training step")
