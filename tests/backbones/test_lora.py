@@ -304,9 +304,10 @@ def test_shared_a_is_one_parameter_per_block_and_survives_save_and_load(base_mod
     restored = load_adapter(DinoBackbone(fresh, kind="dinov3"), tmp_path / "adapter")
     assert torch.equal(restored.pixel_features(images), expected)
     named = dict(restored.model.named_parameters(remove_duplicate=False))
-    assert named["base_model.model.model.layer.0.attention.q_proj.lora_A.default.weight"] is named[
-        "base_model.model.model.layer.0.attention.v_proj.lora_A.default.weight"
-    ]
+    assert (
+        named["base_model.model.model.layer.0.attention.q_proj.lora_A.default.weight"]
+        is named["base_model.model.model.layer.0.attention.v_proj.lora_A.default.weight"]
+    )
 
 
 def test_separate_a_tensors_do_not_load_into_a_shared_adapter(base_model, tmp_path):
