@@ -51,7 +51,7 @@ from parity_common import Stage, compare, markdown
 
 import geofeat
 from geofeat.backbones import load_backbone
-from geofeat.backbones.dino import IMAGENET_MEAN, IMAGENET_STD, grid_sample_patch_features
+from geofeat.backbones.dino import grid_sample_patch_features, imagenet_normalized
 from geofeat.backbones.lora import load_official_lora
 from geofeat.geometry.partial import make_partial
 from geofeat.render import make_cameras, multiview_features
@@ -353,13 +353,6 @@ def _p3d_mesh(utils_module, mesh: geofeat.Mesh):
     )
 
 
-def _normalized(images: torch.Tensor) -> torch.Tensor:
-    """(N, H, W, 3) in [0, 1] -> (N, 3, H, W) ImageNet-normalised, as the backbones see them."""
-    mean = torch.tensor(IMAGENET_MEAN).view(1, 3, 1, 1)
-    std = torch.tensor(IMAGENET_STD).view(1, 3, 1, 1)
-    return (images.permute(0, 3, 1, 2) - mean) / std
-
-
 def _tokens_grid(tokens: torch.Tensor, side: int) -> torch.Tensor:
     return tokens.reshape(tokens.shape[0], side, side, tokens.shape[-1])
 
@@ -461,7 +454,9 @@ def feature_stages(
     side = our_input.shape[1]
     their_input = torch.cat(recorder.inputs)[:, :, :side, :side]
     rows.append(
-        compare(f"{label}: backbone input, isolated (resize to 518, crop, normalise)", _normalized(our_input), their_input)
+        compare(
+            f"{label}: backbone input, isolated (resize to 518, crop, normalise)", imagenet_normalized(our_input), their_input
+        )
     )
     with torch.no_grad():
         our_tokens = ours.patch_features(our_input)
@@ -855,8 +850,8 @@ def record_reference(args) -> None:
         arrays["tokens/image"] = image.numpy()
         with torch.no_grad():
             with peft_model.disable_adapter():
-                arrays["tokens/plain"] = peft_model.get_intermediate_layers(_normalized(image), n=1)[0].numpy()
-            arrays["tokens/lora"] = peft_model.get_intermediate_layers(_normalized(image), n=1)[0].numpy()
+                arrays["tokens/plain"] = peft_model.get_intermediate_layers(imagenet_normalized(image), n=1)[0].numpy()
+            arrays["tokens/lora"] = peft_model.get_intermediate_layers(imagenet_normalized(image), n=1)[0].numpy()
 
         # the feature path on a small render
         run = ReferenceRun()

@@ -54,6 +54,7 @@ __all__ = [
     "load_backbone",
     "missing_weights_message",
     "grid_sample_patch_features",
+    "imagenet_normalized",
     "sample_patch_features",
     "state_dict_digest",
     "upsample_patch_features",
@@ -141,6 +142,23 @@ def state_dict_digest(state_dict: Mapping[str, torch.Tensor]) -> str:
         flat = tensor.to("cpu").contiguous().reshape(-1)
         digest.update(flat.view(torch.uint8).numpy().tobytes() if flat.numel() else b"")
     return digest.hexdigest()
+
+
+def imagenet_normalized(images: torch.Tensor) -> torch.Tensor:
+    """Images as DINO sees them: channels first, ImageNet mean and standard deviation removed.
+
+    Parameters
+    ----------
+    images : torch.Tensor, shape (N, H, W, 3), float in [0, 1]
+
+    Returns
+    -------
+    torch.Tensor, shape (N, 3, H, W), the dtype and device of ``images``
+    """
+    pixels = images.permute(0, 3, 1, 2)
+    mean = torch.tensor(IMAGENET_MEAN, dtype=pixels.dtype, device=pixels.device).view(1, 3, 1, 1)
+    std = torch.tensor(IMAGENET_STD, dtype=pixels.dtype, device=pixels.device).view(1, 3, 1, 1)
+    return (pixels - mean) / std
 
 
 def upsample_patch_features(grid: torch.Tensor, out_size: tuple[int, int]) -> torch.Tensor:
@@ -382,10 +400,7 @@ class DinoBackbone:
             raise BackboneError(
                 f"image values must lie in [0, 1], found range [{lo:.4g}, {hi:.4g}]; for 0-255 images divide by 255"
             )
-        pixels = images.to(self.device, torch.float32).permute(0, 3, 1, 2)
-        mean = torch.tensor(IMAGENET_MEAN, device=pixels.device).view(1, 3, 1, 1)
-        std = torch.tensor(IMAGENET_STD, device=pixels.device).view(1, 3, 1, 1)
-        return (pixels - mean) / std
+        return imagenet_normalized(images.to(self.device, torch.float32))
 
     def _final_norm(self) -> torch.nn.Module:
         norm = getattr(self.model, "layernorm", None)  # DINOv2

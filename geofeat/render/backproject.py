@@ -5,9 +5,9 @@ Three modes:
 * ``"ball"`` (geofeat's default; GeoLoRA's and Diff3f's ball, made a true average): every
   foreground pixel is lifted to its 3D surface point and gives its feature to every vertex
   within ``radius`` (0.004 x the shape's bounding-box diagonal by default) of that point; a
-  vertex takes the mean of what it received. The surface point is interpolated from the rasterizer's face index and
-  perspective-correct barycentrics, which is the point that unprojecting the pixel by its
-  depth gives, without the round trip through the camera.
+  vertex takes the mean of what it received. The surface point is interpolated from the
+  rasterizer's face index and perspective-correct barycentrics, which is the point that
+  unprojecting the pixel by its depth gives, without the round trip through the camera.
 * ``"face"`` gives each foreground pixel's feature to the three corners of its face,
   weighted by the barycentric coordinates.
 * ``"ball_last"`` is what the GeoLoRA and DeepShapeMatchingKit (Diff3f) code computes, for
@@ -38,6 +38,7 @@ import torch
 from scipy.spatial import ConvexHull, QhullError, cKDTree
 from scipy.spatial.distance import pdist
 
+from geofeat.checks import check_choice, check_integer
 from geofeat.errors import GeofeatError
 
 BACKPROJECT_MODES = ("ball", "face", "ball_last")
@@ -94,12 +95,9 @@ class VertexFeatureAccumulator:
     def __post_init__(self) -> None:
         if self.mode not in BACKPROJECT_MODES:
             raise BackprojectError(f"backprojection mode must be one of {BACKPROJECT_MODES}; found {self.mode!r}.")
-        if self.radius_basis not in RADIUS_BASES:
-            raise BackprojectError(f"radius_basis must be one of {RADIUS_BASES}; found {self.radius_basis!r}.")
-        if self.max_neighbours is not None and (
-            not isinstance(self.max_neighbours, (int, np.integer)) or self.max_neighbours < 1
-        ):
-            raise BackprojectError(f"max_neighbours must be a positive integer or None; found {self.max_neighbours!r}.")
+        self.radius_basis = check_choice(self.radius_basis, "radius_basis", RADIUS_BASES, error=BackprojectError)
+        if self.max_neighbours is not None:
+            self.max_neighbours = check_integer(self.max_neighbours, "max_neighbours", low=1, error=BackprojectError)
         self.verts = np.asarray(self.verts, dtype=np.float64)
         self.faces = np.asarray(self.faces, dtype=np.int64)
         if self.radius is None:

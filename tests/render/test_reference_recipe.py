@@ -18,7 +18,7 @@ import torch
 
 import geofeat
 from geofeat.backbones import load_backbone
-from geofeat.backbones.dino import IMAGENET_MEAN, IMAGENET_STD, grid_sample_patch_features
+from geofeat.backbones.dino import grid_sample_patch_features
 from geofeat.backbones.errors import BackboneError
 from geofeat.backbones.lora import load_official_lora
 from geofeat.render import make_cameras, multiview_features
@@ -59,12 +59,6 @@ def _backbone(official_pth, lora: bool):
 @pytest.fixture(scope="module")
 def mesh(faust_dir) -> geofeat.Mesh:
     return geofeat.load_mesh(faust_dir / "off" / "tr_reg_080.off")
-
-
-def _normalized(images: torch.Tensor) -> torch.Tensor:
-    return (images.permute(0, 3, 1, 2) - torch.tensor(IMAGENET_MEAN).view(1, 3, 1, 1)) / torch.tensor(IMAGENET_STD).view(
-        1, 3, 1, 1
-    )
 
 
 def test_official_dinov3_weights_convert_exactly(recorded, official_pth):
