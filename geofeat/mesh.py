@@ -52,6 +52,8 @@ class Mesh:
     def __post_init__(self) -> None:
         verts = _validated_verts(self.verts)
         faces = None if self.faces is None else _validated_faces(self.faces, len(verts))
+        if faces is not None:
+            faces = _without_repeated_faces(faces, str(self.name))
         verts.flags.writeable = False
         if faces is not None:
             faces.flags.writeable = False
@@ -216,6 +218,54 @@ def _validated_faces(faces, n_vertices: int) -> np.ndarray:
             f"found range [{lo}, {hi}]. 1-based indices? Subtract 1."
         )
     return arr
+
+
+def _without_repeated_faces(faces: np.ndarray, name: str) -> np.ndarray:
+    """``faces`` without the faces that name a vertex twice and without repeats of a triangle.
+
+    Such faces have no area and add nothing to a surface, but a solver can pay for each of
+    them: the robust Laplacian's time grows with the square of the number of faces on one
+    edge. A repeat is a face with the same three vertices as an earlier one, in any order;
+    the first is kept. Each kind dropped is logged as a warning with its count.
+
+    Parameters
+    ----------
+    faces : numpy.ndarray, shape (F, 3), int64
+    name : str
+        The mesh's name, for the warning.
+
+    Returns
+    -------
+    numpy.ndarray, shape (F', 3), int64
+        ``faces`` itself when nothing is dropped, else the kept rows in their order.
+
+    Raises
+    ------
+    MeshError
+        If every face names a vertex twice.
+    """
+    corners = np.sort(faces, axis=1)
+    collapsed = (corners[:, 0] == corners[:, 1]) | (corners[:, 1] == corners[:, 2])
+    n_collapsed = int(np.count_nonzero(collapsed))
+    if n_collapsed == len(faces):
+        raise MeshError(f"mesh {name or '<unnamed>'!r}: every face names one vertex twice; there is no surface left.")
+    candidates = np.flatnonzero(~collapsed)
+    n_vertices = int(corners.max()) + 1
+    if n_vertices < 2**21:  # one int64 key per triangle: a 1-D sort instead of a sort of rows
+        keys = (corners[candidates, 0] * n_vertices + corners[candidates, 1]) * n_vertices + corners[candidates, 2]
+        _, first = np.unique(keys, return_index=True)
+    else:
+        _, first = np.unique(corners[candidates], axis=0, return_index=True)
+    keep = np.zeros(len(faces), dtype=bool)
+    keep[candidates[first]] = True
+    n_repeats = len(candidates) - len(first)
+    if n_collapsed:
+        log.warning("mesh %r: dropped %d face(s) that name one vertex twice (no area)", name or "<unnamed>", n_collapsed)
+    if n_repeats:
+        log.warning(
+            "mesh %r: dropped %d repeated face(s) (the same three vertices as an earlier face)", name or "<unnamed>", n_repeats
+        )
+    return faces if keep.all() else faces[keep]
 
 
 def _content_hash(verts: np.ndarray, faces: np.ndarray | None) -> str:

@@ -140,15 +140,27 @@ def test_array_validation(verts, faces, match):
 
 def test_problems_are_reported_and_handled(caplog):
     base = sphere(1)
-    verts = np.vstack([base.verts, base.verts + 5.0, [[9.0, 9.0, 9.0]]])  # 2 components + 1 unreferenced vertex
+    # 2 components, 1 unreferenced vertex, and one more vertex (for a face of zero area)
+    verts = np.vstack([base.verts, base.verts + 5.0, [[9.0, 9.0, 9.0]], base.verts[:1]])
     n = base.n_vertices
-    extra_faces = np.array([[0, 1, 1], [0, 1, n - 1]])  # a degenerate face; a third face on edge (0, 1)
+    # a face naming a vertex twice (dropped), a zero-area face, more faces on edge (a, b), and a repeat of face 0
+    a, b, c = base.faces[0]  # an edge (a, b) of the sphere; the extra vertex is put at a
+    verts[2 * n + 1] = verts[a]
+    extra_faces = np.array([[a, b, b], [b, a, 2 * n + 1], [a, b, n - 1], [c, b, a]])
     faces = np.vstack([base.faces, base.faces + n, extra_faces])
     with caplog.at_level(logging.WARNING, logger="geofeat"):
         mesh = Mesh(verts, faces, name="messy")
     text = caplog.text
-    for expected in ["degenerate face", "unreferenced vertex", "non-manifold edge", "connected components"]:
+    for expected in [
+        "dropped 1 face(s) that name one vertex twice",
+        "dropped 1 repeated face(s)",
+        "1 degenerate face",
+        "unreferenced vertex",
+        "non-manifold edge",
+        "connected components",
+    ]:
         assert expected in text
+    assert len(mesh.faces) == len(faces) - 2
     feats = geofeat.compute(mesh, "wks", cache=False, n_eig=20, n_descr=8)
     assert feats.shape == (len(verts), 8) and np.isfinite(feats).all()
 

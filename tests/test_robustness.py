@@ -807,7 +807,53 @@ KILLS = [
     Row("atomic-write-fsynced-before-rename", "7", atomic_write_is_synced, reference=lambda c: True),
 ]
 
-ROWS = MESH_FILES + NON_FINITE + PARAMETERS + CACHE + ERRORS + KILLS
+
+def repeated_face_off(ctx: Ctx, repeats: int) -> Path:
+    """A 3-vertex OFF whose one triangle is written ``repeats`` times, plus one face naming a vertex twice."""
+    faces = "3 0 1 2\n" * repeats + "3 0 0 1\n"
+    return write_off(ctx.tmp / "repeated.off", f"OFF\n3 {repeats + 1} 0\n0 0 0\n1 0 0\n0 1 0\n{faces}")
+
+
+def repeated_faces_hks(ctx: Ctx) -> np.ndarray:
+    """HKS of a bumpy sphere whose faces are all written twice (the second time reversed), one of them 200,000 times."""
+    mesh = bumpy(0, 2)
+    faces = np.concatenate([mesh.faces, mesh.faces[:, ::-1], np.repeat(mesh.faces[:1], 200_000, axis=0)])
+    return geofeat.compute(Mesh(mesh.verts, faces), "hks", cache=False, n_eig=8, n_descr=4)
+
+
+def dropped_faces_logged(ctx: Ctx, result) -> None:
+    assert "dropped" in ctx.caplog.text and "repeated face(s)" in ctx.caplog.text
+
+
+# second pass: hang on repeated faces (the robust Laplacian's time grows with the square of faces per edge)
+SECOND_PASS = [
+    Row(
+        "repeated-faces-dropped-with-a-count",
+        "R1",
+        lambda c: len(geofeat.load_mesh(repeated_face_off(c, 1_000_000)).faces),
+        reference=lambda c: 1,
+        check=lambda c, r: (
+            ("dropped 999999 repeated face(s)" in c.caplog.text and "dropped 1 face(s) that name" in c.caplog.text)
+            or pytest.fail(c.caplog.text[-500:])
+        ),
+    ),
+    Row(
+        "repeated-faces-hks-equals-clean-mesh",
+        "R1",
+        repeated_faces_hks,
+        reference=lambda c: geofeat.compute(bumpy(0, 2), "hks", cache=False, n_eig=8, n_descr=4),
+        check=dropped_faces_logged,
+    ),
+    Row(
+        "only-collapsed-faces",
+        "R1",
+        lambda c: Mesh(TRIANGLE, np.array([[0, 0, 1], [2, 3, 3]])),
+        MeshError,
+        "every face names one vertex twice",
+    ),
+]
+
+ROWS = MESH_FILES + NON_FINITE + PARAMETERS + CACHE + ERRORS + KILLS + SECOND_PASS
 
 
 def run_py():
@@ -836,7 +882,7 @@ def test_input(row: Row, tmp_path, monkeypatch, caplog, isolated_cache, capsys):
 
 
 def test_every_item_has_rows():
-    assert {r.item for r in ROWS} == {"3", "4", "5", "6", "7", "8"}
+    assert {r.item for r in ROWS} == {"3", "4", "5", "6", "7", "8", "R1"}
     assert len({r.id for r in ROWS}) == len(ROWS)
 
 
