@@ -32,7 +32,6 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, ClassVar
 
 import numpy as np
-from tqdm.auto import tqdm
 
 from geofeat._version import __version__
 from geofeat.checks import canonical, check_integer, check_number, is_boolean
@@ -44,6 +43,7 @@ from geofeat.files import atomic_write, load_torch_file
 from geofeat.jsonconfig import JsonConfig
 from geofeat.lru import LRUCache
 from geofeat.mesh import Mesh
+from geofeat.progress import progress_bar
 from geofeat.registry import LazyEntry, lookup
 
 from . import matchers
@@ -541,7 +541,7 @@ class LearnedHead(Head):
         rng = np.random.default_rng(config.seed)
         losses: list[float] = []
         start = time.perf_counter()
-        bar = tqdm(total=total, desc=f"training {self.name}", unit="pair", disable=not config.progress)
+        bar = progress_bar(total=total, desc=f"training {self.name}", unit="pair", show=config.progress)
         try:
             for _ in range(config.epochs):
                 for index in rng.permutation(len(pairs)):

@@ -9,12 +9,12 @@ import numpy as np
 import trimesh
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
-from tqdm.auto import tqdm
 
 from geofeat.cache import FeatureCache
 from geofeat.descriptors.compute import compute
 from geofeat.geometry.spectral import clear_basis_cache
 from geofeat.mesh import Mesh
+from geofeat.progress import progress_bar
 
 
 @dataclass(frozen=True)
@@ -68,7 +68,7 @@ def run_demo(cache_dir, seed: int = 0, progress: bool = True) -> list[DemoRow]:
     scale = np.sqrt(fine.area())
     store = FeatureCache(cache_dir)
     rows = []
-    for name in tqdm(["hks", "wks"], desc="descriptors", disable=not progress):
+    for name in progress_bar(["hks", "wks"], desc="descriptors", show=progress):
         clear_basis_cache()  # each descriptor's time includes its eigen-solves
         start = time.perf_counter()
         feats_x = compute(source, name, cache=store)

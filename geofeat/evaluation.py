@@ -29,7 +29,6 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from tqdm.auto import tqdm
 
 from geofeat import metrics
 from geofeat.datasets.errors import DatasetError
@@ -37,6 +36,7 @@ from geofeat.datasets.records import Match, ShapePair
 from geofeat.geometry.geodesic import GeodesicStore, geodesic_matrix
 from geofeat.mesh import Mesh
 from geofeat.metrics import MetricError
+from geofeat.progress import progress_bar
 
 log = logging.getLogger(__name__)
 
@@ -444,7 +444,7 @@ def evaluate_dataset(
 
     _JOB = _Job(dataset, match, protocol, store, frozenset(wanted))
     try:
-        with tqdm(total=n_pairs, desc=desc, unit="pair", disable=not progress) as bar:
+        with progress_bar(total=n_pairs, desc=desc, unit="pair", show=progress) as bar:
             if workers == 1:
                 for group in groups:
                     for item in _evaluate_group(group):

@@ -33,7 +33,6 @@ from typing import Any
 import h5py
 import numpy as np
 import torch
-from tqdm.auto import tqdm
 
 from geofeat import distributed
 from geofeat._version import __version__
@@ -43,6 +42,7 @@ from geofeat.descriptors.registry import make_descriptor
 from geofeat.errors import GeofeatError
 from geofeat.files import atomic_write
 from geofeat.mesh import Mesh, load_mesh
+from geofeat.progress import progress_bar
 
 log = logging.getLogger(__name__)
 
@@ -440,7 +440,7 @@ def extract(
         mine = distributed.shard(shapes, info)
         label = f"{descriptor} features" + (f" (rank 0 of {info.world_size})" if info.world_size > 1 else "")
         records = []
-        for shape in tqdm(mine, desc=label, unit="shape", disable=not progress or not info.is_main):
+        for shape in progress_bar(mine, desc=label, unit="shape", show=progress and info.is_main):
             record = _one_shape(shape, descriptor, params, store, export, info.rank)
             records.append(record)
             if on_record is not None:

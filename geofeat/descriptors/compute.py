@@ -11,7 +11,6 @@ from collections.abc import Sequence
 from concurrent.futures import ProcessPoolExecutor, as_completed
 
 import numpy as np
-from tqdm.auto import tqdm
 
 from geofeat._version import __version__
 from geofeat.cache import CacheError, FeatureCache, cache_key
@@ -20,6 +19,7 @@ from geofeat.descriptors.base import Descriptor
 from geofeat.descriptors.registry import make_descriptor
 from geofeat.lru import LRUCache
 from geofeat.mesh import Mesh, as_mesh
+from geofeat.progress import progress_bar
 
 log = logging.getLogger(__name__)
 
@@ -173,7 +173,7 @@ def compute_many(
     make_descriptor(name, **params)  # unknown names or bad parameters fail here, not in a worker
     n_jobs = check_integer(n_jobs, "n_jobs", low=1, expected="a positive integer number of processes")
     items = list(meshes_or_paths)
-    bar = tqdm(total=len(items), desc=f"{name} features", unit="shape", disable=not progress)
+    bar = progress_bar(total=len(items), desc=f"{name} features", unit="shape", show=progress)
     results: list[np.ndarray | None] = [None] * len(items)
     with bar:
         if n_jobs == 1:

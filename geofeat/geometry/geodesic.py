@@ -29,13 +29,13 @@ from pathlib import Path
 import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components, dijkstra
-from tqdm.auto import tqdm
 
 from geofeat.config import cache_dir
 from geofeat.errors import MeshError
 from geofeat.files import EntryFolder, array_crc32, atomic_write
 from geofeat.lru import LRUCache
 from geofeat.mesh import Mesh
+from geofeat.progress import progress_bar
 from geofeat.topology import unique_edges, vertex_components
 
 log = logging.getLogger(__name__)
@@ -226,7 +226,7 @@ def _all_pairs_dijkstra(
     separator = _separator(graph, points, patch_size)
     sep_idx = np.flatnonzero(separator)
     dist = np.empty((n, n), dtype=np.float32)
-    with tqdm(total=n, desc="geodesics (dijkstra)", unit="vertex", disable=not progress) as bar:
+    with progress_bar(total=n, desc="geodesics (dijkstra)", unit="vertex", show=progress) as bar:
         for chunk in np.array_split(sep_idx, max(1, -(-sep_idx.size // _ROW_CHUNK))):
             dist[chunk] = dijkstra(graph, directed=True, indices=chunk)  # symmetric: same as undirected, faster
             bar.update(chunk.size)
@@ -333,7 +333,7 @@ def _all_pairs_heat(mesh: Mesh, scale: float, progress: bool = False) -> np.ndar
 
     n = mesh.n_vertices
     dist = np.full((n, n), np.inf, dtype=np.float32)
-    with tqdm(total=n, desc="geodesics (heat)", unit="vertex", disable=not progress) as bar:
+    with progress_bar(total=n, desc="geodesics (heat)", unit="vertex", show=progress) as bar:
         for idx, faces in _face_components(mesh):
             if faces is not None:
                 solver = pp3d.MeshHeatMethodDistanceSolver(mesh.verts[idx], faces)

@@ -11,13 +11,13 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as sla
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
-from tqdm.auto import tqdm
 
 from geofeat.checks import check_integer
 from geofeat.geometry.errors import SpectralError
 from geofeat.geometry.laplacian import laplacian
 from geofeat.lru import LRUCache
 from geofeat.mesh import Mesh
+from geofeat.progress import progress_bar
 
 log = logging.getLogger(__name__)
 
@@ -246,9 +246,9 @@ def _sparse_with_fallbacks(
     ]
     failures = []
     for label, sigma, ncv, maxiter in attempts:
-        with tqdm(
+        with progress_bar(
             desc=f"eigenpairs of {name or 'mesh'} (k={k}, {n} vertices)", unit="solve", delay=PROGRESS_AFTER_SECONDS,
-            disable=not progress, leave=False,
+            show=progress, leave=False,
         ) as bar:  # fmt: skip
             try:
                 evals, vecs = _shift_invert(stiffness, mass, k, sigma, ncv, maxiter, bar)

@@ -48,11 +48,11 @@ from typing import TYPE_CHECKING, NamedTuple
 import numpy as np
 import torch
 import torch.nn.functional as F
-from tqdm.auto import tqdm
 
 from geofeat.backbones.dino import grid_sample_patch_features, sample_patch_features
 from geofeat.checks import check_choice, check_integer
 from geofeat.mesh import Mesh
+from geofeat.progress import progress_bar
 from geofeat.render.backproject import (
     BACKPROJECT_MODES,
     RADIUS_BASES,
@@ -265,7 +265,7 @@ def multiview_features(
     raster = RasterSettings(cull_backfaces=recipe.cull_backfaces)
     starts = range(0, len(cameras), batch_size)
     with torch.enable_grad() if grad else torch.no_grad():
-        for start in tqdm(starts, desc=f"views of {mesh.name or 'mesh'}", unit="batch", disable=not progress):
+        for start in progress_bar(starts, desc=f"views of {mesh.name or 'mesh'}", unit="batch", show=progress):
             views = cameras[start : start + batch_size]
             with timer("render"), torch.no_grad():  # the images do not depend on any parameter
                 rendering = render_phong(mesh, None, views, raster)

@@ -18,12 +18,12 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from tqdm.auto import tqdm
 
 from geofeat.errors import MeshError
 from geofeat.geometry import geodesic
 from geofeat.geometry.partial import largest_component_submesh
 from geofeat.mesh import MESH_SUFFIXES, Mesh, load_mesh
+from geofeat.progress import progress_bar
 from geofeat.train.errors import TrainingError
 
 log = logging.getLogger(__name__)
@@ -131,7 +131,7 @@ def load_training_shapes(
     folder = Path(data).expanduser()
     if folder.is_dir():
         files = _folder_meshes(folder)[:first]
-        meshes = [load_mesh(p) for p in tqdm(files, desc="loading shapes", unit="shape", disable=not progress)]
+        meshes = [load_mesh(p) for p in progress_bar(files, desc="loading shapes", unit="shape", show=progress)]
     elif os.sep in data or data.startswith("."):
         raise TrainingError(f"the training data folder {data} does not exist.")
     else:

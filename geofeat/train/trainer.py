@@ -72,7 +72,6 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from tqdm.auto import tqdm
 
 from geofeat import distributed
 from geofeat.backbones import DinoBackbone, load_backbone
@@ -82,6 +81,7 @@ from geofeat.evaluation import evaluate_pair, summarize
 from geofeat.files import atomic_write, fsync_folder, fsync_tree, load_torch_file
 from geofeat.geometry.partial import make_partial
 from geofeat.mesh import Mesh
+from geofeat.progress import progress_bar
 from geofeat.render import make_cameras, multiview_features
 from geofeat.render.multiview import RECIPES
 from geofeat.train.config import RESUMABLE_CHANGES, TrainConfig
@@ -693,7 +693,7 @@ class GeoLoraTrainer:
         timer = _Timer(self.device)
         records = []
         n_pairs = min(config.val_pairs, len(dataset))
-        for i in tqdm(range(n_pairs), desc="validation", unit="pair", leave=False, disable=not config.progress):
+        for i in progress_bar(range(n_pairs), desc="validation", unit="pair", leave=False, show=config.progress):
             pair = dataset[i]
             feat_x, _ = self.shape_features(pair.x, config.views_full, timer, fill="nearest")
             feat_y, _ = self.shape_features(pair.y, config.views_partial, timer, fill="nearest")
@@ -756,7 +756,7 @@ class GeoLoraTrainer:
         if main:
             self._truncate_log(self.step if resumed else None)
         mine = distributed.shard(self.shapes, self.ranks)  # the one-off Dijkstra, shared out among the ranks
-        for mesh in tqdm(mine, desc="geodesics", unit="shape", disable=not self.progress):
+        for mesh in progress_bar(mine, desc="geodesics", unit="shape", show=self.progress):
             self.geodesics.ensure(mesh)
         distributed.barrier()  # (a rank that does not see the shared store computes what it lacks on first use)
         start = time.perf_counter()
@@ -765,7 +765,7 @@ class GeoLoraTrainer:
                 self._validation_row(writer, 0.0)
                 self._sync_log(handle)
                 self.save_checkpoint()
-            bar = tqdm(total=config.steps, initial=self.step, desc="GeoLoRA", unit="step", disable=not self.progress)
+            bar = progress_bar(total=config.steps, initial=self.step, desc="GeoLoRA", unit="step", show=self.progress)
             with _DeferredInterrupt() as interrupt:
                 while self.step < config.steps and not self._anywhere(interrupt.requested):
                     record = self.train_step()
