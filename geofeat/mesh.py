@@ -388,7 +388,11 @@ def load_mesh(path: str | os.PathLike) -> Mesh:
     except MeshError as err:
         raise MeshError(f"{path}: {err}") from None
     except (ValueError, IndexError, UnicodeDecodeError) as err:
-        raise MeshError(f"{path}: malformed {suffix[1:].upper()} file ({err}).") from err
+        # the message says what was expected, never what the file holds (it may be any file)
+        raise MeshError(
+            f"{path}: malformed {suffix[1:].upper()} file: expected ASCII numbers in the layout of the format "
+            f"(vertex coordinates, then faces as vertex counts and indices), found something else."
+        ) from err
 
 
 def _polygon_faces(polygons: list[list[int]]) -> np.ndarray | None:
@@ -398,6 +402,10 @@ def _polygon_faces(polygons: list[list[int]]) -> np.ndarray | None:
     if sizes != {3}:
         raise MeshError(f"faces with {sorted(sizes)} corners found; only triangles are supported. Triangulate the file first.")
     return np.asarray(polygons, dtype=np.int64)
+
+
+#: OFF variants named in an error (anything else is not quoted: the file may not be a mesh at all).
+OFF_VARIANTS = frozenset({"COFF", "NOFF", "CNOFF", "STOFF", "STCOFF", "STNOFF", "4OFF", "nOFF"})
 
 
 def _read_off(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
@@ -411,9 +419,10 @@ def _read_off(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
         raise MeshError("empty OFF file")
     header = lines[0].split()
     if not header[0].endswith("OFF"):
-        raise MeshError(f"not an OFF file: first line is {lines[0]!r}, expected 'OFF'")
+        raise MeshError("not an OFF file: its first line does not start with 'OFF'")
     if header[0] != "OFF":
-        raise MeshError(f"OFF variant {header[0]!r} is not supported; expected plain 'OFF'")
+        variant = repr(header[0]) if header[0] in OFF_VARIANTS else "an OFF variant"
+        raise MeshError(f"{variant} is not supported; expected plain 'OFF' (vertices and triangles, no colours or normals)")
     counts = header[1:] if len(header) > 1 else lines.pop(1).split()
     n_verts, n_faces = int(counts[0]), int(counts[1])
     body = lines[1 : 1 + n_verts + n_faces]

@@ -81,7 +81,7 @@ def test_off_header_on_one_line_and_comments(tmp_path):
     [
         ("OFF\n4 1 0\n0 0 0\n1 0 0\n1 1 0\n0 1 0\n4 0 1 2 3\n", "only triangles"),
         ("OFF\n3 1 0\n0 0 0\n1 0 0\n", "file ends"),
-        ("COFF\n3 1 0\n0 0 0 1 1 1 1\n1 0 0 1 1 1 1\n0 1 0 1 1 1 1\n3 0 1 2\n", "variant"),
+        ("COFF\n3 1 0\n0 0 0 1 1 1 1\n1 0 0 1 1 1 1\n0 1 0 1 1 1 1\n3 0 1 2\n", "'COFF' is not supported"),
         ("PLY\n", "not an OFF file"),
         ("OFF\n3 1 0\n0 0 nan\n1 0 0\n0 1 0\n3 0 1 2\n", "NaN or infinite"),
         ("OFF\n3 1 0\n0 0 0\n1 0 0\n0 1 0\n3 1 2 3\n", r"range \[1, 3\]"),

@@ -853,6 +853,47 @@ SECOND_PASS = [
     ),
 ]
 
+SECRET = "root:x:0:0:secret-token"
+
+
+def mesh_error_of(text: str):
+    def run(ctx: Ctx):
+        return geofeat.load_mesh(write_off(ctx.tmp / "looks-like-a-mesh.off", text))
+
+    return run
+
+
+def content_not_quoted(ctx: Ctx, error) -> None:
+    assert "secret" not in str(error) and "root:x" not in str(error), str(error)
+
+
+SECOND_PASS += [
+    Row(
+        "mesh-error-first-line-not-quoted",
+        "R9",
+        mesh_error_of(SECRET + "\n"),
+        MeshError,
+        "does not start with 'OFF'",
+        check=content_not_quoted,
+    ),
+    Row(
+        "mesh-error-value-not-quoted",
+        "R9",
+        mesh_error_of("OFF\n3 1 0\n" + SECRET + " 0 0\n1 0 0\n0 1 0\n3 0 1 2\n"),
+        MeshError,
+        "expected ASCII numbers",
+        check=content_not_quoted,
+    ),
+    Row(
+        "mesh-error-variant-not-quoted",
+        "R9",
+        mesh_error_of(SECRET + "OFF 3 1 0\n"),
+        MeshError,
+        "an OFF variant",
+        check=content_not_quoted,
+    ),
+]
+
 ROWS = MESH_FILES + NON_FINITE + PARAMETERS + CACHE + ERRORS + KILLS + SECOND_PASS
 
 
@@ -882,7 +923,7 @@ def test_input(row: Row, tmp_path, monkeypatch, caplog, isolated_cache, capsys):
 
 
 def test_every_item_has_rows():
-    assert {r.item for r in ROWS} == {"3", "4", "5", "6", "7", "8", "R1"}
+    assert {r.item for r in ROWS} == {"3", "4", "5", "6", "7", "8", "R1", "R9"}
     assert len({r.id for r in ROWS}) == len(ROWS)
 
 
