@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # One-command set-up on Debian/Ubuntu: system packages, a virtual environment in .venv,
-# the CPU build of PyTorch, then geofeat with all its extras. Run from the repository root:
+# the CPU build of PyTorch, then geofeat with all its extras (docs included). Run from the repository root:
 #   bash scripts/install.sh
 # Set GEOFEAT_TORCH to choose another torch requirement (for example a CUDA build).
 set -euo pipefail
@@ -21,5 +21,5 @@ PYTHON="${PYTHON:-python3}"
 # torch first, then keep it pinned: an unpinned torch elsewhere would pull CUDA packages.
 .venv/bin/python -m pip install -q "${GEOFEAT_TORCH:-torch==2.13.0}"
 .venv/bin/python -m pip freeze | grep -i '^torch==' > .venv/constraints.txt
-.venv/bin/python -m pip install -q -c .venv/constraints.txt -e ".[dino,train,gl,bench,test]"
+.venv/bin/python -m pip install -q -c .venv/constraints.txt -e ".[dino,train,gl,bench,test,docs]"
 .venv/bin/python -c "import geofeat; print('geofeat', geofeat.__version__, 'installed in .venv')"
