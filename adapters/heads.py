@@ -713,6 +713,11 @@ def _from_release(name: str, checkpoint: Path, preset: str, settings: dict[str, 
     release_state = getattr(cls, "release_state", None)
     if not issubclass(cls, LearnedHead) or release_state is None:
         raise HeadError(f"head {name!r} cannot load release checkpoints; heads that can: ulrssm, dpfm, echomatch.")
+    if checkpoint.is_dir():
+        raise HeadError(
+            f"release checkpoint {checkpoint} is a folder; expected the authors' .pth file. "
+            "A folder saved by geofeat (head_config.json + weights.safetensors) loads with load_head(folder)."
+        )
     if not checkpoint.is_file():
         raise HeadError(f"release checkpoint {checkpoint} does not exist.")
     raw = load_torch_file(checkpoint, HeadError, what="a release checkpoint of the authors' code")

@@ -140,6 +140,28 @@ def is_unsafe_pickle_error(exc: BaseException) -> bool:
     return isinstance(exc, pickle.UnpicklingError) and "Weights only load failed" in text and any(r in text for r in refused)
 
 
+def _is_plain_pickle_with_objects(path: str | os.PathLike) -> bool:
+    """True when ``path`` is a whole pickle (not torch's zip format) that names Python globals.
+
+    ``pickle.dump`` writes such files; the weights-only unpickler fails on them with messages
+    that read like damage (``Unsupported operand``). The opcodes are only read, never run.
+    """
+    import pickletools
+    import zipfile
+
+    try:
+        if zipfile.is_zipfile(path):
+            return False
+        with open(path, "rb") as fh:
+            if fh.read(1) != b"\x80":  # PROTO: pickle protocol 2 or later
+                return False
+            fh.seek(0)
+            names = {op.name for op, _, _ in pickletools.genops(fh)}
+    except Exception:  # a truncated or garbled pickle: damaged, not refused
+        return False
+    return bool(names & {"GLOBAL", "STACK_GLOBAL", "INST", "OBJ"})
+
+
 def load_torch_file(
     path: str | os.PathLike,
     error: type[GeofeatError] = GeofeatError,
@@ -170,10 +192,12 @@ def load_torch_file(
     """
     import torch
 
+    if os.path.isdir(path):
+        raise (damaged_error or error)(f"{path} is a folder; expected {what}, a file written by torch.save.")
     try:
         return torch.load(path, map_location=map_location, weights_only=True)
     except Exception as exc:  # pickle, zip, EOF and OS errors have no common base class
-        if is_unsafe_pickle_error(exc):
+        if is_unsafe_pickle_error(exc) or _is_plain_pickle_with_objects(path):
             raise error(unsafe_pickle_message(path, exc)) from exc
         reason = " ".join(str(exc).split()) or type(exc).__name__
         raise (damaged_error or error)(

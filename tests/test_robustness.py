@@ -894,6 +894,40 @@ SECOND_PASS += [
     ),
 ]
 
+
+def plain_pickle_checkpoint(ctx: Ctx) -> Path:
+    """What ``pickle.dump`` (not torch.save) writes: a whole pickle that names a callable."""
+    import pickle
+
+    path = ctx.tmp / "plain.pth"
+    with open(path, "wb") as fh:
+        pickle.dump({"weights": np.zeros(2), "hook": os.getcwd}, fh, protocol=4)
+    return path
+
+
+def release_head(checkpoint):
+    from geofeat.adapters.heads import load_head
+
+    return load_head("ulrssm", checkpoint=checkpoint)
+
+
+SECOND_PASS += [
+    Row(
+        "plain-pickle-refused-not-truncated",
+        "R9",
+        lambda c: release_head(plain_pickle_checkpoint(c)),
+        GeofeatError,
+        "refused for safety",
+    ),
+    Row(
+        "release-checkpoint-is-a-folder",
+        "R9",
+        lambda c: release_head(c.tmp),
+        GeofeatError,
+        "is a folder; expected the authors' .pth",
+    ),
+]
+
 ROWS = MESH_FILES + NON_FINITE + PARAMETERS + CACHE + ERRORS + KILLS + SECOND_PASS
 
 
