@@ -928,6 +928,27 @@ SECOND_PASS += [
     ),
 ]
 
+
+def training_config(text: str):
+    def run(ctx: Ctx):
+        from geofeat.train.config import TrainConfig
+
+        path = ctx.tmp / "train.yaml"
+        path.write_text("data: faust_r\n" + text)
+        return TrainConfig.from_file(path)
+
+    return run
+
+
+SECOND_PASS += [
+    Row("train-config-out-list", "R8", training_config("out: [a, b]\n"), TrainingError, "out must be a string, found list"),
+    Row("train-config-seed-text", "R8", training_config("seed: abc\n"), TrainingError, "seed must be an integer, found 'abc'"),
+    Row("train-config-progress-no", "R8", training_config('progress: "no"\n'), TrainingError, "progress must be true or false"),
+    Row(
+        "train-config-progress-false", "R8", lambda c: training_config("progress: false\n")(c).progress, reference=lambda c: False
+    ),
+]
+
 ROWS = MESH_FILES + NON_FINITE + PARAMETERS + CACHE + ERRORS + KILLS + SECOND_PASS
 
 
@@ -957,7 +978,7 @@ def test_input(row: Row, tmp_path, monkeypatch, caplog, isolated_cache, capsys):
 
 
 def test_every_item_has_rows():
-    assert {r.item for r in ROWS} == {"3", "4", "5", "6", "7", "8", "R1", "R9"}
+    assert {r.item for r in ROWS} == {"3", "4", "5", "6", "7", "8", "R1", "R8", "R9"}
     assert len({r.id for r in ROWS}) == len(ROWS)
 
 

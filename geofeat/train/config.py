@@ -14,7 +14,7 @@ import os
 from dataclasses import dataclass
 from typing import Any, ClassVar
 
-from geofeat.checks import canonical, is_finite_number, is_integer
+from geofeat.checks import canonical, is_boolean, is_finite_number, is_integer
 from geofeat.geometry.partial import PARTIAL_KINDS
 from geofeat.jsonconfig import JsonConfig
 from geofeat.train.errors import TrainingError
@@ -152,6 +152,23 @@ class TrainConfig(JsonConfig):
             setattr(self, name, canonical(getattr(self, name)))
         self.partial_kinds = tuple(self.partial_kinds)
         problems = []
+        for name in ("data", "out", "split", "camera_layout", "preset", "loss", "amp", "device", "val_split"):
+            if not isinstance(getattr(self, name), str):
+                problems.append(f"{name} must be a string, found {type(getattr(self, name)).__name__} {getattr(self, name)!r}")
+        for name in ("data_root", "weights", "backproject", "val_dataset", "geodesic_cache"):
+            if getattr(self, name) is not None and not isinstance(getattr(self, name), str):
+                problems.append(
+                    f"{name} must be a string or None, found {type(getattr(self, name)).__name__} {getattr(self, name)!r}"
+                )
+        if not is_boolean(self.progress):
+            problems.append(f"progress must be true or false, found {self.progress!r}")
+        for name in ("seed", "layer"):
+            if not is_integer(getattr(self, name)):
+                problems.append(f"{name} must be an integer, found {getattr(self, name)!r}")
+        if not is_finite_number(self.offset):
+            problems.append(f"offset must be a finite number, found {self.offset!r}")
+        if problems:  # the checks below assume these types
+            raise TrainingError("bad training settings: " + "; ".join(problems) + ".")
         if not self.data:
             problems.append("data is empty: give a folder of meshes or a dataset name (faust_r, scape_r)")
         if self.loss not in LOSSES:
