@@ -611,6 +611,8 @@ class LearnedHead(Head):
             self.model.load_state_dict(load_file(str(folder / WEIGHTS_FILE), device=str(self.device)))
         except (RuntimeError, OSError) as exc:
             raise HeadError(f"{folder / WEIGHTS_FILE} does not fit head {self.name!r}: {exc}") from exc
+        except Exception as exc:  # safetensors' SafetensorError on a damaged file
+            raise HeadError(f"{folder / WEIGHTS_FILE} is not a readable safetensors file (truncated or damaged?): {exc}") from exc
 
 
 #: name -> "module:Class" (imported on first use)
@@ -692,19 +694,47 @@ def load_head(
     if settings:
         raise HeadError(f"settings {sorted(settings)} only apply with a release checkpoint; change head.config instead.")
     folder = Path(source)
+    if not folder.is_dir():
+        raise HeadError(f"{folder} is not a folder; expected one written by Head.save ({CONFIG_FILE} and {WEIGHTS_FILE}).")
     try:
         payload = json.loads((folder / CONFIG_FILE).read_text())
     except (OSError, ValueError) as exc:
         raise HeadError(f"{folder} holds no readable {CONFIG_FILE}: {exc}") from exc
+    if not isinstance(payload, dict) or not isinstance(payload.get("config", {}), dict):
+        raise HeadError(
+            f"{folder / CONFIG_FILE} is not a head configuration: expected an object with 'head' (a name) and "
+            "'config' (an object of settings), as Head.save writes."
+        )
     cls = head_class(payload.get("head", ""))
     head = cls(cls.config_class.from_dict(payload.get("config", {})))
     if isinstance(head, LearnedHead):
-        from safetensors import safe_open
-
-        with safe_open(str(folder / WEIGHTS_FILE), framework="pt") as handle:
-            in_channels = int(handle.metadata()["in_channels"])
-        head.load_weights(folder, in_channels)
+        head.load_weights(folder, _saved_in_channels(folder / WEIGHTS_FILE))
     return head
+
+
+def _saved_in_channels(path: Path) -> int:
+    """The input width recorded in the metadata of a head's ``weights.safetensors``.
+
+    Raises
+    ------
+    HeadError
+        If the file is missing, unreadable or damaged, or has no ``in_channels`` entry.
+    """
+    from safetensors import safe_open
+
+    if not path.is_file():
+        raise HeadError(f"{path} is missing: a learned head's folder holds its weights there (Head.save writes it).")
+    try:
+        with safe_open(str(path), framework="pt") as handle:
+            metadata = handle.metadata() or {}
+    except Exception as exc:  # safetensors raises its own SafetensorError, and OSError
+        raise HeadError(
+            f"{path} is not a readable safetensors file (truncated or damaged?): {exc}. Save the head again."
+        ) from exc
+    try:
+        return int(metadata["in_channels"])
+    except (KeyError, ValueError) as exc:
+        raise HeadError(f"{path} has no valid 'in_channels' entry in its metadata; it was not written by Head.save.") from exc
 
 
 def _from_release(name: str, checkpoint: Path, preset: str, settings: dict[str, Any]) -> LearnedHead:

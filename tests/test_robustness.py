@@ -15,6 +15,7 @@ from __future__ import annotations
 import csv
 import errno
 import importlib.util
+import json
 import logging
 import multiprocessing as mp
 import os
@@ -949,6 +950,44 @@ SECOND_PASS += [
     ),
 ]
 
+
+def saved_head(ctx: Ctx, damage: str) -> Path:
+    """A small ULRSSM head with untrained weights saved into a folder, then damaged as ``damage`` says."""
+    from geofeat.adapters.heads import make_head
+
+    head = make_head("ulrssm", descriptor="xyz", width=8, width_out=8, n_blocks=1, n_eig=8, n_fmap=4, diffusion_eig=8)
+    head.in_channels, head.model = 3, head.build_model(3)
+    folder = ctx.tmp / "head"
+    head.save(folder)
+    weights, config = folder / "weights.safetensors", folder / "head_config.json"
+    if damage == "truncated":
+        weights.write_bytes(weights.read_bytes()[: weights.stat().st_size // 2])
+    elif damage == "missing":
+        weights.unlink()
+    elif damage == "config-list":
+        payload = json.loads(config.read_text())
+        config.write_text(json.dumps(payload | {"config": list(payload["config"].items())}))
+    return folder
+
+
+def load_saved_head(damage: str):
+    def run(ctx: Ctx):
+        from geofeat.adapters.heads import load_head
+
+        return type(load_head(saved_head(ctx, damage))).__name__
+
+    return run
+
+
+SECOND_PASS += [
+    Row("head-folder-sound", "R7", load_saved_head("none"), reference=lambda c: "ULRSSMHead"),
+    Row(
+        "head-folder-weights-truncated", "R7", load_saved_head("truncated"), GeofeatError, "weights.safetensors is not a readable"
+    ),
+    Row("head-folder-weights-missing", "R7", load_saved_head("missing"), GeofeatError, "weights.safetensors is missing"),
+    Row("head-folder-config-list", "R7", load_saved_head("config-list"), GeofeatError, "is not a head configuration"),
+]
+
 ROWS = MESH_FILES + NON_FINITE + PARAMETERS + CACHE + ERRORS + KILLS + SECOND_PASS
 
 
@@ -978,7 +1017,7 @@ def test_input(row: Row, tmp_path, monkeypatch, caplog, isolated_cache, capsys):
 
 
 def test_every_item_has_rows():
-    assert {r.item for r in ROWS} == {"3", "4", "5", "6", "7", "8", "R1", "R8", "R9"}
+    assert {r.item for r in ROWS} == {"3", "4", "5", "6", "7", "8", "R1", "R7", "R8", "R9"}
     assert len({r.id for r in ROWS}) == len(ROWS)
 
 
