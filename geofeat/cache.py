@@ -55,6 +55,8 @@ CacheInfo = StoreInfo
 TMP_PREFIX = ".tmp-"
 #: File name of an entry: the 64 hex digits of its key and ``.h5``.
 _ENTRY_NAME = re.compile(r"[0-9a-f]{64}\.h5")
+#: Ending of the manifests that ``geofeat extract`` writes at the top of the store: not entries, left alone.
+MANIFEST_SUFFIX = ".manifest.json"
 _NOT_WRITABLE_HINT = (
     "Set GEOFEAT_CACHE_DIR (or call geofeat.set_cache_dir) to a writable folder, or pass cache=False to compute without caching."
 )
@@ -183,6 +185,8 @@ class FeatureCache(EntryFolder):
         for folder in self.root.iterdir():
             if not folder.is_dir() or folder.is_symlink():
                 regular = folder.is_file() and not folder.is_symlink()
+                if regular and folder.name.endswith(MANIFEST_SUFFIX):
+                    continue  # a manifest of geofeat extract, kept beside the entries it lists
                 (temporary if regular and folder.name.startswith(TMP_PREFIX) else other).append(folder)
                 continue
             for path in folder.iterdir():

@@ -59,6 +59,20 @@ def run_demo(cache_dir, seed: int = 0, progress: bool = True) -> list[DemoRow]:
     The ground truth is geometric (both shapes sample the same surface), and the error is
     the Euclidean distance from the matched vertex to the true point, divided by the square
     root of the surface area, x100.
+
+    Parameters
+    ----------
+    cache_dir : path-like
+        Feature cache folder (`geofeat.FeatureCache`); each descriptor is computed, then read back from it.
+    seed : int
+        Seed of the surface's waves and of the rotation.
+    progress : bool
+        Show a progress bar over the descriptors (on a terminal only, see `geofeat.progress`).
+
+    Returns
+    -------
+    list of DemoRow
+        One row per descriptor (``hks``, ``wks``).
     """
     source = blob(4, seed, "blob_coarse")
     fine = blob(5, seed, "blob_fine")

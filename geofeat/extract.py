@@ -4,6 +4,8 @@
 (`geofeat.FeatureCache`), skipping the shapes whose entry is already there, so a run that
 was killed is completed by running it again. It writes a manifest (one record per shape)
 and, on request, per-shape files in the layouts other pipelines read (`ExportSpec`).
+``geofeat extract`` puts the manifest in the store folder (`default_manifest_path`); every
+path in a manifest is absolute, so it reads the same from any folder.
 
 Under ``torchrun`` every rank takes the shapes at positions ``i % world_size == rank`` of
 the sorted collection, computes them on its own device (``device="auto"``: the GPU
@@ -12,10 +14,11 @@ rank's records and writes the one manifest (and the HDF5 export). Store entries 
 written atomically (`geofeat.cache`), so a rank killed mid-run leaves complete entries
 only.
 
->>> from geofeat.extract import extract, folder_shapes
->>> manifest = extract(folder_shapes("FAUST_r/off"), "wks", {"n_descr": 128}, store="features/")
->>> manifest["n_computed"], manifest["n_present"]
-(100, 0)
+>>> from geofeat.extract import default_manifest_path, extract, folder_shapes
+>>> manifest = extract(folder_shapes("FAUST_r/off"), "wks", {"n_descr": 128}, store="features/",
+...                    manifest=default_manifest_path("wks", {"n_descr": 128}, "features/"))
+>>> manifest["n_computed"], manifest["n_present"], manifest["manifest"]
+(100, 0, '/home/me/features/wks-48ef1801.manifest.json')
 """
 
 from __future__ import annotations
@@ -36,7 +39,7 @@ import torch
 
 from geofeat import distributed
 from geofeat._version import __version__
-from geofeat.cache import FeatureCache
+from geofeat.cache import MANIFEST_SUFFIX, FeatureCache
 from geofeat.descriptors.compute import compute, entry_key, reusable_descriptor
 from geofeat.descriptors.registry import make_descriptor
 from geofeat.errors import GeofeatError
@@ -322,6 +325,34 @@ def params_digest(descriptor: str, params: Mapping[str, Any]) -> str:
     return hashlib.sha256(text.encode()).hexdigest()[:8]
 
 
+def default_manifest_path(
+    descriptor: str, params: Mapping[str, Any], store: str | os.PathLike | FeatureCache | None = None
+) -> Path:
+    """Where ``geofeat extract`` writes its manifest when no ``--manifest`` is given: in the store folder.
+
+    Parameters
+    ----------
+    descriptor : str
+        Descriptor name.
+    params : mapping
+        Descriptor parameters as given (`params_digest`).
+    store : path or FeatureCache, optional
+        The feature store (``--out``); None: the user's feature cache (``$GEOFEAT_CACHE_DIR/features``).
+
+    Returns
+    -------
+    Path
+        ``<store>/<descriptor>-<params digest>.manifest.json``, absolute.
+    """
+    root = store.root if isinstance(store, FeatureCache) else FeatureCache(store).root
+    return _absolute(root) / f"{descriptor}-{params_digest(descriptor, params)}{MANIFEST_SUFFIX}"
+
+
+def _absolute(path: str | os.PathLike) -> Path:
+    """``path`` made absolute against the current folder, ``..`` folded, symbolic links kept as named."""
+    return Path(os.path.abspath(Path(path).expanduser()))
+
+
 def _descriptor_params(name: str, params: Mapping[str, Any], device: torch.device) -> dict[str, Any]:
     """``params`` checked by the descriptor, with ``device`` set to this rank's device when the descriptor takes one."""
     params = dict(params)
@@ -336,7 +367,11 @@ def _one_shape(
 ) -> dict[str, Any]:
     """Look up or compute one shape's entry; its manifest record."""
     start = time.perf_counter()
-    record: dict[str, Any] = {"shape": shape.name, "path": None if shape.path is None else str(shape.path), "rank": rank}
+    record: dict[str, Any] = {
+        "shape": shape.name,
+        "path": None if shape.path is None else str(_absolute(shape.path)),
+        "rank": rank,
+    }
     try:
         mesh = shape.load()
         descriptor = reusable_descriptor(name, **params)
@@ -361,10 +396,10 @@ def _one_shape(
         descriptor=descriptor.name,
         params=descriptor.get_params(),
         key=key,
-        entry=str(store.path(key)),
+        entry=str(_absolute(store.path(key))),
         status=status,
         seconds=round(time.perf_counter() - start, 4),
-        export=None if target is None else str(target),
+        export=None if target is None else str(_absolute(target)),
     )
     return record
 
@@ -394,14 +429,15 @@ def extract(
     store : path or FeatureCache, optional
         Where entries go; default the user's feature cache (``$GEOFEAT_CACHE_DIR/features``).
     manifest : path, optional
-        JSON file to write (rank 0, atomically); None writes none.
+        JSON file to write (rank 0, atomically); None writes none. ``geofeat extract`` passes
+        `default_manifest_path`, a file in the store folder.
     export : ExportSpec, optional
         Per-shape files to write as well.
     device : str or torch.device
         ``"auto"``: the GPU ``LOCAL_RANK`` when there are GPUs, else the CPU; given to
         descriptors that take a ``device`` (it is not part of the cache key).
     progress : bool
-        Show a tqdm bar (rank 0's shard).
+        Show a progress bar (rank 0's shard; on a terminal only, see `geofeat.progress`).
     on_record : callable, optional
         Called with every record of this rank as it is made.
 
@@ -412,8 +448,11 @@ def extract(
         ``n_shapes``/``n_computed``/``n_present``/``n_failed``, and ``shapes``: one record
         per shape (``shape``, ``path``, ``mesh_hash``, ``n_vertices``, ``n_channels``,
         ``feature_shape``, ``key``, ``entry``, ``status`` in ``{"computed", "present",
-        "failed"}``, ``seconds``, ``rank``, ``export``; failed ones carry ``error``). On ranks
-        other than 0 under torchrun, only that rank's records.
+        "failed"}``, ``seconds``, ``rank``, ``export``; failed ones carry ``error``). Every
+        path in it (``store``, ``path``, ``entry``, ``export``) is absolute. The returned
+        dict also holds ``manifest``, the absolute path of the file written (when one was),
+        and ``export`` for an HDF5 export. On ranks other than 0 under torchrun, only that
+        rank's records.
 
     Raises
     ------
@@ -460,8 +499,9 @@ def extract(
         result = _manifest(descriptor, params, store, info.world_size, merged)
         if export is not None and export.format == "h5":
             write_h5(export.to, merged, store)
-            result["export"] = str(export.to)
+            result["export"] = str(_absolute(export.to))
         if manifest is not None:
+            manifest = _absolute(manifest)
             atomic_write(manifest, lambda tmp: tmp.write_text(json.dumps(result, indent=1) + "\n"))
             result["manifest"] = str(manifest)
         return result
@@ -474,7 +514,7 @@ def _manifest(descriptor: str, params: Mapping[str, Any], store: FeatureCache, w
         "geofeat_version": __version__,
         "descriptor": checked.name,
         "params": checked.get_params(),
-        "store": str(store.root),
+        "store": str(_absolute(store.root)),
         "world_size": world,
         "n_shapes": len(records),
         "n_computed": sum(r["status"] == "computed" for r in records),

@@ -1,25 +1,165 @@
+import argparse
 import subprocess
 import sys
 from pathlib import Path
 
-from geofeat.cli import main
+import pytest
+
+from geofeat import cli
+from geofeat.cli import build_parser, main, numpydoc_parameters
+from geofeat.descriptors.registry import descriptor_entry
 
 
-def test_demo_runs_offline_and_wks_beats_hks(capsys):
-    assert main(["demo", "--no-progress"]) == 0
-    out = capsys.readouterr().out
-    rows = {line.split()[0]: line.split() for line in out.splitlines() if line.strip().startswith(("hks", "wks"))}
+def test_demo_runs_offline_wks_beats_hks_and_draws_no_bar_off_a_terminal(tmp_path):
+    """Run as a user would with stderr redirected: the table on stdout, no progress bar (nor the eigensolver's) on stderr."""
+    result = subprocess.run(
+        [sys.executable, "-m", "geofeat", "demo", "--cache-dir", str(tmp_path)], capture_output=True, text=True, timeout=600
+    )
+    assert result.returncode == 0, result.stderr[-3000:]
+    rows = {line.split()[0]: line.split() for line in result.stdout.splitlines() if line.strip().startswith(("hks", "wks"))}
     assert set(rows) == {"hks", "wks"}
     assert float(rows["wks"][-1]) < float(rows["hks"][-1])  # WKS localises better than 16-channel HKS
     assert float(rows["wks"][-1]) < 10.0
+    assert "\r" not in result.stderr and "it/s" not in result.stderr and "eigenpairs of" not in result.stderr
 
 
-def test_descriptors_listing_and_console_script(capsys):
+def _parsers(parser: argparse.ArgumentParser, name: str = "geofeat"):
+    """The parser and every sub-command's parser, each with its command line; sub-commands must have a help."""
+    yield name, parser
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            helps = {choice.dest: choice.help for choice in action._choices_actions}
+            for sub_name, sub in action.choices.items():
+                assert helps.get(sub_name), f"{name} {sub_name} has no help line"
+                yield from _parsers(sub, f"{name} {sub_name}")
+
+
+def test_every_option_of_every_command_has_a_plain_text_help():
+    seen = []
+    for name, parser in _parsers(build_parser()):
+        seen.append(name)
+        assert parser.description, f"{name} has no description"
+        for action in parser._actions:
+            if isinstance(action, argparse._SubParsersAction):
+                continue
+            assert action.help and action.help.strip(), f"{name} {'/'.join(action.option_strings) or action.dest}: no help"
+        text = parser.format_help()  # also fails on a stray % in a help string
+        assert "``" not in text and "`" not in text, f"{name} --help shows markup"
+    assert {"geofeat", "geofeat cache", "geofeat descriptors", "geofeat demo", "geofeat extract"} <= set(seen)
+    assert "geofeat train-geolora" in seen
+    demo = dict(_parsers(build_parser()))["geofeat demo"].format_help()
+    assert "--seed SEED" in demo and "seed of the synthetic shapes" in demo
+
+
+def test_train_flags_take_their_help_from_the_settings_docstring():
+    train = dict(_parsers(build_parser()))["geofeat train-geolora"]
+    helps = {action.dest: action.help for action in train._actions}
+    assert helps["rank"].startswith("LoRA rank") and helps["rank"].endswith("(default 16)")
+    assert "checkpoints/step_NNNNNNN/" in helps["out"] and "``" not in helps["out"]
+    assert helps["camera_layout"] == "one of official, uniform (default official)"
+    assert "required" in helps["data"]
+    doc = """Settings.
+
+    Parameters
+    ----------
+    a, b : int
+        Two ``numbers`` with `refs`.
+    mode : {"x", "y"}
+
+    Returns
+    -------
+    int
+    """
+    assert numpydoc_parameters(doc) == {"a": "Two numbers with refs.", "b": "Two numbers with refs.", "mode": "one of x, y"}
+
+
+@pytest.fixture
+def no_dino_weights(monkeypatch):
+    for name in ("GEOFEAT_DINOV2_WEIGHTS", "GEOFEAT_DINOV3_WEIGHTS"):
+        monkeypatch.delenv(name, raising=False)
+
+
+def descriptor_listing(capsys) -> dict[str, str]:
+    """``geofeat descriptors`` as {name: its block of lines}."""
     assert main(["descriptors"]) == 0
-    assert "wks        available" in capsys.readouterr().out
+    blocks: dict[str, str] = {}
+    name = None
+    for line in capsys.readouterr().out.splitlines():
+        if line and not line[0].isspace() and not line.startswith("ready:"):
+            name = line.split()[0]
+            blocks[name] = ""
+        if name is not None and line:
+            blocks[name] += line + "\n"
+    return blocks
+
+
+def test_descriptors_say_what_each_needs_and_call_ready_only_what_runs_here(capsys, no_dino_weights):
+    blocks = descriptor_listing(capsys)
+    assert set(blocks) >= {"hks", "wks", "dinov2", "dinov3", "geolora"}
+    for name in ("hks", "wks"):
+        assert blocks[name].startswith(f"{name:<10}ready:") and "extra:   none" in blocks[name]
+    dino_installed = not descriptor_entry("dinov2").missing()
+    for name, variable in (
+        ("dinov2", "GEOFEAT_DINOV2_WEIGHTS"),
+        ("dinov3", "GEOFEAT_DINOV3_WEIGHTS"),
+        ("geolora", "GEOFEAT_DINOV3_WEIGHTS"),
+    ):
+        block = " ".join(blocks[name].split())  # unwrapped
+        assert blocks[name].startswith(f"{name:<10}not ready:"), blocks[name]
+        assert "pip install 'geofeat[dino]'" in block and ("(installed)" in block) == dino_installed
+        assert f"weights: missing: ${variable} is not set" in block
+    assert "hf download facebook/dinov2-base" in " ".join(blocks["dinov2"].split())
+    assert "facebook/dinov3-vitb16-pretrain-lvd1689m" in blocks["dinov3"] and "licence" in blocks["dinov3"]
+    assert "https://github.com/vikiehm/geo-lora" in blocks["geolora"] and "checkpoint=" in blocks["geolora"]
+    assert "geofeat train-geolora" in blocks["geolora"]
+
+
+def test_dino_weights_are_found_from_the_environment_without_loading_them(capsys, monkeypatch, tmp_path):
+    folder = tmp_path / "dinov2-base"
+    folder.mkdir()
+    (folder / "config.json").write_text("{}")
+    (folder / "model.safetensors").write_bytes(b"")  # only looked at, never read
+    monkeypatch.setenv("GEOFEAT_DINOV2_WEIGHTS", str(folder))
+    monkeypatch.setenv("GEOFEAT_DINOV3_WEIGHTS", str(tmp_path / "nothing-here.pth"))
+    assert cli.weights_status("dinov2") == (True, f"$GEOFEAT_DINOV2_WEIGHTS={folder} (a model folder)")
+    found, why = cli.weights_status("dinov3")
+    assert not found and why.endswith("does not exist")
+    blocks = descriptor_listing(capsys)
+    dino_installed = not descriptor_entry("dinov2").missing()
+    assert blocks["dinov2"].startswith("dinov2    ready:" if dino_installed else "dinov2    not ready:")
+    assert blocks["dinov3"].startswith("dinov3    not ready:") and blocks["geolora"].startswith("geolora   not ready:")
+
+    (folder / "model.safetensors").unlink()
+    assert cli.weights_status("dinov2")[0] is False  # a folder without weights
+    (tmp_path / "notes.txt").write_text("x")
+    monkeypatch.setenv("GEOFEAT_DINOV2_WEIGHTS", str(tmp_path / "notes.txt"))
+    assert cli.weights_status("dinov2") == (
+        False,
+        f"$GEOFEAT_DINOV2_WEIGHTS={tmp_path / 'notes.txt'} is a .txt file, not a .pth/.pt or a model folder",
+    )
+
+
+def test_a_hub_id_counts_only_when_it_is_in_the_local_hugging_face_cache(monkeypatch, tmp_path):
+    constants = pytest.importorskip("huggingface_hub.constants")
+    monkeypatch.setattr(constants, "HF_HUB_CACHE", str(tmp_path))
+    monkeypatch.setenv("GEOFEAT_DINOV2_WEIGHTS", "facebook/dinov2-base")
+    found, why = cli.weights_status("dinov2")
+    assert not found and "not in the local Hugging Face cache" in why
+    repo = tmp_path / "models--facebook--dinov2-base"
+    (repo / "refs").mkdir(parents=True)
+    (repo / "refs" / "main").write_text("0123abcd")
+    (repo / "snapshots" / "0123abcd").mkdir(parents=True)
+    (repo / "snapshots" / "0123abcd" / "config.json").write_text("{}")
+    assert cli.weights_status("dinov2") == (
+        True,
+        "$GEOFEAT_DINOV2_WEIGHTS=facebook/dinov2-base (a Hub id, in the local Hugging Face cache)",
+    )
+
+
+def test_console_script_help():
     console_script = Path(sys.executable).parent / "geofeat"  # installed beside the interpreter, on PATH or not
     result = subprocess.run([str(console_script), "--help"], capture_output=True, text=True)
-    assert result.returncode == 0 and "cache" in result.stdout
+    assert result.returncode == 0 and "cache" in result.stdout and "``" not in result.stdout
 
 
 def test_errors_are_reported_without_traceback(tmp_path):

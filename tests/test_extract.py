@@ -34,8 +34,9 @@ def write_off(mesh: geofeat.Mesh, path: Path) -> Path:
 
 @pytest.fixture(autouse=True)
 def in_tmp_path(tmp_path, monkeypatch):
-    """Run in the test's folder: a command without --manifest writes its manifest into the current folder."""
-    monkeypatch.chdir(tmp_path)
+    """Run in a folder of the test's own, so a file written into the current folder by mistake would be seen."""
+    (tmp_path / "cwd").mkdir()
+    monkeypatch.chdir(tmp_path / "cwd")
 
 
 @pytest.fixture
@@ -95,11 +96,36 @@ def test_a_rerun_computes_only_what_is_missing(collection, tmp_path):
     assert store.info().entries == 5
 
 
-def test_default_store_and_manifest_name(collection, tmp_path, isolated_cache):
+def test_without_out_the_manifest_goes_into_the_feature_cache(collection, tmp_path, isolated_cache, capsys):
     assert run_cli("--data", str(collection)) == 0
-    (manifest,) = tmp_path.glob("hks-*.manifest.json")
-    assert json.loads(manifest.read_text())["store"] == str(isolated_cache / "features")
-    assert geofeat.FeatureCache(isolated_cache / "features").info().entries == 5
+    out = capsys.readouterr().out
+    store = isolated_cache / "features"
+    (manifest,) = store.glob("hks-*.manifest.json")
+    assert f"manifest: {manifest}" in out.splitlines() and f"store: {store}" in out.splitlines()
+    assert json.loads(manifest.read_text())["store"] == str(store)
+    assert list(Path.cwd().iterdir()) == []  # nothing left in the folder the command ran from
+    cache = geofeat.FeatureCache(store)
+    assert cache.info().entries == 5 and cache.info().other_paths == ()  # the manifest is not a stray file of the store
+    assert main(["cache", "verify", "--dir", str(store)]) == 0
+    assert "not an entry" not in capsys.readouterr().out and manifest.exists()
+
+
+def test_with_a_relative_out_the_manifest_goes_there_with_absolute_paths(collection, tmp_path, capsys, monkeypatch):
+    monkeypatch.chdir(tmp_path)  # relative --data, --out and --export-to, as a user types them
+    args = ["--data", "meshes", "--out", "store", "--export", "npy", "--export-to", "npy"]
+    assert run_cli(*args) == 0
+    (manifest,) = (tmp_path / "store").glob("hks-*.manifest.json")
+    assert f"manifest: {manifest}" in capsys.readouterr().out.splitlines()
+    assert list(tmp_path.glob("*.json")) == []  # none in the folder the command ran from
+    monkeypatch.chdir(tmp_path / "cwd")  # read from elsewhere: every path still leads to its file
+    content = json.loads(manifest.read_text())
+    assert content["store"] == str(tmp_path / "store")
+    for record in content["shapes"]:
+        for key in ("path", "entry", "export"):
+            assert Path(record[key]).is_absolute() and Path(record[key]).is_file(), (key, record[key])
+        assert record["path"] == str(collection / f"{record['shape']}.off")
+    assert run_cli("--data", str(collection), "--out", str(tmp_path / "store")) == 0  # the same run, named absolutely
+    assert list((tmp_path / "store").glob("*.manifest.json")) == [manifest]  # rewrites the same manifest
 
 
 def test_export_mirror_beside_and_h5_read_back_equal_compute(collection, tmp_path):

@@ -64,6 +64,17 @@ register(
 )
 
 
+def descriptor_entry(name: str) -> RegistryEntry:
+    """The registry entry of ``name``, not imported: its optional modules (``requires``), ``extra`` and ``summary``.
+
+    Raises
+    ------
+    DescriptorError
+        Unknown name (the message lists the valid ones).
+    """
+    return lookup(_REGISTRY, name, "descriptor", DescriptorError)
+
+
 def descriptor_class(name: str) -> type[Descriptor]:
     """The `Descriptor` subclass registered under ``name``, imported now.
 
@@ -74,7 +85,7 @@ def descriptor_class(name: str) -> type[Descriptor]:
     MissingDependencyError
         An optional dependency is missing (the message names the extra to install).
     """
-    return lookup(_REGISTRY, name, "descriptor", DescriptorError).load("descriptor")
+    return descriptor_entry(name).load("descriptor")
 
 
 def make_descriptor(name: str, **params) -> Descriptor:
