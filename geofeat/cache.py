@@ -73,6 +73,19 @@ def _checksum(array: np.ndarray) -> str:
     return f"crc32:{array_crc32(array):08x}"
 
 
+def _features_problem(features: np.ndarray, n_rows: int | None) -> str | None:
+    """Why a stored array is not the features of a mesh with ``n_rows`` vertices, or None."""
+    if not isinstance(features, np.ndarray) or features.dtype != np.float32:
+        return f"holds {getattr(features, 'dtype', type(features).__name__)} values, not float32 features"
+    if features.ndim != 2:
+        return f"holds an array of shape {features.shape}, not (V, C)"
+    if n_rows is not None and features.shape[0] != n_rows:
+        return f"holds {features.shape[0]} rows for a mesh of {n_rows} vertices"
+    if not np.isfinite(features).all():
+        return "holds NaN or infinite values"
+    return None
+
+
 class FeatureCache(EntryFolder):
     """A directory of HDF5 feature entries, safe with several processes.
 
@@ -95,8 +108,19 @@ class FeatureCache(EntryFolder):
         """File of an entry."""
         return self.root / key[:2] / f"{key}.h5"
 
-    def get(self, key: str) -> np.ndarray | None:
+    def get(self, key: str, n_rows: int | None = None) -> np.ndarray | None:
         """The cached features for ``key``, or None when absent or damaged (a damaged entry is deleted).
+
+        An entry is damaged when it cannot be read, its key or checksum does not match, or it
+        does not hold features: a finite float32 array of shape (V, C), with ``n_rows`` rows
+        when given.
+
+        Parameters
+        ----------
+        key : str
+            The entry's key (64 hex digits).
+        n_rows : int, optional
+            The number of vertices of the mesh the features are for.
 
         Returns
         -------
@@ -113,9 +137,10 @@ class FeatureCache(EntryFolder):
                 expected = fh.attrs.get("checksum")
                 if fh.attrs.get("key") != key:
                     problem = "key attribute does not match the file name"
-        except (OSError, KeyError, ValueError) as err:
+        except (OSError, KeyError, ValueError, TypeError) as err:
             problem = f"unreadable ({type(err).__name__}: {err})"
         else:
+            problem = problem or _features_problem(features, n_rows)
             if problem is None and expected != _checksum(features):
                 problem = "checksum mismatch"
         if problem is not None:

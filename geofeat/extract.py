@@ -376,7 +376,7 @@ def _one_shape(
         mesh = shape.load()
         descriptor = reusable_descriptor(name, **params)
         key = entry_key(descriptor, mesh)
-        features = store.get(key)
+        features = store.get(key, n_rows=mesh.n_vertices)
         status = "present"
         if features is None:
             features = compute(mesh, name, cache=store, **params)

@@ -988,6 +988,45 @@ SECOND_PASS += [
     Row("head-folder-config-list", "R7", load_saved_head("config-list"), GeofeatError, "is not a head configuration"),
 ]
 
+
+def forged_hit(kind: str):
+    """Replace the cached HKS of a mesh by a well-formed entry (valid checksum) of the wrong content, then compute again."""
+
+    def run(ctx: Ctx):
+        from geofeat.cache import _checksum
+
+        mesh = bumpy(0, 2)
+        store = FeatureCache(ctx.tmp / "store")
+        good = geofeat.compute(mesh, "hks", cache=store, n_eig=8, n_descr=4)
+        (path,) = store.entries()
+        bad = {
+            "rows": good[:-1],
+            "float64": good.astype(np.float64),
+            "nan": np.where(np.arange(len(good))[:, None] == 0, np.nan, good).astype(np.float32),
+            "strings": np.array([b"x"] * len(good)),
+        }[kind]
+        with h5py.File(path, "r+") as fh:
+            del fh["features"]
+            fh.create_dataset("features", data=bad)
+            fh.attrs["checksum"] = _checksum(bad) if kind != "strings" else "crc32:00000000"
+        again = geofeat.compute(mesh, "hks", cache=store, n_eig=8, n_descr=4)
+        assert "is damaged" in ctx.caplog.text, ctx.caplog.text
+        assert store.get(path.stem, n_rows=mesh.n_vertices) is not None  # recomputed and stored again
+        return again
+
+    return run
+
+
+SECOND_PASS += [
+    Row(
+        f"cache-hit-{kind}-recomputed",
+        "R6",
+        forged_hit(kind),
+        reference=lambda c: geofeat.compute(bumpy(0, 2), "hks", cache=False, n_eig=8, n_descr=4),
+    )
+    for kind in ("rows", "float64", "nan", "strings")
+]
+
 ROWS = MESH_FILES + NON_FINITE + PARAMETERS + CACHE + ERRORS + KILLS + SECOND_PASS
 
 
@@ -1017,7 +1056,7 @@ def test_input(row: Row, tmp_path, monkeypatch, caplog, isolated_cache, capsys):
 
 
 def test_every_item_has_rows():
-    assert {r.item for r in ROWS} == {"3", "4", "5", "6", "7", "8", "R1", "R7", "R8", "R9"}
+    assert {r.item for r in ROWS} == {"3", "4", "5", "6", "7", "8", "R1", "R6", "R7", "R8", "R9"}
     assert len({r.id for r in ROWS}) == len(ROWS)
 
 

@@ -114,7 +114,7 @@ def compute(mesh_or_path: MeshLike, name: str, cache: CacheArg = True, **params)
     params_json = descriptor.params_json()
     weights = descriptor.weights_digest()
     key = entry_key(descriptor, mesh)
-    hit = store.get(key)
+    hit = store.get(key, n_rows=mesh.n_vertices)
     if hit is not None:
         log.debug("cache hit %s for %s on %r", key[:12], descriptor.name, mesh.name)
         return np.ascontiguousarray(hit, dtype=np.float32)
