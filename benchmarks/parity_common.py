@@ -117,9 +117,14 @@ def seconds_per_call(fn: Callable[[], object], repeat: int = 3) -> float:
     return float(np.median(times))
 
 
+def cell(text: str) -> str:
+    """``text`` safe inside a Markdown table cell: pipes escaped, ``<`` as an entity (``<ours, ref>`` is no HTML tag)."""
+    return str(text).replace("|", "\\|").replace("<", "&lt;")
+
+
 def markdown(rows: list[Stage], title: str) -> str:
     """A Markdown table of `Stage` rows."""
     lines = [f"### {title}", "", "| stage | max abs diff | reference scale | relative | note |", "|---|---|---|---|---|"]
     for r in rows:
-        lines.append(f"| {r.stage} | {r.max_abs:.3g} | {r.scale:.3g} | {r.relative:.2e} | {r.note} |")
+        lines.append(f"| {cell(r.stage)} | {r.max_abs:.3g} | {r.scale:.3g} | {r.relative:.2e} | {cell(r.note)} |")
     return "\n".join(lines) + "\n"

@@ -23,6 +23,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from common import machine
 from parity_common import reference_import
 from scipy.spatial import cKDTree
 from tqdm.auto import tqdm
@@ -42,7 +43,8 @@ def reference_faust_r(repo: Path, checkpoint: Path, data_root: Path, seed: int =
     -------
     dict
         ``geodesic_error``, ``geodesic_error_cdist`` (nearest neighbours by float32
-        ``torch.cdist`` instead), ``pck_auc``, ``n_pairs``, ``seconds``, per-pair errors.
+        ``torch.cdist`` instead), ``pck_auc``, ``head``, ``dataset``, ``n_pairs``, ``seconds``, ``checkpoint``
+        (its file name), ``threads``, ``machine``, ``date``, per-pair errors.
     """
     dataset = load_dataset("faust_r", root=data_root, split="test", pairs="combinations")
     n_pairs = len(dataset) if limit is None else min(limit, len(dataset))
@@ -89,12 +91,18 @@ def reference_faust_r(repo: Path, checkpoint: Path, data_root: Path, seed: int =
             errors_cdist.append(metrics.template_geodesic_errors(p2p_cdist, pair.corr_x, pair.corr_y, dist_x))
             names.append(pair.name)
     return {
+        "head": "dpfm",
+        "dataset": "faust_r",
         "n_pairs": n_pairs,
         "geodesic_error": metrics.mean_geodesic_error(errors),
         "geodesic_error_cdist": metrics.mean_geodesic_error(errors_cdist),
         "pck_auc": metrics.pck_auc(np.concatenate(errors)),
         "seconds": time.perf_counter() - start,
         "seed": seed,
+        "checkpoint": checkpoint.name,
+        "threads": torch.get_num_threads(),
+        "machine": machine(),
+        "date": time.strftime("%Y-%m-%d"),
         "pairs": [{"pair": n, "geodesic_error": 100 * float(e.mean())} for n, e in zip(names, errors, strict=True)],
     }
 
@@ -106,7 +114,9 @@ def main(argv=None) -> int:
     parser.add_argument("--data-root", default=os.environ.get("GEOFEAT_DATA", str(HERE.parent.parent / "shared" / "data")))
     parser.add_argument("--seed", type=int, default=0, help="seed of torch's generator (the reference's sampling start)")
     parser.add_argument("--limit", type=int, default=None)
-    parser.add_argument("--out", default=None, help="write the result as JSON here")
+    parser.add_argument(
+        "--out", default=None, help="write the result as JSON here (benchmarks/release_table.py reads reference.json)"
+    )
     parser.add_argument("--no-progress", action="store_true")
     args = parser.parse_args(argv)
     checkpoint = Path(args.checkpoint or Path(args.repo) / "dpfm" / "data" / "saved_models" / "faust.pth")

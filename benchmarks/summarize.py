@@ -70,6 +70,14 @@ def main(argv=None) -> int:
     args.out.parent.mkdir(parents=True, exist_ok=True)
     dates = sorted({r["date"] for r in rows})
     text = markdown_table(rows, COLUMNS) + f"\n\nRuns of {', '.join(dates)}; per-run settings in each results.json.\n"
+    machines = sorted({r["machine"] for r in rows if r.get("machine")})
+    if machines:
+        unrecorded = sum(1 for r in rows if not r.get("machine"))
+        text += (
+            f"Machine: {'; '.join(machines)}"
+            + (f" ({unrecorded} of the {len(rows)} runs recorded none)" if unrecorded else "")
+            + ".\n"
+        )
     args.out.with_suffix(".md").write_text(text)
     for dataset in sorted({r["dataset"] for r in rows}):
         curves = {

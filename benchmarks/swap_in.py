@@ -339,7 +339,7 @@ def markdown(result: dict) -> str:
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--repo", required=True, type=Path, help="your clone of the ULRSSM reference repository")
+    parser.add_argument("--repo", type=Path, default=None, help="your clone of the ULRSSM reference repository")
     parser.add_argument(
         "--checkpoint", type=Path, default=HERE.parent.parent / "shared" / "checkpoints" / "ulrssm" / "faust_scape.pth"
     )
@@ -358,7 +358,18 @@ def main(argv=None) -> int:
     )
     parser.add_argument("--limit", type=int, default=None, help="only the first N of those pairs")
     parser.add_argument("--out", type=Path, default=None, help="write results.md and results.json here")
+    parser.add_argument(
+        "--render-only", action="store_true", help="rewrite OUT/results.md from OUT/results.json, running nothing"
+    )
     args = parser.parse_args(argv)
+    if args.render_only:
+        if args.out is None or not (args.out / "results.json").is_file():
+            parser.error("--render-only needs --out, a folder holding the results.json of an earlier run")
+        record = json.loads((args.out / "results.json").read_text())
+        _write(args.out, record, complete=record.get("complete", False))
+        return 0
+    if args.repo is None:
+        parser.error("--repo is required (your clone of the ULRSSM reference repository)")
     repo = args.repo.resolve()
     if not (repo / "options" / "test" / "faust.yaml").is_file():
         raise SystemExit(f"swap_in: {repo} is not a clone of the ULRSSM reference repository (no options/test/faust.yaml)")
@@ -377,7 +388,9 @@ def main(argv=None) -> int:
 def _write(out: Path, result: dict, complete: bool) -> None:
     out.mkdir(parents=True, exist_ok=True)
     result = {**result, "complete": complete}
-    head = "# ULRSSM's own test pipeline: its WKS vs geofeat's WKS\n\n" + ("" if complete else "(partial: run in progress)\n\n")
+    head = "ULRSSM's own test pipeline, release checkpoint, its WKS vs geofeat's WKS:\n\n" + (
+        "" if complete else "(partial: run in progress)\n\n"
+    )
     (out / "results.md").write_text(head + markdown(result))
     (out / "results.json").write_text(json.dumps(result, indent=1))
 

@@ -1,9 +1,10 @@
-"""The README's "Using geofeat features in other code" snippets, run as written against the installed packages.
+"""The snippets of the docs page "Using geofeat features in other code", run as written against the installed packages.
 
-Each snippet is read out of README.md (the fenced block after ``<!-- snippet: NAME -->``), so
-the README shows exactly the code tested here. pyFM (``pyfmaps``) is installed; DiffusionNet
-(nmwsharp/diffusion-net) is not pip-installable, so its snippet's features are fed to
-geofeat's own DiffusionNet, which takes the same (V, C_in) input.
+Each snippet is read out of ``docs/other_code.md`` (the fenced block after
+``<!-- snippet: NAME -->``), so the page shows exactly the code tested here. pyFM
+(``pyfmaps``) is installed; DiffusionNet (nmwsharp/diffusion-net) is not pip-installable, so
+its snippet's features are fed to geofeat's own DiffusionNet, which takes the same (V, C_in)
+input.
 """
 
 from __future__ import annotations
@@ -16,18 +17,20 @@ from shapes import REPO
 
 import geofeat
 
+PAGE = REPO / "docs" / "other_code.md"
 
-def readme_snippet(name: str) -> str:
-    """The Python block that follows ``<!-- snippet: name -->`` in README.md."""
-    text = (REPO / "README.md").read_text(encoding="utf-8")
+
+def page_snippet(name: str) -> str:
+    """The Python block that follows ``<!-- snippet: name -->`` in docs/other_code.md."""
+    text = PAGE.read_text(encoding="utf-8")
     found = re.search(rf"<!-- snippet: {re.escape(name)} -->\s*```python\n(.*?)```", text, flags=re.S)
-    assert found is not None, f"README.md has no snippet {name!r}"
+    assert found is not None, f"{PAGE.relative_to(REPO)} has no snippet {name!r}"
     return found.group(1)
 
 
-def test_snippets_are_in_the_readme():
+def test_snippets_are_on_the_page():
     for name in ("pyfm", "diffusionnet"):
-        assert "geofeat.compute" in readme_snippet(name)
+        assert "geofeat.compute" in page_snippet(name)
 
 
 def test_pyfm_snippet_gives_pyfm_own_wks_map(faust_dir, monkeypatch):
@@ -36,7 +39,7 @@ def test_pyfm_snippet_gives_pyfm_own_wks_map(faust_dir, monkeypatch):
 
     monkeypatch.setenv("GEOFEAT_DATA", str(faust_dir.parent))
     ns: dict = {}
-    exec(readme_snippet("pyfm"), ns)
+    exec(page_snippet("pyfm"), ns)
     model, mesh1 = ns["model"], ns["mesh1"]
 
     # pyFM with its own WKS on the same processed meshes (same eigenvectors, so the maps compare)
@@ -69,7 +72,7 @@ def test_diffusionnet_snippet_feeds_a_diffusionnet(faust_mesh):
     verts = torch.tensor(faust_mesh.verts, dtype=torch.float32)  # what the example's dataset holds
     faces = torch.tensor(faust_mesh.faces)
     ns: dict = {"verts": verts, "faces": faces}
-    exec(readme_snippet("diffusionnet"), ns)
+    exec(page_snippet("diffusionnet"), ns)
     features = ns["features"]
     assert isinstance(features, torch.Tensor) and features.shape == (faust_mesh.n_vertices, 128)
     float32_mesh = geofeat.Mesh(verts.double().numpy(), faces.numpy())

@@ -1,0 +1,114 @@
+"""The table scripts of the docs: release_table.py and summarize.py's machine line, on small made-up records."""
+
+import json
+import subprocess
+import sys
+
+from shapes import REPO
+
+RELEASE_TABLE = REPO / "benchmarks" / "release_table.py"
+SUMMARIZE = REPO / "benchmarks" / "summarize.py"
+
+
+def _run_record(checkpoint, dataset, errors, tta=0, protocol="template", n_evaluated=None, pipeline="ulrssm"):
+    """A results.json of run.py --checkpoint with per-pair errors (equal weights unless n_evaluated is given)."""
+    n_evaluated = n_evaluated or [5000] * len(errors)
+    pooled = sum(e * n for e, n in zip(errors, n_evaluated, strict=True)) / sum(n_evaluated)
+    return {
+        "pipeline": pipeline,
+        "dataset": dataset,
+        "descriptor": "wks",
+        "date": "2026-01-02",
+        "pairs_option": "combinations",
+        "protocol": protocol,
+        "release_checkpoint": f"/somewhere/{checkpoint}",
+        "head": {"name": pipeline, "config": {"tta_steps": tta, "interpolation": "reference"}},
+        "n_pairs": len(errors),
+        "geodesic_error": pooled,
+        "pck_auc": 0.9,
+        "chirality_accuracy": 0.98,
+        "pairs": [
+            {"pair": f"p{i}", "geodesic_error": e, "n_evaluated": n}
+            for i, (e, n) in enumerate(zip(errors, n_evaluated, strict=True))
+        ],
+    }
+
+
+def _results_tree(tmp_path, reference_pairs=3):
+    release = tmp_path / "release"
+    for name, record in {
+        "ulrssm_faust_r": _run_record("faust_scape.pth", "faust_r", [1.0, 2.0, 3.0]),
+        "ulrssm_tta_faust_r": _run_record("faust_scape.pth", "faust_r", [0.5, 1.5], tta=15),
+        "ulrssm_cuts": _run_record("shrec16_cuts.pth", "faust_r_cuts", [10.0, 40.0], protocol="vertices"),
+        "ulrssm_cuts_tta": _run_record("shrec16_cuts.pth", "faust_r_cuts", [5.0], tta=15, protocol="vertices", n_evaluated=[100]),
+    }.items():
+        (release / name).mkdir(parents=True)
+        (release / name / "results.json").write_text(json.dumps(record))
+    published = [
+        {"head": "ulrssm", "checkpoint": "faust_scape.pth", "dataset": "faust_r", "published": "about 2", "cite": "paper"},
+    ]
+    (release / "published_figures.json").write_text(json.dumps(published))
+    (tmp_path / "swap_in").mkdir()
+    swap_in = {
+        "checkpoint": "/elsewhere/faust_scape.pth",
+        "x_before_y": {"pairs": reference_pairs, "error_own_x100": 2.001},
+        "machine": "test machine",
+        "date": "2026-01-03",
+        "complete": True,
+    }
+    (tmp_path / "swap_in" / "results.json").write_text(json.dumps(swap_in))
+    return release
+
+
+def _release_table(tmp_path):
+    return subprocess.run(
+        [sys.executable, str(RELEASE_TABLE), "--results", str(tmp_path)], capture_output=True, text=True, cwd=REPO
+    )
+
+
+def test_release_summary_puts_the_reference_beside_geofeat(tmp_path):
+    release = _results_tree(tmp_path)
+    result = _release_table(tmp_path)
+    assert result.returncode == 0, result.stderr
+    summary = (release / "summary.md").read_text().splitlines()
+    rows = [line for line in summary if line.startswith("| ULRSSM")]
+    # one row per reproduced checkpoint: no TTA row, no transfer checkpoint (no published figure on that data)
+    assert rows == ["| ULRSSM `faust_scape.pth` | faust_r | 3 | 2.000 | 2.001 | about 2 |"]
+    text = "\n".join(summary)
+    assert "`benchmarks/swap_in.py`, 2026-01-03, test machine" in text
+    assert "machine not recorded" in text  # the run.py records above hold none
+
+
+def test_release_details_give_the_same_pairs_without_tta_pooled_over_vertices(tmp_path):
+    release = _results_tree(tmp_path)
+    assert _release_table(tmp_path).returncode == 0
+    details = (release / "details.md").read_text().splitlines()
+    tta_full = next(line for line in details if "faust_scape.pth" in line and "15 test-time" in line)
+    # pairs p0, p1 of the plain run: (1.0 + 2.0) / 2 with equal weights
+    assert "| first 2 of 3 | 1.00 | 1.50 |" in tta_full
+    tta_cuts = next(line for line in details if "shrec16_cuts.pth" in line and "15 test-time" in line)
+    # pair p0 of the plain run alone (the TTA run has one pair): 10.0
+    assert "| first 1 of 2 | 5.00 | 10.00 |" in tta_cuts
+
+
+def test_release_summary_refuses_a_reference_on_other_pairs(tmp_path):
+    release = _results_tree(tmp_path, reference_pairs=190)
+    result = _release_table(tmp_path)
+    assert result.returncode == 0, result.stderr
+    assert "on other pairs" in result.stderr
+    row = next(line for line in (release / "summary.md").read_text().splitlines() if line.startswith("| ULRSSM"))
+    assert row.endswith("| 2.000 | - | about 2 |")
+
+
+def test_summarize_states_the_machines_the_runs_recorded(tmp_path):
+    base = {"dataset": "faust_r", "descriptor": "wks", "date": "2026-01-02", "n_pairs": 1, "geodesic_error": 25.0}
+    curve = {"pck_thresholds": [0.0, 0.25], "pck": [0.2, 0.8], "head": None}
+    (tmp_path / "a.json").write_text(json.dumps({**base, **curve, "pipeline": "nn", "machine": "box A"}))
+    (tmp_path / "b.json").write_text(json.dumps({**base, **curve, "pipeline": "fmap"}))
+    result = subprocess.run(
+        [sys.executable, str(SUMMARIZE), str(tmp_path / "a.json"), str(tmp_path / "b.json"), "--out", str(tmp_path / "s")],
+        capture_output=True,
+        text=True,
+    )
+    assert result.returncode == 0, result.stderr
+    assert "Machine: box A (1 of the 2 runs recorded none)." in (tmp_path / "s.md").read_text()
