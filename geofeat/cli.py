@@ -387,7 +387,10 @@ def _extract_command(args: argparse.Namespace) -> int:
             f"{result['n_failed']} failed ({result['world_size']} process(es))"
         )
         _out(f"store: {result['store']}")
-        _out(f"manifest: {result['manifest']}")
+        if result.get("manifest_error"):
+            _out(f"manifest: {result['manifest_error']}; written to {result['manifest'] or 'no place at all'} instead")
+        else:
+            _out(f"manifest: {result['manifest']}")
         if export is not None:
             where = (
                 export.to.absolute()
@@ -397,7 +400,12 @@ def _extract_command(args: argparse.Namespace) -> int:
             _out(f"export ({export.format}): {where}")
         for record in [r for r in result["shapes"] if r["status"] == "failed"][:20]:
             _out(f"  failed: {record['shape']}: {record['error']}")
-    return 1 if result["n_failed"] else 0
+        for record in [r for r in result["shapes"] if "export_error" in r][:20]:
+            _out(f"  export failed: {record['shape']}: {record['export_error']}")
+        if result.get("export_error"):
+            _out(f"export failed: {result['export_error']} (the features are in the store; run again to export)")
+    incomplete = result["n_failed"] or result.get("n_export_failed") or result.get("export_error") or result.get("manifest_error")
+    return 1 if incomplete else 0
 
 
 def build_parser() -> argparse.ArgumentParser:

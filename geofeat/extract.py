@@ -27,6 +27,7 @@ import hashlib
 import json
 import logging
 import os
+import tempfile
 import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
@@ -251,8 +252,19 @@ class ExportSpec:
         if self.feature_folder is not None and (not self.feature_folder or any(c in self.feature_folder for c in "/\\")):
             raise ExtractError(f"--feature-folder must be one folder name (no slashes); found {self.feature_folder!r}.")
 
-    def check(self, shapes: Sequence[ShapeSource]) -> None:
-        """Refuse before any work when a shape has no place in the layout (``beside`` needs mesh files)."""
+    def check(self, shapes: Sequence[ShapeSource], descriptor: str) -> None:
+        """Refuse before any work when the export cannot hold every shape.
+
+        A shape may have no place in the layout (``beside`` needs mesh files), two shapes may
+        map to one output (``beside`` keeps only the file stem; in HDF5 a shape ``a`` and a
+        shape ``a/b`` would need ``a`` to be both an array and a group), or an output folder
+        may not be writable.
+
+        Raises
+        ------
+        ExtractError
+            Naming the shapes or the folder concerned.
+        """
         if self.format == "npy" and self.layout == "beside" and self.to is None:
             in_memory = [s.name for s in shapes if s.path is None]
             if in_memory:
@@ -260,6 +272,30 @@ class ExportSpec:
                     f"--layout beside writes next to the mesh files, but {len(in_memory)} shape(s) are built in memory "
                     f"(first {in_memory[0]!r}); use --layout mirror --export-to DIR, or pass --export-to DIR."
                 )
+        if self.format == "h5":
+            names = sorted(s.name for s in shapes)
+            for name, after in zip(names, names[1:], strict=False):
+                if after.startswith(name + "/"):
+                    raise ExtractError(
+                        f"--export h5 cannot hold both shape {name!r} and shape {after!r}: the first would be an array "
+                        f"and a group at once. Rename one, or use --export npy --layout mirror."
+                    )
+            folders = {_absolute(self.to).parent}
+        else:
+            owners: dict[Path, str] = {}
+            for shape in shapes:
+                target = _absolute(self.target(shape, descriptor))
+                if target in owners:
+                    raise ExtractError(
+                        f"shapes {owners[target]!r} and {shape.name!r} would both be exported to {target}; "
+                        "use --layout mirror --export-to DIR, which keeps each shape's relative path."
+                    )
+                owners[target] = shape.name
+            folders = {target.parent for target in owners}
+        for folder in sorted(folders):
+            problem = writable_folder_problem(folder)
+            if problem is not None:
+                raise ExtractError(f"cannot export into {folder}: {problem}. Choose another place with --export-to.")
 
     def target(self, shape: ShapeSource, descriptor: str) -> Path | None:
         """The ``.npy`` file of ``shape`` (None for ``h5``, written whole by `write_h5`)."""
@@ -272,6 +308,20 @@ class ExportSpec:
         stem = shape.path.stem if shape.path is not None else PurePosixPath(shape.name).name
         base = self.to if self.to is not None else shape.path.parent.parent
         return base / folder_name / f"{stem}.npy"
+
+
+def writable_folder_problem(folder: Path) -> str | None:
+    """Why files cannot be written into ``folder`` (created if missing), or None when they can.
+
+    A small file is created and removed there, as the later writes will do.
+    """
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        with tempfile.NamedTemporaryFile(dir=folder, prefix=".geofeat-write-check-"):
+            pass
+    except OSError as err:
+        return err.strerror or type(err).__name__
+    return None
 
 
 def save_npy(path: str | os.PathLike, features: np.ndarray) -> Path:
@@ -383,7 +433,12 @@ def _one_shape(
             status = "computed"
         target = export.target(shape, descriptor.name) if export is not None else None
         if target is not None:
-            save_npy(target, features)
+            try:
+                save_npy(target, features)
+            except OSError as err:  # the features are in the store; only this shape's export is missing
+                log.warning("shape %s: export to %s failed: %s", shape.name, target, err)
+                record["export_error"] = f"could not write {_absolute(target)}: {err.strerror or err}"
+                target = None
     except GeofeatError as err:
         log.warning("shape %s failed: %s", shape.name, err)
         record.update(status="failed", error=f"{type(err).__name__}: {err}", seconds=round(time.perf_counter() - start, 4))
@@ -470,12 +525,19 @@ def extract(
     if len(set(names)) != len(names):
         raise ExtractError("shape names must be unique within a collection (they name manifest records and exports).")
     store = store if isinstance(store, FeatureCache) else FeatureCache(store)
-    if export is not None:
-        export.check(shapes)
     with distributed.process_group(device, timeout_minutes=BARRIER_TIMEOUT_MINUTES) as rank_device:
         info = distributed.group_rank_info()
         params = _descriptor_params(descriptor, params or {}, rank_device)
         store.check_writable()
+        # every output place is checked before the work, not found unwritable after it
+        if export is not None:
+            export.check(shapes, make_descriptor(descriptor, **params).name)
+        if manifest is not None and info.is_main:
+            problem = writable_folder_problem(_absolute(manifest).parent)
+            if problem is not None:
+                raise ExtractError(
+                    f"cannot write the manifest {_absolute(manifest)}: {problem}. Choose another place with --manifest."
+                )
         mine = distributed.shard(shapes, info)
         label = f"{descriptor} features" + (f" (rank 0 of {info.world_size})" if info.world_size > 1 else "")
         records = []
@@ -498,13 +560,33 @@ def extract(
         merged = sorted((r for part in gathered for r in part), key=lambda r: r["shape"])
         result = _manifest(descriptor, params, store, info.world_size, merged)
         if export is not None and export.format == "h5":
-            write_h5(export.to, merged, store)
-            result["export"] = str(_absolute(export.to))
+            try:
+                write_h5(export.to, merged, store)
+                result["export"] = str(_absolute(export.to))
+            except (OSError, ExtractError) as err:  # the features are in the store; the manifest still says so
+                log.warning("HDF5 export to %s failed: %s", export.to, err)
+                result["export_error"] = f"could not write {_absolute(export.to)}: {getattr(err, 'strerror', None) or err}"
         if manifest is not None:
-            manifest = _absolute(manifest)
-            atomic_write(manifest, lambda tmp: tmp.write_text(json.dumps(result, indent=1) + "\n"))
-            result["manifest"] = str(manifest)
+            _write_manifest(result, _absolute(manifest), store)
         return result
+
+
+def _write_manifest(result: dict[str, Any], path: Path, store: FeatureCache) -> None:
+    """Write the manifest to ``path``, else beside the store's entries, else in the temporary folder.
+
+    Sets ``result["manifest"]`` to where it went; ``result["manifest_error"]`` says why it is
+    not at ``path`` (nothing written anywhere leaves ``result["manifest"]`` None).
+    """
+    result["manifest"] = None
+    for place in dict.fromkeys([path, _absolute(store.root) / path.name, Path(tempfile.gettempdir()) / path.name]):
+        try:
+            atomic_write(place, lambda tmp: tmp.write_text(json.dumps(result, indent=1) + "\n"))
+        except OSError as err:
+            log.warning("could not write the manifest to %s: %s", place, err)
+            result.setdefault("manifest_error", f"could not write {path}: {err.strerror or err}")
+            continue
+        result["manifest"] = str(place)
+        return
 
 
 def _manifest(descriptor: str, params: Mapping[str, Any], store: FeatureCache, world: int, records: list[dict]) -> dict:
@@ -520,5 +602,6 @@ def _manifest(descriptor: str, params: Mapping[str, Any], store: FeatureCache, w
         "n_computed": sum(r["status"] == "computed" for r in records),
         "n_present": sum(r["status"] == "present" for r in records),
         "n_failed": sum(r["status"] == "failed" for r in records),
+        "n_export_failed": sum("export_error" in r for r in records),
         "shapes": records,
     }

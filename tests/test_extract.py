@@ -204,7 +204,7 @@ def test_missing_and_empty_folders(tmp_path, capsys):
     with pytest.raises(ExtractError, match="holds no mesh file"):
         folder_shapes(tmp_path / "empty")
     with pytest.raises(ExtractError, match="in memory"):
-        ExportSpec("npy", "beside").check([ShapeSource("blob", mesh=bumpy(0, subdivisions=1))])
+        ExportSpec("npy", "beside").check([ShapeSource("blob", mesh=bumpy(0, subdivisions=1))], "hks")
 
 
 def test_nccl_only_when_every_local_rank_has_its_own_gpu(monkeypatch):
