@@ -33,7 +33,7 @@ import numpy as np
 from geofeat import metrics
 from geofeat.datasets.errors import DatasetError
 from geofeat.datasets.records import Match, ShapePair
-from geofeat.geometry.geodesic import GeodesicStore, geodesic_matrix
+from geofeat.geometry.geodesic import GeodesicEntries, GeodesicStore, evaluation_distances, memory_limit
 from geofeat.mesh import Mesh
 from geofeat.metrics import MetricError
 from geofeat.progress import progress_bar
@@ -163,7 +163,9 @@ def _check_protocol(protocol: str) -> None:
         raise MetricError(f"protocol must be one of {PROTOCOLS}; found {protocol!r}.")
 
 
-def target_distances(mesh: Mesh, store: GeodesicStore | None = None) -> np.ndarray:
+def target_distances(
+    mesh: Mesh, store: GeodesicStore | None = None, limit: int | str | None = None, *, limit_source: str | None = None
+) -> np.ndarray | GeodesicEntries:
     """The evaluation distances on a target shape: edge-Dijkstra geodesics over ``sqrt(area)``.
 
     Parameters
@@ -173,14 +175,20 @@ def target_distances(mesh: Mesh, store: GeodesicStore | None = None) -> np.ndarr
     store : GeodesicStore, optional
         Read the matrix from (and keep it in) this disk store; a float32 store gives exactly
         the matrix computed in memory. None computes it (cached in memory).
+    limit : int or str, optional
+        Memory bound of the matrix (`geofeat.geometry.geodesic.memory_limit`: default
+        ``$GEOFEAT_GEODESIC_MEMORY``, else half the available memory).
+    limit_source : str, optional
+        Where the bound comes from, for the warning.
 
     Returns
     -------
-    numpy.ndarray, shape (V, V), float32, read-only
+    numpy.ndarray, shape (V, V), float32, read-only, or GeodesicEntries
+        The matrix; above the bound (and not in the store), a `GeodesicEntries` that
+        `evaluate_pair` fills with the entries it reads, the same values (see
+        `geofeat.geometry.geodesic.evaluation_distances`).
     """
-    if store is None:
-        return geodesic_matrix(mesh, method="dijkstra", normalize=True)
-    return store.load(mesh)
+    return evaluation_distances(mesh, store, limit, limit_source=limit_source)
 
 
 def evaluate_pair(
@@ -196,9 +204,10 @@ def evaluate_pair(
         Prediction: ``map_yx`` (V_y,) and optional overlap masks and probabilities.
     protocol : {"vertices", "template"}
         Evaluated points (see the module notes).
-    distances : numpy.ndarray, shape (V_x, V_x), optional
+    distances : numpy.ndarray, shape (V_x, V_x), or GeodesicEntries, optional
         Geodesic distances on ``pair.x`` over ``sqrt(area)`` (`target_distances`); computed
-        when not given.
+        when not given. A `GeodesicEntries` not computed yet is asked for the entries this
+        pair reads and computed.
 
     Returns
     -------
@@ -211,10 +220,23 @@ def evaluate_pair(
     DatasetError
         For ``protocol="template"`` on a pair without template points.
     """
+    _check_pair(pair, protocol)
+    dist_x = target_distances(pair.x) if distances is None else distances
+    if isinstance(dist_x, GeodesicEntries) and not dist_x.computed:
+        _score(pair, match, protocol, dist_x)  # asks for the entries it reads
+        dist_x.compute()
+    return _score(pair, match, protocol, dist_x)
+
+
+def _check_pair(pair: ShapePair, protocol: str) -> None:
     _check_protocol(protocol)
     if protocol == "template" and (pair.corr_x is None or pair.corr_y is None):
         raise DatasetError(f"pair {pair.name}: --protocol template needs a dataset with template points (faust_r, scape_r)")
-    dist_x = target_distances(pair.x) if distances is None else distances
+
+
+def _score(pair: ShapePair, match: Match, protocol: str, dist_x: np.ndarray | GeodesicEntries) -> PairEvaluation:
+    """`evaluate_pair` on given distances (a `GeodesicEntries` not computed yet: asks for its entries)."""
+    _check_pair(pair, protocol)
     if dist_x.shape != (pair.x.n_vertices, pair.x.n_vertices):
         raise MetricError(
             f"pair {pair.name}: distances must be the (V_x, V_x) = ({pair.x.n_vertices}, {pair.x.n_vertices}) matrix of x; "
@@ -323,6 +345,7 @@ class _Job:
     protocol: str
     store: GeodesicStore | None
     keep: frozenset[int]
+    memory: tuple[int | None, str]
 
 
 #: The job of the forked workers of `evaluate_dataset` (inherited through fork, never pickled).
@@ -336,12 +359,28 @@ def _evaluate_group(indices: list[int]) -> list[tuple[int, PairEvaluation, tuple
         raise RuntimeError("no evaluation job: _evaluate_group runs inside evaluate_dataset only")
     out = []
     target, distances = None, None
+    waiting: list[tuple[int, ShapePair, Match]] = []  # pairs of a target evaluated from streamed entries
+
+    def evaluate_waiting() -> None:
+        if waiting:
+            distances.compute()  # every entry the target's pairs read, in one pass
+            for i, pair, match in waiting:
+                out.append((i, _score(pair, match, job.protocol, distances), (pair, match) if i in job.keep else None))
+            waiting.clear()
+
     for i in indices:
         pair = job.dataset[i]
         match = job.match(i, pair)
         if pair.x.hash != target:
-            target, distances = pair.x.hash, target_distances(pair.x, job.store)
-        out.append((i, evaluate_pair(pair, match, job.protocol, distances), (pair, match) if i in job.keep else None))
+            evaluate_waiting()
+            bound, source = job.memory
+            target, distances = pair.x.hash, target_distances(pair.x, job.store, bound, limit_source=source)
+        if isinstance(distances, GeodesicEntries):
+            _score(pair, match, job.protocol, distances)  # asks for the entries it reads
+            waiting.append((i, pair, match))
+        else:
+            out.append((i, evaluate_pair(pair, match, job.protocol, distances), (pair, match) if i in job.keep else None))
+    evaluate_waiting()
     return out
 
 
@@ -385,6 +424,7 @@ def evaluate_dataset(
     on_kept: Callable[[dict[int, tuple[ShapePair, Match]]], None] | None = None,
     progress: bool = True,
     desc: str = "evaluating",
+    memory: int | str | None = None,
 ) -> tuple[list[PairEvaluation], dict[int, tuple[ShapePair, Match]]]:
     """Match and evaluate the first ``n_pairs`` pairs of a dataset, target shape by target shape.
 
@@ -414,6 +454,12 @@ def evaluate_dataset(
         Show a tqdm progress bar (pairs).
     desc : str
         The progress bar's label.
+    memory : int or str, optional
+        Bound on the memory of a target's geodesic matrix (bytes or ``"4G"``; default
+        ``$GEOFEAT_GEODESIC_MEMORY``, else half the memory available at the start). The
+        workers share it: each gets the bound divided by their number. Above it, only the
+        distances the evaluation reads are computed, a few rows at a time, and not stored
+        (`geofeat.geometry.geodesic.GeodesicEntries`, the same values).
 
     Returns
     -------
@@ -430,6 +476,9 @@ def evaluate_dataset(
     if workers > 1 and "fork" not in multiprocessing.get_all_start_methods():
         log.info("no fork start method here: evaluating in one process")
         workers = 1
+    bound, source = memory_limit(memory)
+    if bound is not None and workers > 1:
+        bound, source = bound // workers, f"{source}, shared by {workers} worker processes"
     results: dict[int, tuple[PairEvaluation, tuple[ShapePair, Match] | None]] = {}
     wanted = sorted(i for i in set(keep) if 0 <= i < n_pairs)
     waiting = set(wanted)
@@ -442,7 +491,7 @@ def evaluate_dataset(
             if not waiting and on_kept is not None:
                 on_kept({j: results[j][1] for j in wanted})
 
-    _JOB = _Job(dataset, match, protocol, store, frozenset(wanted))
+    _JOB = _Job(dataset, match, protocol, store, frozenset(wanted), (bound, source))
     try:
         with progress_bar(total=n_pairs, desc=desc, unit="pair", show=progress) as bar:
             if workers == 1:

@@ -15,12 +15,17 @@ its re-implementation ``models/partial_base_model.py``):
 * the PCK curve counts errors ``<=`` each threshold and its area is normalised by the
   threshold range, so a perfect map has area 1;
 * mIoU is the mean over pairs of the per-pair IoU of boolean overlap masks.
+
+Where the target is too large for its (V_x, V_x) matrix, ``dist_x`` may instead be a
+`DistanceEntries`: an object that gives only the entries read (``dist_x[rows, cols]``) and the
+worst case of some rows (`geofeat.geometry.geodesic.GeodesicEntries`).
 """
 
 from __future__ import annotations
 
 import logging
 from collections.abc import Iterable
+from typing import Protocol, runtime_checkable
 
 import numpy as np
 
@@ -37,6 +42,25 @@ class MetricError(GeofeatError, ValueError):
 DEFAULT_PCK_THRESHOLDS = np.linspace(0.0, 0.25, 101)
 #: Policies for a prediction of -1 where the ground truth has a counterpart.
 UNMATCHED_POLICIES = ("max", "raise")
+
+
+@runtime_checkable
+class DistanceEntries(Protocol):
+    """Some entries of a (V, V) distance matrix, read without the matrix (the metrics accept it as ``dist_x``).
+
+    Attributes
+    ----------
+    shape : tuple of int
+        ``(V, V)``.
+    """
+
+    shape: tuple[int, int]
+
+    def __getitem__(self, key: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
+        """``dist[rows, cols]``: the entries at integer arrays of one shape, an array of that shape."""
+
+    def worst_case(self, rows: np.ndarray) -> np.ndarray:
+        """Largest finite distance from each of ``rows`` (0 where none), shape (len(rows),) float64."""
 
 
 # ----------------------------------------------------------------------------- validation
@@ -59,7 +83,11 @@ def _check_range(arr: np.ndarray, n_x: int, name: str) -> None:
         )
 
 
-def _as_distance_matrix(dist_x) -> np.ndarray:
+def _as_distance_matrix(dist_x) -> np.ndarray | DistanceEntries:
+    if isinstance(dist_x, DistanceEntries) and not isinstance(dist_x, np.ndarray):
+        if len(dist_x.shape) != 2 or dist_x.shape[0] != dist_x.shape[1]:
+            raise MetricError(f"dist_x must stand for a square (V_x, V_x) matrix; found shape {dist_x.shape}.")
+        return dist_x
     arr = np.asarray(dist_x)
     if arr.ndim != 2 or arr.shape[0] != arr.shape[1]:
         raise MetricError(
@@ -111,7 +139,7 @@ def geodesic_errors(map_pred_yx, map_gt_yx, dist_x, eval_mask=None, unmatched: s
         Predicted map, 0-based indices into the target, ``-1`` where nothing was predicted.
     map_gt_yx : array_like of int, shape (V_y,)
         Ground-truth map, ``-1`` where the vertex has no counterpart (not evaluated).
-    dist_x : array_like, shape (V_x, V_x)
+    dist_x : array_like, shape (V_x, V_x), or DistanceEntries
         Geodesic distances on the target, already normalised (for example by
         ``sqrt(area(x))``).
     eval_mask : array_like of bool, shape (V_y,), optional
@@ -206,6 +234,8 @@ def template_geodesic_errors(map_pred_yx, corr_x, corr_y, dist_x, unmatched: str
 
 def _worst_case(dist: np.ndarray, sources: np.ndarray) -> np.ndarray:
     """Largest finite distance from each source vertex, shape (len(sources),) float64."""
+    if isinstance(dist, DistanceEntries) and not isinstance(dist, np.ndarray):
+        return np.asarray(dist.worst_case(sources), dtype=np.float64)
     rows = np.asarray(dist[sources], dtype=np.float64)
     return np.where(np.isfinite(rows), rows, -np.inf).max(axis=1).clip(min=0.0)
 

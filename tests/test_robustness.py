@@ -1027,6 +1027,232 @@ SECOND_PASS += [
     for kind in ("rows", "float64", "nan", "strings")
 ]
 
+
+def geodesic_pairs(n_targets: int = 1):
+    """Pairs (a CUTS partial of a bumpy sphere against the sphere) and a fixed prediction with unmatched vertices."""
+    from geofeat.datasets.records import Match, ShapePair
+    from geofeat.geometry.partial import make_partial
+
+    pairs, matches = [], []
+    for seed in range(n_targets):
+        x = bumpy(seed, 3)
+        partial = make_partial(x, "cuts", seed=0)
+        rng = np.random.default_rng(seed)
+        pred = rng.integers(0, x.n_vertices, partial.mesh.n_vertices)
+        pred[::11] = -1
+        sym = rng.permutation(x.n_vertices)[partial.vertex_map]
+        pairs.append(ShapePair(x=x, y=partial.mesh, map_yx=partial.vertex_map, map_yx_sym=sym))
+        matches.append(Match(map_yx=pred, overlap_y=np.ones(partial.mesh.n_vertices, dtype=bool)))
+    return pairs, matches
+
+
+def evaluated(ctx: Ctx, store=None, n_targets: int = 1, **options):
+    """Errors and chirality of `geodesic_pairs` through `evaluate_dataset`."""
+    from geofeat.evaluation import evaluate_dataset
+
+    pairs, matches = geodesic_pairs(n_targets)
+    with ctx.caplog.at_level(logging.WARNING, logger="geofeat"):
+        records, _ = evaluate_dataset(pairs, lambda i, p: matches[i], store=store, progress=False, **options)
+    return [a for r in records for a in (r.errors, np.array([r.chirality_accuracy]))]
+
+
+def evaluated_reference(ctx: Ctx, n_targets: int = 1):
+    from geofeat.geometry.geodesic import geodesic_matrix
+    from geofeat.metrics import chirality_accuracy, geodesic_errors
+
+    pairs, matches = geodesic_pairs(n_targets)
+    out = []
+    for pair, match in zip(pairs, matches, strict=True):
+        dist = geodesic_matrix(pair.x, "dijkstra", normalize=True, cache=False)
+        out += [
+            geodesic_errors(match.map_yx, pair.map_yx, dist),
+            np.array([chirality_accuracy(match.map_yx, pair.map_yx, pair.map_yx_sym, dist)]),
+        ]
+    return out
+
+
+def bound_forced_low(ctx: Ctx):
+    store = GeodesicStore(ctx.tmp / "geodesics")
+    result = evaluated(ctx, store, memory="1M")
+    assert (
+        "Computing only the distances the evaluation reads" in ctx.caplog.text and "above the bound of 1.0 MB" in ctx.caplog.text
+    )
+    assert store.entries() == []  # streamed entries are never stored
+    return result
+
+
+def bound_shared_by_workers(ctx: Ctx):
+    """Two targets, two forked workers: each worker's bound is half the one given (written to a file by each worker)."""
+    import geofeat.evaluation as evaluation
+
+    seen = ctx.tmp / "bounds.txt"
+    real = evaluation.target_distances
+
+    def recording(mesh, store=None, limit=None, *, limit_source=None):
+        with open(seen, "a") as fh:
+            fh.write(f"{limit}|{limit_source}\n")
+        return real(mesh, store, limit, limit_source=limit_source)
+
+    ctx.monkeypatch.setattr(evaluation, "target_distances", recording)
+    result = evaluated(ctx, n_targets=2, workers=2, memory="2M")
+    lines = seen.read_text().splitlines()
+    assert lines == [f"{1 << 20}|memory_limit, shared by 2 worker processes"] * 2, lines
+    return result
+
+
+def matrix_out_of_memory(ctx: Ctx):
+    from geofeat.geometry import geodesic
+
+    def no_memory(*args, **kwargs):
+        raise MemoryError("Unable to allocate 23.8 GiB for an array with shape (80000, 80000) and data type float32")
+
+    ctx.monkeypatch.setattr(geodesic, "_all_pairs_dijkstra", no_memory)
+    geodesic.geodesic_matrix(bumpy(0, 3), cache=False)
+
+
+def store_over_its_limit(ctx: Ctx):
+    store = GeodesicStore(ctx.tmp / "geodesics", limit=2 * GeodesicStore(ctx.tmp).entry_bytes(162))
+    for seed in range(4):
+        store.load(bumpy(seed, 2))
+        assert store.info().bytes <= store.limit
+    return len(store.entries())
+
+
+def default_geodesic_store(ctx: Ctx, fault: str):
+    """Evaluate with the default geodesic store after breaking it as ``fault`` says."""
+    import errno
+
+    from geofeat.geometry import geodesic
+
+    ctx.monkeypatch.setattr(geodesic, "_UNWRITABLE_WARNED", set())
+    if fault == "cache-dir-is-a-file":
+        (ctx.tmp / "a file").write_text("not a folder")
+        ctx.monkeypatch.setenv("GEOFEAT_CACHE_DIR", str(ctx.tmp / "a file"))
+    elif fault == "read-only":
+        ctx.cache.mkdir(parents=True, exist_ok=True)
+        read_only(ctx, ctx.cache)
+    elif fault == "disk-full":
+
+        def full(*args, **kwargs):
+            raise OSError(errno.ENOSPC, "No space left on device")
+
+        ctx.monkeypatch.setattr(geodesic.np, "save", full)
+    result = evaluated(ctx, GeodesicStore())
+    assert ctx.caplog.text.count("geodesic matrices are computed in memory and not kept") == 1, ctx.caplog.text
+    return result
+
+
+def named_geodesic_store_read_only(ctx: Ctx):
+    (ctx.tmp / "geodesics").mkdir()
+    read_only(ctx, ctx.tmp / "geodesics")
+    GeodesicStore(ctx.tmp / "geodesics").load(bumpy(0, 2))
+
+
+SECOND_PASS += [
+    Row("geodesic-bound-forced-low", "R4", bound_forced_low, reference=evaluated_reference),
+    Row("geodesic-bound-shared-by-workers", "R4", bound_shared_by_workers, reference=lambda c: evaluated_reference(c, 2)),
+    Row("geodesic-matrix-out-of-memory", "R4", matrix_out_of_memory, GeofeatError, "642 vertices: its all-pairs geodesic matrix"),
+    Row("geodesic-store-limit-evicts", "R4", store_over_its_limit, reference=lambda c: 2),
+    *[
+        Row(f"geodesic-store-{fault}", "R5", lambda c, f=fault: default_geodesic_store(c, f), reference=evaluated_reference)
+        for fault in ("cache-dir-is-a-file", "read-only", "disk-full")
+    ],
+    Row(
+        "geodesic-store-named-read-only",
+        "R5",
+        named_geodesic_store_read_only,
+        GeofeatError,
+        "the geodesic store .* cannot be written",
+    ),
+]
+
+
+def mesh_tree(ctx: Ctx, relatives: list[str]) -> Path:
+    """A data folder holding a small mesh at each relative path."""
+    root = ctx.tmp / "data"
+    for i, relative in enumerate(relatives):
+        path = root / relative
+        path.parent.mkdir(parents=True, exist_ok=True)
+        mesh = bumpy(i, 1)
+        trimesh.Trimesh(mesh.verts, mesh.faces, process=False).export(path)
+    return root
+
+
+def extract_tree(relatives: list[str], export: tuple | None, read_only_place: str | None = None, manifest: str | None = None):
+    """`geofeat.extract.extract` HKS over a mesh tree; ``read_only_place`` ("data", "export") is made read-only first."""
+
+    def run(ctx: Ctx):
+        from geofeat.extract import ExportSpec, extract, folder_shapes
+
+        root = mesh_tree(ctx, relatives)
+        spec = None
+        if export is not None:
+            fmt, layout, to = export
+            spec = ExportSpec(fmt, layout, None if to is None else ctx.tmp / to)
+        if read_only_place == "data":
+            read_only(ctx, root)
+        elif read_only_place == "export":
+            (ctx.tmp / "ro").mkdir()
+            read_only(ctx, ctx.tmp / "ro")
+        store = FeatureCache(ctx.tmp / "store")
+        try:
+            return extract(
+                folder_shapes(root), "hks", {"n_eig": 8, "n_descr": 4}, store=store, export=spec, device="cpu", progress=False,
+                manifest=None if manifest is None else ctx.tmp / manifest,
+            )  # fmt: skip
+        finally:
+            ctx.store_entries = len(store.entries())
+
+    return run
+
+
+def nothing_computed(ctx: Ctx, error) -> None:
+    assert ctx.store_entries == 0, "the check must come before the work"
+
+
+SECOND_PASS += [
+    Row(
+        "export-beside-two-shapes-one-file",
+        "R2",
+        extract_tree(["a/b.off", "b/deep/b.off"], ("npy", "beside", "D")),
+        GeofeatError,
+        "'a/b' and 'b/deep/b' would both be exported to",
+        check=nothing_computed,
+    ),
+    Row(
+        "export-h5-shape-and-its-folder",
+        "R2",
+        extract_tree(["a.off", "a/b.off"], ("h5", "mirror", "out.h5")),
+        GeofeatError,
+        "cannot hold both shape 'a' and shape 'a/b'",
+        check=nothing_computed,
+    ),
+    Row(
+        "export-beside-read-only-data",
+        "R3",
+        extract_tree(["shapes/off/a.off"], ("npy", "beside", None), read_only_place="data"),
+        GeofeatError,
+        "cannot export into .*Read-only file system",
+        check=nothing_computed,
+    ),
+    Row(
+        "export-h5-read-only-folder",
+        "R3",
+        extract_tree(["a.off"], ("h5", "mirror", "ro/out.h5"), read_only_place="export"),
+        GeofeatError,
+        "cannot export into .*Read-only file system",
+        check=nothing_computed,
+    ),
+    Row(
+        "manifest-read-only-folder",
+        "R3",
+        extract_tree(["a.off"], None, read_only_place="export", manifest="ro/m.manifest.json"),
+        GeofeatError,
+        "cannot write the manifest .*Read-only file system",
+        check=nothing_computed,
+    ),
+]
+
 ROWS = MESH_FILES + NON_FINITE + PARAMETERS + CACHE + ERRORS + KILLS + SECOND_PASS
 
 
@@ -1056,7 +1282,7 @@ def test_input(row: Row, tmp_path, monkeypatch, caplog, isolated_cache, capsys):
 
 
 def test_every_item_has_rows():
-    assert {r.item for r in ROWS} == {"3", "4", "5", "6", "7", "8", "R1", "R6", "R7", "R8", "R9"}
+    assert {r.item for r in ROWS} == {"3", "4", "5", "6", "7", "8", "R1", "R2", "R3", "R4", "R5", "R6", "R7", "R8", "R9"}
     assert len({r.id for r in ROWS}) == len(ROWS)
 
 

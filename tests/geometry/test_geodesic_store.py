@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import errno
+import os
+
 import numpy as np
 import pytest
 from shapes import bumpy
@@ -181,3 +184,58 @@ def test_cache_command_manages_both_stores_and_only_the_folders_named(isolated_c
     geofeat.compute(mesh, "hks", n_eig=8, n_descr=4)
     assert cli_main(["cache", "clear"]) == 0  # both by default
     assert GeodesicStore().entries() == [] and geofeat.FeatureCache().entries() == []
+
+
+def test_the_store_keeps_under_its_limit_evicting_the_least_recently_used(tmp_path, computations):
+    meshes = [bumpy(seed, 2) for seed in range(3)]  # 162 vertices: 105,104 bytes an entry
+    store = GeodesicStore(tmp_path, limit=2 * GeodesicStore(tmp_path).entry_bytes(162) + 10)
+    store.load(meshes[0])
+    store.load(meshes[1])
+    os.utime(store.path(meshes[0]), (1, 1))  # an old entry ...
+    os.utime(store.path(meshes[1]), (2, 2))
+    store.load(meshes[0])  # ... read again: now the most recently used
+    store.load(meshes[2])  # no room for three: meshes[1] goes
+    assert store.path(meshes[1]) is None and store.path(meshes[0]) and store.path(meshes[2])
+    assert store.info().bytes <= store.limit and len(computations) == 3
+
+
+def test_an_entry_larger_than_the_limit_is_computed_in_memory(tmp_path, caplog, monkeypatch):
+    mesh = bumpy(0, 2)
+    store = GeodesicStore(tmp_path / "g", limit="100k")
+    with caplog.at_level("WARNING", logger="geofeat"):
+        dist = store.load(mesh)
+    np.testing.assert_array_equal(dist, geodesic_matrix(mesh))
+    assert store.entries() == [] and "larger than the store's limit of 102.4 kB" in caplog.text
+    assert store.ensure(mesh) is None
+    monkeypatch.setenv("GEOFEAT_GEODESIC_STORE_LIMIT", "big")
+    with pytest.raises(geofeat.errors.StoreError, match="GEOFEAT_GEODESIC_STORE_LIMIT must be a size"):
+        GeodesicStore(tmp_path)
+
+
+def test_an_unwritable_default_store_warns_once_and_computes_in_memory(tmp_path, monkeypatch, caplog):
+    blocker = tmp_path / "a file"
+    blocker.write_text("not a folder")
+    monkeypatch.setenv("GEOFEAT_CACHE_DIR", str(blocker))
+    monkeypatch.setattr(geodesic, "_UNWRITABLE_WARNED", set())
+    with caplog.at_level("WARNING", logger="geofeat"):
+        first = GeodesicStore().load(bumpy(0, 2))
+        GeodesicStore().load(bumpy(1, 2))
+    np.testing.assert_array_equal(first, geodesic_matrix(bumpy(0, 2)))
+    assert caplog.text.count("computed in memory and not kept") == 1 and "cannot be written" in caplog.text
+    with pytest.raises(geofeat.errors.StoreError, match="cannot be written"):  # a folder the caller named
+        GeodesicStore(blocker / "geodesics").load(bumpy(2, 2))
+
+
+def test_a_full_disk_gives_a_store_error_or_a_warning(tmp_path, monkeypatch, caplog, computations):
+    def full(*args, **kwargs):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(geodesic.np, "save", full)
+    monkeypatch.setattr(geodesic, "_UNWRITABLE_WARNED", set())
+    with pytest.raises(geofeat.errors.StoreError, match="No space left on device"):
+        GeodesicStore(tmp_path / "named").load(bumpy(0, 2))
+    assert GeodesicStore(tmp_path / "named").temporary_files() == []
+    monkeypatch.setattr(geodesic, "cache_dir", lambda: tmp_path / "default")
+    with caplog.at_level("WARNING", logger="geofeat"):
+        dist = GeodesicStore().load(bumpy(0, 2))
+    assert dist.shape == (162, 162) and "No space left on device" in caplog.text
