@@ -310,3 +310,36 @@ def test_a_killed_rank_leaves_a_store_that_a_rerun_completes(collection, tmp_pat
     assert store.verify(remove=False) == (5, [])
     for record in manifest["shapes"]:
         np.testing.assert_allclose(store.get(record["key"]), expected(Path(record["path"])), rtol=1e-6)
+
+
+def test_writes_that_fail_after_the_checks_are_recorded_and_the_manifest_kept(collection, tmp_path, monkeypatch, capsys):
+    """A disk that fills after the up-front checks: each lost export is in the manifest, the HDF5 one too, exit 1."""
+    from geofeat import extract as extract_module
+
+    real_save = extract_module.save_npy
+
+    def save_npy(path, features):
+        if "shape_1" in str(path):
+            raise OSError(28, "No space left on device", str(path))
+        return real_save(path, features)
+
+    monkeypatch.setattr(extract_module, "save_npy", save_npy)
+    store, manifest, out = tmp_path / "store", tmp_path / "m.json", tmp_path / "npy"
+    args = ["--data", str(collection), "--out", str(store), "--manifest", str(manifest)]
+    assert run_cli(*args, "--export", "npy", "--layout", "mirror", "--export-to", str(out)) == 1
+    printed = capsys.readouterr().out
+    assert "export failed: shape_1: could not write" in printed and "No space left on device" in printed
+    written = json.loads(manifest.read_text())
+    assert written["n_export_failed"] == 1 and written["n_failed"] == 0
+    (lost,) = [r for r in written["shapes"] if "export_error" in r]
+    assert lost["shape"] == "shape_1" and lost["export"] is None and Path(lost["entry"]).is_file()
+    assert sorted(p.name for p in out.rglob("*.npy")) == ["shape_0.npy", "shape_2.npy", "shape_3.npy", "shape_4.npy"]
+
+    def failing_h5(path, records, store):
+        raise OSError(28, "No space left on device", str(path))
+
+    monkeypatch.setattr(extract_module, "write_h5", failing_h5)
+    assert run_cli(*args, "--export", "h5", "--export-to", str(tmp_path / "all.h5")) == 1
+    assert "export failed: could not write" in capsys.readouterr().out
+    written = json.loads(manifest.read_text())
+    assert "No space left on device" in written["export_error"] and written["n_present"] == 5
