@@ -1124,7 +1124,7 @@ def default_geodesic_store(ctx: Ctx, fault: str):
 
     from geofeat.geometry import geodesic
 
-    ctx.monkeypatch.setattr(geodesic, "_UNWRITABLE_WARNED", set())
+    ctx.monkeypatch.setattr(geodesic, "_UNWRITABLE_WARNED", set(), raising=False)  # warned once per process
     if fault == "cache-dir-is-a-file":
         (ctx.tmp / "a file").write_text("not a folder")
         ctx.monkeypatch.setenv("GEOFEAT_CACHE_DIR", str(ctx.tmp / "a file"))
