@@ -24,7 +24,10 @@ formed and written into the store).
 
 Usage::
 
-    python benchmarks/speed_geodesic_memory.py --sizes 40000 80000 --runs default streamed
+    python benchmarks/speed_geodesic_memory.py --sizes 40000 --runs default streamed
+    python benchmarks/speed_geodesic_memory.py --sizes 80000 --runs default --merge
+
+The results are written after every run (``--merge`` keeps those of other sizes and runs).
 """
 
 from __future__ import annotations
@@ -169,6 +172,7 @@ def main() -> None:
     parser.add_argument("--runs", nargs="+", default=["default", "streamed"], choices=list(RUNS))
     parser.add_argument("--work", default=None, help="folder for the targets and the cache folders (default: a temporary one)")
     parser.add_argument("--out", default=str(HERE / "results" / "geodesic_memory"))
+    parser.add_argument("--merge", action="store_true", help="keep the records of other sizes and runs already in OUT.json")
     parser.add_argument("--child", default=None, help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.child:
@@ -176,21 +180,26 @@ def main() -> None:
         return
     work = Path(args.work or tempfile.mkdtemp(prefix="geodesic_memory_"))
     work.mkdir(parents=True, exist_ok=True)
+    out = Path(args.out)
     records = []
+    if args.merge and out.with_suffix(".json").exists():
+        records = json.loads(out.with_suffix(".json").read_text())["records"]
     for size in args.sizes:
         target = make_target(size, work)
         for run in args.runs:
             if size == 80000 and run == "stored":
                 continue  # 25.6 GB: more than this machine has
             record = measure(target, run, work)
+            record["size"] = size
             print(json.dumps(record), flush=True)
-            records.append(record)
-    stamp = datetime.datetime.now().strftime("%Y-%m-%d %H:%M")
-    header = (
-        f"Machine: {machine()}; memory {os.sysconf('SC_PHYS_PAGES') * os.sysconf('SC_PAGE_SIZE') / 1e9:.0f} GB; "
-        f"{stamp}. Written by `benchmarks/speed_geodesic_memory.py`."
-    )
-    write_results(args.out, {"machine": machine(), "date": stamp, "records": records}, table(records, header))
+            records = [r for r in records if (r.get("size"), r["run"]) != (size, run)] + [record]
+            records.sort(key=lambda r: (r.get("size", 0), list(RUNS).index(r["run"])))
+            stamp = datetime.datetime.now().strftime("%Y-%m-%d %H:%M")
+            header = (
+                f"Machine: {machine()}; memory {os.sysconf('SC_PHYS_PAGES') * os.sysconf('SC_PAGE_SIZE') / 1e9:.0f} GB; "
+                f"{stamp}. Written by `benchmarks/speed_geodesic_memory.py`."
+            )
+            write_results(out, {"machine": machine(), "date": stamp, "records": records}, table(records, header))
 
 
 if __name__ == "__main__":
