@@ -186,8 +186,13 @@ class FeatureCache(EntryFolder):
             raise
         return path
 
-    def check_writable(self) -> None:
+    def check_writable(self, hint: str = _NOT_WRITABLE_HINT) -> None:
         """Raise `CacheError` unless a file can be created in the store (created when missing).
+
+        Parameters
+        ----------
+        hint : str
+            How to fix it, in the caller's terms (default: the settings of `geofeat.compute`).
 
         Raises
         ------
@@ -200,7 +205,7 @@ class FeatureCache(EntryFolder):
             os.close(handle)
             os.unlink(probe)
         except OSError as err:
-            raise CacheError(f"the feature cache {self.root} is not writable: {err}. {_NOT_WRITABLE_HINT}") from err
+            raise CacheError(f"the feature cache {self.root} is not writable: {err}. {hint}") from err
 
     def _scan(self) -> tuple[list[Path], list[Path], list[Path]]:
         """One pass over the store: entry files, temporary files and everything else (sorted)."""

@@ -528,7 +528,10 @@ def extract(
     with distributed.process_group(device, timeout_minutes=BARRIER_TIMEOUT_MINUTES) as rank_device:
         info = distributed.group_rank_info()
         params = _descriptor_params(descriptor, params or {}, rank_device)
-        store.check_writable()
+        store.check_writable(
+            "Name a writable folder with --out (or store= in Python); without --out the store is the feature cache, "
+            "which GEOFEAT_CACHE_DIR moves."
+        )
         # every output place is checked before the work, not found unwritable after it
         if export is not None:
             export.check(shapes, make_descriptor(descriptor, **params).name)

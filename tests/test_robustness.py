@@ -1253,6 +1253,33 @@ SECOND_PASS += [
     ),
 ]
 
+
+def extract_into_read_only_out(ctx: Ctx) -> tuple[int, bool, bool]:
+    """`geofeat extract --out` a read-only folder: (exit code, the advice names --out, the advice names cache=False)."""
+    root = mesh_tree(ctx, ["a.off"])
+    (ctx.tmp / "ro").mkdir()
+    read_only(ctx, ctx.tmp / "ro")
+    code, _, err = cli(
+        [
+            "extract",
+            "--descriptor",
+            "hks",
+            "--param",
+            "n_eig=8",
+            "--data",
+            str(root),
+            "--out",
+            str(ctx.tmp / "ro"),
+            "--no-progress",
+        ]
+    )
+    return code, "--out" in err, "cache=False" in err
+
+
+SECOND_PASS += [
+    Row("extract-out-read-only-suggests-out", "R9", extract_into_read_only_out, reference=lambda c: (2, True, False)),
+]
+
 ROWS = MESH_FILES + NON_FINITE + PARAMETERS + CACHE + ERRORS + KILLS + SECOND_PASS
 
 
