@@ -1,21 +1,33 @@
-"""Run a matching pipeline on a benchmark and report geodesic error, PCK, mIoU and chirality.
+"""Run matching pipelines on a benchmark and report geodesic error, PCK, mIoU and chirality.
 
-With no arguments it runs offline on the built-in synthetic collection::
+With no arguments it runs the main job, offline, in about 10 seconds: four training-free
+pipelines (nearest neighbour and functional maps on WKS and HKS) and the two reference rows
+(``random``: chance; ``mirrored_truth``: the true map flipped left-right) on full-to-full
+and on CUTS partial-to-full pairs of the built-in synthetic humans::
 
-    python benchmarks/run.py
+    python benchmarks/run.py                          # writes runs/main/
+    python benchmarks/run.py --out benchmarks/results/main
+
+One pipeline on one benchmark (any of the options below but --out, --limit, --seed,
+--workers, --no-progress and --no-geodesic-store makes a run of this kind; the defaults are
+``--pipeline nn --dataset synthetic_cuts --descriptor wks``)::
+
     python benchmarks/run.py --pipeline fmap --dataset faust_r_cuts --descriptor wks --data-root ../shared/data
     python benchmarks/run.py --pipeline ulrssm --dataset faust_r_cuts --descriptor wks --max-minutes 30
     python benchmarks/run.py --pipeline dpfm --quick          # a smoke run of a learned head, < 2 min on a CPU
 
 Learned heads (ulrssm, dpfm, echomatch) are trained first on ``--train-split`` of the same
-dataset (or loaded with ``--load``) and saved into ``<out>/head``. Writes into ``--out`` (default ``benchmarks/results/<pipeline>_<dataset>_<descriptor>``):
-``results.json``, ``results.md``, ``pck.png`` and ``pairs.png``.
+dataset (or loaded with ``--load``) and saved into ``<out>/head``. Every run writes into
+``--out`` (default ``runs/main`` for the main job, ``runs/<pipeline>_<dataset>_<descriptor>``
+otherwise; ``runs/`` is ignored by git): ``results.json``, ``results.md``, ``pck.png`` and
+``pairs.png``.
 
 Pairs are evaluated target shape by target shape (`geofeat.evaluation.evaluate_dataset`), in
 ``--workers`` forked processes for the training-free pipelines, with the same numbers for
 any number of workers. The targets' geodesic matrices are kept on disk in
 ``<geofeat cache>/geodesics`` (``$GEOFEAT_CACHE_DIR``, default ``~/.cache/geofeat``) and the
-descriptors in ``<geofeat cache>/features``, so a second run reads them back.
+descriptors in ``<geofeat cache>/features``, so a second run reads them back; the run ends
+by saying where both are and how large they are (``geofeat cache info``, ``geofeat cache clear``).
 """
 
 from __future__ import annotations
@@ -25,6 +37,7 @@ import dataclasses
 import datetime
 import json
 import logging
+import multiprocessing
 import os
 import sys
 import time
@@ -35,13 +48,18 @@ import numpy as np
 import geofeat
 from geofeat.adapters.heads import Head, Match, load_head, make_head
 from geofeat.datasets import dataset_names, load_dataset
+from geofeat.datasets.records import ShapePair
 from geofeat.descriptors.registry import make_descriptor
-from geofeat.evaluation import SUMMARY_COLUMNS, default_workers, evaluate_dataset, summarize
+from geofeat.evaluation import SUMMARY_COLUMNS, default_workers, evaluate_dataset, evaluate_pair, summarize, target_distances
 from geofeat.files import atomic_write
 from geofeat.geometry.geodesic import GeodesicStore
-from geofeat.report import markdown_table, plot_pairs, plot_pck
+from geofeat.metrics import pck_curve
+from geofeat.report import PairPicture, markdown_table, plot_matches, plot_pairs, plot_pck
 
 HERE = Path(__file__).resolve().parent
+REPO = HERE.parent
+#: Where runs write without --out (ignored by git).
+RUNS = REPO / "runs"
 log = logging.getLogger("benchmarks.run")
 
 REFERENCE_PIPELINES = ("random", "mirrored_truth")
@@ -172,11 +190,389 @@ def _positive_count(unit: str, hint: str = ""):
     return parse
 
 
+# ----------------------------------------------------------------------------- the main job
+
+#: The main job's training-free pipelines: (head, descriptor).
+MAIN_PIPELINES = (("nn", "wks"), ("nn", "hks"), ("fmap", "wks"), ("fmap", "hks"))
+#: Pipelines whose maps pairs.png shows.
+MAIN_PICTURED = (("nn", "wks"), ("fmap", "hks"))
+#: Eigenpairs of the functional-map bases (the map is 30 x 30; the descriptors keep their 128).
+MAIN_FMAP_EIG = 30
+#: Marching-cubes spacing of the main job's humans: about 2,000 vertices instead of the
+#: 5,300 of the registered synthetic benchmarks, so that a cold run takes seconds and a
+#: target's geodesic matrix 17 MB instead of 113 MB.
+MAIN_SPACING = 0.035
+#: Source poses of the main job's pairs: for each target (pose 0 of a test individual), these
+#: poses of the same individual and of the other one, whole (full-to-full) and cut (CUTS).
+MAIN_SOURCE_POSES = (1, 2, 3)
+#: Pair kinds: key -> how tables and plots name them.
+MAIN_KINDS = {"full": "full-to-full", "cuts": "CUTS partial-to-full"}
+MAIN_DESCRIPTION = (
+    "built-in synthetic humans (the 2 individuals of the test split, meshed with about 2,000 vertices): "
+    "to the near-rest pose of each individual, 3 other poses of the same individual and 3 of the other one, "
+    "whole and as a CUTS partial shape"
+)
+READING_GUIDE = (
+    "Lower geodesic error (mean distance from the true counterpart, in hundredths of sqrt(area) of the target) "
+    "and higher PCK AUC and chirality accuracy are better; `random` is chance level and `mirrored_truth` is the "
+    "true map flipped left-right, what confusing the body's two sides costs."
+)
+MAIN_COLUMNS = [
+    ("pairs_kind", "pairs", "s"),
+    ("label", "pipeline", "s"),
+    ("n_pairs", "n", "d"),
+    ("geodesic_error", "geodesic error x100", ".1f"),
+    ("pck_auc", "PCK AUC", ".3f"),
+    ("chirality_accuracy", "chirality acc.", ".2f"),
+]
+#: x range of the main job's PCK plot (fractions of sqrt(area)): where the curves rise.
+MAIN_PCK_MAX = 1.0
+
+
+def pipeline_label(pipeline: str, descriptor: str | None) -> str:
+    """``"nn + WKS"``; a reference pipeline is its own name."""
+    return pipeline if descriptor in (None, "none") else f"{pipeline} + {descriptor.upper()}"
+
+
+class _FullPairs:
+    """Full-to-full pairs of a `SyntheticHumans` family: identity ground truth, mirror map for chirality."""
+
+    def __init__(self, humans, pairs: list[tuple[int, int]]):
+        self.humans, self.pairs = humans, pairs
+        self._meshes: dict[int, geofeat.Mesh] = {}
+
+    def __len__(self) -> int:
+        return len(self.pairs)
+
+    @property
+    def pair_names(self) -> list[str]:
+        names = self.humans.names
+        return [f"{names[a]}->{names[b]}" for a, b in self.pairs]
+
+    def _mesh(self, index: int) -> geofeat.Mesh:
+        if index not in self._meshes:
+            self._meshes[index] = self.humans.shape(index)
+        return self._meshes[index]
+
+    def __getitem__(self, i: int) -> ShapePair:
+        a, b = self.pairs[i]
+        mirror = self.humans.mirror
+        identity = np.arange(mirror.size, dtype=np.int64)
+        return ShapePair(x=self._mesh(b), y=self._mesh(a), map_yx=identity, map_yx_sym=mirror, protocol="f2f")
+
+
+def pictured_pair(n_pairs: int) -> int:
+    """The index of the pair pairs.png shows: the first with a source of the other individual (where there is one)."""
+    return min(len(MAIN_SOURCE_POSES), n_pairs - 1)
+
+
+def main_pairs(seed: int, limit: int | None) -> dict[str, list[ShapePair]]:
+    """The main job's pairs: ``{"full": [...], "cuts": [...]}``, grouped by target, at most ``limit`` of each kind."""
+    from geofeat.datasets.derived import (
+        SYNTHETIC_INDIVIDUALS,
+        SYNTHETIC_POSES,
+        SYNTHETIC_TEST_INDIVIDUALS,
+        DerivedPartialBenchmark,
+        SyntheticCollection,
+    )
+    from geofeat.datasets.synthetic import SyntheticHumans
+
+    humans = SyntheticHumans(SYNTHETIC_INDIVIDUALS, SYNTHETIC_POSES, seed=0, spacing=MAIN_SPACING)
+    first_test = (SYNTHETIC_INDIVIDUALS - SYNTHETIC_TEST_INDIVIDUALS) * SYNTHETIC_POSES
+    test = list(range(first_test, len(humans)))
+    targets = test[::SYNTHETIC_POSES]  # pose 0 of each test individual: its near-rest pose
+    combinations = [
+        (first + pose, target)
+        for target in targets
+        for first in sorted(targets, key=lambda first: first != target)  # the same individual, then the other
+        for pose in MAIN_SOURCE_POSES
+    ]
+    if limit is not None:
+        combinations = combinations[:limit]
+    full = _FullPairs(humans, combinations)
+    cuts = DerivedPartialBenchmark(SyntheticCollection(humans), test, "cuts", "p2f", seed, "synthetic_cuts")
+    index = {pair: i for i, pair in enumerate(cuts.pairs)}  # the pairs of the registered order, whose seeds they keep
+    return {"full": [full[i] for i in range(len(full))], "cuts": [cuts[index[pair]] for pair in combinations]}
+
+
+_PREPARE: tuple[list[geofeat.Mesh], tuple[str, ...], GeodesicStore | None] | None = None
+
+
+def _prepare_one(task: tuple[int, bool]) -> None:
+    """In a worker: the descriptors of one mesh (one spectral basis for all) and, for a target, its geodesic matrix."""
+    from geofeat.descriptors.compute import compute
+
+    meshes, descriptors, store = _PREPARE
+    index, target = task
+    for name in descriptors:
+        compute(meshes[index], name)
+    if target and store is not None:
+        store.load(meshes[index])
+
+
+def _one_thread() -> None:
+    from threadpoolctl import threadpool_limits
+
+    threadpool_limits(1)
+
+
+def prepare_inputs(
+    pairs: list[ShapePair], descriptors: tuple[str, ...], store: GeodesicStore | None, workers: int
+) -> tuple[int, int]:
+    """Fill the feature cache and the geodesic store for these pairs, in ``workers`` forked processes.
+
+    What is cached already is skipped (a warm run starts no process). The descriptors of a
+    mesh are computed in one process, so that they share its spectral basis. Returns the
+    number of meshes that had work and the number of meshes.
+    """
+    global _PREPARE
+    from geofeat.cache import FeatureCache
+    from geofeat.descriptors.compute import entry_key
+
+    features = FeatureCache()
+    made = [make_descriptor(name) for name in descriptors]
+    meshes: dict[str, tuple[geofeat.Mesh, bool]] = {}
+    for pair in pairs:
+        meshes[pair.x.hash] = (pair.x, True)
+        meshes.setdefault(pair.y.hash, (pair.y, False))
+    todo, mesh_list = [], []
+    for mesh, target in meshes.values():
+        missing = any(not features.path(entry_key(d, mesh)).is_file() for d in made)
+        needs_geodesics = target and store is not None and store.path(mesh) is None
+        if missing or needs_geodesics:
+            todo.append((len(mesh_list), target))
+            mesh_list.append(mesh)
+    if not todo:
+        return 0, len(meshes)
+    todo.sort(key=lambda task: (-task[1], -mesh_list[task[0]].n_vertices))  # the longest first
+    _PREPARE = (mesh_list, descriptors, store)
+    try:
+        _run_forked(_prepare_one, todo, workers)
+    finally:
+        _PREPARE = None
+    return len(todo), len(meshes)
+
+
+_MAIN: tuple | None = None  # (pairs by kind, matchers, store, pictured labels) of the forked workers
+
+
+def _evaluate_main_group(task: tuple[str, list[int]]) -> tuple[str, list[tuple[int, dict, dict]]]:
+    """In a worker: the pairs of one kind and one target, every matcher on each pair.
+
+    Returns ``(kind, [(pair index, {label: PairEvaluation}, {label: map_yx} for the pictured pair), ...])``.
+    """
+    kinds, matchers, store, pictured = _MAIN
+    kind, indices = task
+    out, target, distances = [], None, None
+    for i in indices:
+        pair = kinds[kind][i]
+        if pair.x.hash != target:
+            target, distances = pair.x.hash, target_distances(pair.x, store)
+        records, maps = {}, {}
+        for label, match in matchers.items():
+            predicted = match(i, pair)
+            records[label] = evaluate_pair(pair, predicted, distances=distances)
+            if i == pictured_pair(len(kinds[kind])) and label in pictured:
+                maps[label] = predicted.map_yx
+        out.append((i, records, maps))
+    return kind, out
+
+
+def evaluate_main(kinds: dict[str, list[ShapePair]], matchers: dict, store, workers: int, pictured: list[str]) -> dict:
+    """Every matcher on every pair, target by target in ``workers`` forked processes.
+
+    Each pair is matched by all the matchers in a row, so that they share what the process
+    keeps in memory (input features, spectral bases, the target's geodesic matrix).
+    Returns ``{kind: {pair index: ({label: PairEvaluation}, {label: map_yx})}}``.
+    """
+    global _MAIN
+    tasks = []
+    for kind, pairs in kinds.items():
+        groups: dict[str, list[int]] = {}
+        for i, pair in enumerate(pairs):
+            groups.setdefault(pair.x.hash, []).append(i)
+        tasks += [(kind, indices) for indices in groups.values()]
+    _MAIN = (kinds, matchers, store, set(pictured))
+    try:
+        done = _run_forked(_evaluate_main_group, sorted(tasks, key=lambda task: -len(task[1])), workers, _import_plotting)
+    finally:
+        _MAIN = None
+    results: dict[str, dict] = {kind: {} for kind in kinds}
+    for kind, items in done:
+        for i, records, maps in items:
+            results[kind][i] = (records, maps)
+    return results
+
+
+def _run_forked(function, tasks: list, workers: int, meanwhile=None) -> list:
+    """``[function(task) for task in tasks]``, in ``workers`` forked processes of one BLAS thread each where fork exists.
+
+    ``meanwhile()``, when given, runs in this process while the workers work.
+    """
+    workers = max(1, min(workers, len(tasks)))
+    if workers == 1 or "fork" not in multiprocessing.get_all_start_methods():
+        results = [function(task) for task in tasks]
+        if meanwhile is not None:
+            meanwhile()
+        return results
+    from concurrent.futures import ProcessPoolExecutor
+
+    context = multiprocessing.get_context("fork")
+    with ProcessPoolExecutor(workers, mp_context=context, initializer=_one_thread) as pool:
+        futures = [pool.submit(function, task) for task in tasks]
+        if meanwhile is not None:
+            meanwhile()
+        return [future.result() for future in futures]
+
+
+def _import_plotting() -> None:
+    """Import what the plots need (about a second), while the workers evaluate."""
+    import matplotlib.figure  # noqa: F401
+    import mpl_toolkits.mplot3d  # noqa: F401
+
+
+def folder_bytes(folder: Path) -> int:
+    """Bytes of the files under a folder (0 when it does not exist)."""
+    if not folder.is_dir():
+        return 0
+    return sum(path.stat().st_size for path in folder.rglob("*") if path.is_file() and not path.is_symlink())
+
+
+def _megabytes(n: int) -> str:
+    return f"{n / 1e6:,.1f} MB"
+
+
+def main_job(args) -> int:
+    """The default run: training-free pipelines against the references on full and CUTS pairs (see the module notes)."""
+    from common import machine
+
+    from geofeat.cache import FeatureCache
+
+    start = time.perf_counter()
+    out = output_folder(args)
+    out.mkdir(parents=True, exist_ok=True)
+    progress = not args.no_progress
+    kinds = main_pairs(args.seed, args.limit)
+    heads = {
+        (name, descriptor): make_head(
+            name, descriptor=descriptor, progress=progress, **({"n_eig": MAIN_FMAP_EIG} if name == "fmap" else {})
+        )
+        for name, descriptor in MAIN_PIPELINES
+    }
+    workers = args.workers or default_workers()
+    store = None if args.no_geodesic_store else GeodesicStore()
+    descriptors = tuple(dict.fromkeys(descriptor for _, descriptor in MAIN_PIPELINES))
+    computed, n_meshes = prepare_inputs([pair for pairs in kinds.values() for pair in pairs], descriptors, store, workers)
+    caches = "empty" if computed == n_meshes else "filled" if computed == 0 else "partly filled"
+
+    matchers = {pipeline_label(*key): _HeadMatch(head) for key, head in heads.items()}
+    matchers |= {name: _ReferenceMatch(name, args.seed) for name in REFERENCE_PIPELINES}
+    pictured = [pipeline_label(*key) for key in MAIN_PICTURED]
+    results = evaluate_main(kinds, matchers, store, workers, pictured)
+    rows, pictures = [], []
+    plot_thresholds = np.linspace(0.0, MAIN_PCK_MAX, 201)
+    for kind, pairs in kinds.items():
+        records = {label: [results[kind][i][0][label] for i in range(len(pairs))] for label in matchers}
+        shown = pictured_pair(len(pairs))
+        pair = pairs[shown]
+        pictures.append(
+            PairPicture(
+                pair,
+                [(label, results[kind][shown][1][label], records[label][shown].geodesic_error) for label in pictured],
+                y_title=(
+                    f"source Y: {pair.y.name}\nCUTS partial of {pair.y.name.rsplit('_cuts', 1)[0]}, {pair.y.n_vertices:,} vertices"
+                    if kind == "cuts"
+                    else None
+                ),
+                row_title=MAIN_KINDS[kind],
+            )
+        )
+        for label, kind_records in records.items():
+            summary = summarize(kind_records)
+            pipeline, _, descriptor = label.partition(" + ")
+            _, fractions = pck_curve(np.concatenate([r.errors for r in kind_records]), plot_thresholds)
+            rows.append(
+                {
+                    "pairs_kind": MAIN_KINDS[kind],
+                    "kind": kind,
+                    "label": label,
+                    "pipeline": pipeline,
+                    "descriptor": descriptor.lower() or "none",
+                    **summary.to_dict(),
+                    "pck_plot": [round(value, 5) for value in fractions.tolist()],
+                    "pairs": [record.to_dict() for record in kind_records],
+                }
+            )
+    colors = {label: f"C{i}" for i, label in enumerate(pipeline_label(*key) for key in MAIN_PIPELINES)}
+    colors |= {"random": "0.55", "mirrored_truth": "black"}
+    curves, styles = {}, {}
+    for row in rows:
+        name = f"{row['label']}, {'CUTS' if row['kind'] == 'cuts' else 'full'}"
+        curves[name] = (plot_thresholds, np.asarray(row["pck_plot"]))
+        styles[name] = {"color": colors[row["label"]], "linestyle": "--" if row["kind"] == "cuts" else "-", "linewidth": 1.4}
+    title = f"PCK, built-in synthetic humans: {len(kinds['full'])} full-to-full (solid), {len(kinds['cuts'])} CUTS partial-to-full (dashed)"
+    plot_pck(
+        curves,
+        out / "pck.png",
+        title,
+        styles=styles,
+        xmax=MAIN_PCK_MAX,
+        legend_columns=2,
+        legend_below=True,
+        figsize=(6.5, 6),
+        dpi=80,
+    )
+    plot_matches(pictures, out / "pairs.png")
+
+    seconds = time.perf_counter() - start  # the run less Python's start and the imports (about a second)
+    when = f"{datetime.date.today().isoformat()}, {machine()}"
+    n_pairs = {kind: len(pairs) for kind, pairs in kinds.items()}
+    table = markdown_table(rows, MAIN_COLUMNS)
+    note = (
+        f"{n_pairs['full']} full-to-full and {n_pairs['cuts']} CUTS partial-to-full pairs of the {MAIN_DESCRIPTION}. "
+        f"PCK AUC: the area under the PCK curve for thresholds 0 to 0.25, normalised to 1. Run `python benchmarks/run.py` ({seconds:.0f} s with {caches} caches); {when}."
+    )
+    markdown = f"{READING_GUIDE}\n\n{table}\n\n{note}\n"
+    result = {
+        "job": "main",
+        "date": datetime.date.today().isoformat(),
+        "machine": machine(),
+        "seconds": seconds,
+        "caches": caches,
+        "seed": args.seed,
+        "pairs_description": MAIN_DESCRIPTION,
+        "spacing": MAIN_SPACING,
+        "fmap_n_eig": MAIN_FMAP_EIG,
+        "n_pairs": n_pairs,
+        "pck_plot_thresholds": [round(value, 5) for value in plot_thresholds.tolist()],
+        "rows": rows,
+    }
+    (out / "results.json").write_text(json.dumps(result, indent=1) + "\n")
+    (out / "results.md").write_text(markdown)
+
+    print(READING_GUIDE)
+    print()
+    print(table)
+    print()
+    print(f"{sum(n_pairs.values())} pairs in {seconds:.1f} s ({caches} caches).")
+    print(f"Results: {out}/ (results.md, results.json, pck.png, pairs.png)")
+    feature_folder = FeatureCache().root
+    print("Caches, read back by the next run (`geofeat cache info`, `geofeat cache clear`):")
+    print(f"  features   {feature_folder}  {_megabytes(folder_bytes(feature_folder))}")
+    if store is not None:
+        print(f"  geodesics  {store.folder}  {_megabytes(folder_bytes(store.folder))}")
+    return 0
+
+
 def parse_args(argv=None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--pipeline", default="nn", choices=PIPELINES)
-    parser.add_argument("--dataset", default="synthetic_cuts", help=f"one of: {', '.join(dataset_names())}")
-    parser.add_argument("--descriptor", default="wks", help="any registered descriptor (geofeat descriptors)")
+    parser.add_argument("--pipeline", default=None, choices=PIPELINES, help="one pipeline (default nn); none: the main job")
+    parser.add_argument(
+        "--dataset", default=None, help=f"one of: {', '.join(dataset_names())} (default synthetic_cuts; none: the main job)"
+    )
+    parser.add_argument(
+        "--descriptor", default=None, help="any registered descriptor (geofeat descriptors; default wks; none: the main job)"
+    )
     parser.add_argument(
         "--param",
         action="append",
@@ -213,10 +609,12 @@ def parse_args(argv=None) -> argparse.Namespace:
         "--limit",
         type=_positive_count("pairs", "; leave --limit out for all pairs"),
         default=None,
-        help="evaluate the first N pairs only (N >= 1)",
+        help="evaluate the first N pairs only (N >= 1); the main job: N pairs of each kind",
     )
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--out", default=None)
+    parser.add_argument(
+        "--out", default=None, help="output folder (default runs/main, or runs/<pipeline>_<dataset>_<descriptor>)"
+    )
     parser.add_argument(
         "--workers",
         type=_positive_count("processes"),
@@ -229,7 +627,24 @@ def parse_args(argv=None) -> argparse.Namespace:
         help="compute the targets' geodesic matrices in memory instead of keeping them in <geofeat cache>/geodesics",
     )
     parser.add_argument("--no-progress", action="store_true")
-    return parser.parse_args(argv)
+    args = parser.parse_args(argv)
+    args.main_job = all(args.__dict__[name] == parser.get_default(name) for name in vars(args) if name not in MAIN_JOB_OPTIONS)
+    for name, value in SINGLE_RUN_DEFAULTS.items():
+        if getattr(args, name) is None:
+            setattr(args, name, value)
+    return args
+
+
+def output_folder(args: argparse.Namespace) -> Path:
+    """``--out``, else ``runs/main`` for the main job and ``runs/<pipeline>_<dataset>_<descriptor>`` for one pipeline."""
+    if args.out:
+        return Path(args.out)
+    return RUNS / ("main" if args.main_job else f"{args.pipeline}_{args.dataset}_{args.descriptor}")
+
+
+#: Options of both kinds of run; any other option given makes a run of one pipeline.
+MAIN_JOB_OPTIONS = ("out", "limit", "seed", "workers", "no_geodesic_store", "no_progress")
+SINGLE_RUN_DEFAULTS = {"pipeline": "nn", "dataset": "synthetic_cuts", "descriptor": "wks"}
 
 
 def descriptor_params(pairs: list[str], what: str = "--param") -> dict:
@@ -249,6 +664,12 @@ def descriptor_params(pairs: list[str], what: str = "--param") -> dict:
 def main(argv=None) -> int:
     args = parse_args(argv)
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    if args.main_job:
+        try:
+            return main_job(args)
+        except geofeat.GeofeatError as err:
+            sys.stderr.write(f"run.py: error: {err}\n")
+            return 2
     try:
         if args.checkpoint and args.pipeline not in ("ulrssm", "dpfm"):
             raise geofeat.GeofeatError(f"--checkpoint loads ulrssm and dpfm release checkpoints, not {args.pipeline}")
@@ -274,7 +695,7 @@ def main(argv=None) -> int:
     n_pairs = len(dataset) if args.limit is None else min(args.limit, len(dataset))
     if args.quick:
         n_pairs = min(n_pairs, QUICK_TEST_PAIRS)
-    out = Path(args.out or HERE / "results" / f"{args.pipeline}_{args.dataset}_{args.descriptor}")
+    out = output_folder(args)
     out.mkdir(parents=True, exist_ok=True)
     training = train_head(head, args, out) if args.pipeline in LEARNED_PIPELINES else {}
 
@@ -284,13 +705,10 @@ def main(argv=None) -> int:
         match = _HeadMatch(head)
     workers = args.workers or (1 if args.pipeline in LEARNED_PIPELINES else default_workers())
     store = None if args.no_geodesic_store else GeodesicStore()
-    label = f"{args.descriptor} + {args.pipeline}"
-
-    def draw_pairs(kept: dict) -> None:  # as soon as the pictured pairs are done, while the workers go on
-        plot_pairs([(pair, m.map_yx, label) for pair, m in kept.values()], out / "pairs.png")
+    label = pipeline_label(args.pipeline, args.descriptor)
 
     start = time.perf_counter()
-    records, _ = evaluate_dataset(
+    records, kept = evaluate_dataset(
         dataset,
         match,
         n_pairs,
@@ -298,11 +716,11 @@ def main(argv=None) -> int:
         store=store,
         workers=workers,
         keep=range(N_PICTURES),
-        on_kept=draw_pairs,
         progress=not args.no_progress,
         desc=f"{args.pipeline} on {args.dataset}",
     )
     seconds = time.perf_counter() - start
+    plot_pairs([(pair, m.map_yx, label, records[i].geodesic_error) for i, (pair, m) in kept.items()], out / "pairs.png")
 
     summary = summarize(records)
     result = {
@@ -325,7 +743,8 @@ def main(argv=None) -> int:
     columns = [("pipeline", "pipeline", "s"), ("descriptor", "descriptor", "s"), ("dataset", "dataset", "s"), *SUMMARY_COLUMNS]
     table = markdown_table([result], columns)
     (out / "results.md").write_text(table + "\n")
-    plot_pck({label: summary.pck_curve}, out / "pck.png", args.dataset)
+    curve = pck_curve(np.concatenate([r.errors for r in records]), np.linspace(0.0, MAIN_PCK_MAX, 201))
+    plot_pck({label: curve}, out / "pck.png", f"PCK, {args.dataset}: {n_pairs} pairs", xmax=MAIN_PCK_MAX)
     print(table)
     trained = (
         f"trained {training['train_steps']} steps on {training['train_pairs']} pairs in {training['train_seconds']:.1f} s; "

@@ -1,6 +1,8 @@
+import importlib.util
 import json
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 from shapes import REPO
@@ -12,8 +14,79 @@ def run(*args):
     return subprocess.run([sys.executable, str(RUN), "--no-progress", *args], capture_output=True, text=True, cwd=REPO)
 
 
-def test_default_run_on_the_builtin_collection_writes_every_report(tmp_path, isolated_cache):
+MAIN_LABELS = ["nn + WKS", "nn + HKS", "fmap + WKS", "fmap + HKS", "random", "mirrored_truth"]
+RESULT_NAMES = {"results.json", "results.md", "pck.png", "pairs.png"}
+
+
+def load_run_module():
+    """benchmarks/run.py as a module (its folder on sys.path for its ``common`` import)."""
+    spec = importlib.util.spec_from_file_location("benchmarks_run", RUN)
+    module = importlib.util.module_from_spec(spec)
+    sys.path.insert(0, str(RUN.parent))
+    try:
+        spec.loader.exec_module(module)
+    finally:
+        sys.path.remove(str(RUN.parent))
+    return module
+
+
+def result_files() -> dict:
+    """The report files under benchmarks/results, with their size and modification time."""
+    return {
+        path: (path.stat().st_size, path.stat().st_mtime_ns)
+        for path in (REPO / "benchmarks" / "results").rglob("*")
+        if path.name in RESULT_NAMES and path.is_file()
+    }
+
+
+def test_main_job_compares_the_pipelines_with_the_references_on_full_and_partial_pairs(tmp_path, isolated_cache):
+    before = result_files()
     result = run("--limit", "2", "--out", str(tmp_path))
+    assert result.returncode == 0, result.stderr
+    assert result_files() == before  # nothing written under benchmarks/results
+    report = json.loads((tmp_path / "results.json").read_text())
+    assert report["job"] == "main" and report["n_pairs"] == {"full": 2, "cuts": 2}
+    rows = {(row["kind"], row["label"]): row for row in report["rows"]}
+    assert sorted(rows) == sorted((kind, label) for kind in ("full", "cuts") for label in MAIN_LABELS)
+    for row in rows.values():
+        assert row["n_pairs"] == len(row["pairs"]) == 2
+        assert 0 < row["geodesic_error"] < 200 and 0 <= row["pck_auc"] <= 1
+        assert row["pck_plot"] == sorted(row["pck_plot"]) and len(row["pck_plot"]) == len(report["pck_plot_thresholds"])
+    for kind in ("full", "cuts"):
+        assert rows[kind, "mirrored_truth"]["chirality_accuracy"] == 0.0
+        assert rows[kind, "random"]["descriptor"] == "none" and rows[kind, "nn + WKS"]["descriptor"] == "wks"
+    cut_sources = [p["pair"].split("->")[0] for p in rows["cuts", "nn + WKS"]["pairs"]]
+    full_sources = [p["pair"].split("->")[0] for p in rows["full", "nn + WKS"]["pairs"]]
+    assert [name.rsplit("_cuts", 1)[0] for name in cut_sources] == full_sources  # the same shapes, cut
+    # the markdown fragment: reading guide, table (a row per pipeline and kind), date and machine; no heading
+    markdown = (tmp_path / "results.md").read_text()
+    assert not markdown.startswith("#") and "`random` is chance level" in markdown
+    assert markdown.count("| full-to-full |") == markdown.count("| CUTS partial-to-full |") == len(MAIN_LABELS)
+    assert report["date"] in markdown and "cores" in markdown
+    for picture in ("pck.png", "pairs.png"):
+        assert (tmp_path / picture).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    # the screen says how to read the table, where the results went and where the caches are
+    assert "`random` is chance level" in result.stdout and f"Results: {tmp_path}" in result.stdout
+    assert str(isolated_cache / "features") in result.stdout and str(isolated_cache / "geodesics") in result.stdout
+    # the geodesic matrix of the one target is kept
+    assert len(list((isolated_cache / "geodesics").glob("*-float32-*.npy"))) == 1
+
+
+def test_runs_write_into_the_ignored_runs_folder_by_default():
+    module = load_run_module()
+    assert module.output_folder(module.parse_args([])) == REPO / "runs" / "main"
+    assert module.output_folder(module.parse_args(["--limit", "3", "--workers", "1"])) == REPO / "runs" / "main"
+    one = module.parse_args(["--pipeline", "fmap"])
+    assert not one.main_job and (one.dataset, one.descriptor) == ("synthetic_cuts", "wks")
+    assert module.output_folder(one) == REPO / "runs" / "fmap_synthetic_cuts_wks"
+    assert module.parse_args(["--param", "n_descr=16"]).main_job is False
+    assert module.output_folder(module.parse_args(["--out", "elsewhere"])) == Path("elsewhere")
+    ignored = subprocess.run(["git", "check-ignore", "-q", "runs/main/results.json"], cwd=REPO)
+    assert ignored.returncode == 0, "runs/ must be ignored by git"
+
+
+def test_single_pipeline_run_writes_every_report(tmp_path, isolated_cache):
+    result = run("--pipeline", "nn", "--limit", "2", "--out", str(tmp_path))
     assert result.returncode == 0, result.stderr
     report = json.loads((tmp_path / "results.json").read_text())
     for key in ("pipeline", "dataset", "descriptor", "n_pairs", "geodesic_error", "pck_auc", "chirality_accuracy"):
