@@ -148,8 +148,8 @@ def reference_figures(results: Path) -> dict[tuple[str, str], dict]:
 
 
 def summary_rows(runs: list[dict], references: dict, published: list[dict]) -> tuple[list[dict], list[str]]:
-    """Headline rows (release checkpoints on the data they were trained for, all pairs) and the provenance lines."""
-    rows, notes = [], []
+    """Headline rows (release checkpoints on the data they were trained for, no TTA) and the provenance lines."""
+    rows, ours, theirs, settings = [], [], [], set()
     for r in runs:
         if r["head"]["config"].get("tta_steps"):
             continue
@@ -171,13 +171,32 @@ def summary_rows(runs: list[dict], references: dict, published: list[dict]) -> t
                 "published": pub["published"],
             }
         )
-        machine = r.get("machine") or "machine not recorded in its results.json"
-        notes.append(f"{TITLES[r['pipeline']]} `{name}` in geofeat: `benchmarks/run.py`, {r['date']}, {machine}")
+        settings.add((r.get("pairs_option"), r.get("protocol")))
+        ours.append((r["date"], r.get("machine") or "machine not recorded in results.json"))
         if ref is not None:
-            notes.append(
-                f"{TITLES[r['pipeline']]} `{name}` in the authors' code: `{ref['script']}`, {ref['date']}, {ref['machine']}"
-            )
+            theirs.append((f"`{ref['script']}` ({TITLES[r['pipeline']]})", ref["date"], ref["machine"]))
+    if settings == {("combinations", "template")}:
+        notes = [
+            "Mean geodesic error x100 over all test pairs i < j (`--pairs combinations`), at the template points "
+            "(`--protocol template`): the authors' protocol; no test-time adaptation"
+        ]
+    else:
+        notes = ["Mean geodesic error x100, no test-time adaptation; pairs and protocol in each results.json"]
+    notes.append("geofeat: `benchmarks/run.py --checkpoint`, " + _when_where(ours))
+    if theirs:
+        scripts = ", ".join(dict.fromkeys(script for script, _, _ in theirs))
+        notes.append(f"Authors' code: {scripts}, " + _when_where([(d, m) for _, d, m in theirs]))
     return rows, notes
+
+
+def _when_where(runs: list[tuple[str, str]]) -> str:
+    """``date(s), machine`` of runs, each machine once."""
+    machines = dict.fromkeys(m for _, m in runs)
+    parts = []
+    for m in machines:
+        dates = ", ".join(sorted({d for d, mm in runs if mm == m}))
+        parts.append(f"{dates}, {m}")
+    return "; ".join(parts)
 
 
 SUMMARY_COLUMNS = [
@@ -220,10 +239,9 @@ def main(argv=None) -> int:
     sources = ", ".join(f"{p['cite']} ({p['published']})" for p in published)
     summary = (
         markdown_table(rows, SUMMARY_COLUMNS)
-        + "\n\nMean geodesic error x100 on the 190 pairs i < j of the 20 FAUST_r test shapes, at the template points"
-        " (the references' protocol: `--pairs combinations --protocol template`), no test-time adaptation.\n"
+        + "\n\n"
         + "".join(f"{line}.  \n" for line in notes)
-        + f"Published: {sources}, typed in from `published_figures.json`, whose entries name their sources.\n"
+        + f"Published: {sources}; typed in from `published_figures.json`, whose entries name their sources.\n"
     )
     (folder / "summary.md").write_text(summary)
 

@@ -75,7 +75,7 @@ def test_release_summary_puts_the_reference_beside_geofeat(tmp_path):
     # one row per reproduced checkpoint: no TTA row, no transfer checkpoint (no published figure on that data)
     assert rows == ["| ULRSSM `faust_scape.pth` | faust_r | 3 | 2.000 | 2.001 | about 2 |"]
     text = "\n".join(summary)
-    assert "`benchmarks/swap_in.py`, 2026-01-03, test machine" in text
+    assert "Authors' code: `benchmarks/swap_in.py` (ULRSSM), 2026-01-03, test machine." in text
     assert "machine not recorded" in text  # the run.py records above hold none
 
 
