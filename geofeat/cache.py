@@ -31,7 +31,6 @@ import json
 import logging
 import os
 import re
-import tempfile
 import time
 import uuid
 from pathlib import Path
@@ -41,7 +40,7 @@ import numpy as np
 
 from geofeat import config
 from geofeat.errors import StoreError
-from geofeat.files import EntryFolder, StoreInfo, array_crc32, fsync_file, fsync_folder
+from geofeat.files import EntryFolder, StoreInfo, array_crc32, fsync_file, fsync_folder, probe_writable
 
 log = logging.getLogger(__name__)
 
@@ -200,10 +199,7 @@ class FeatureCache(EntryFolder):
             Read-only file system, no permission or no space; the message says how to fix it.
         """
         try:
-            self.root.mkdir(parents=True, exist_ok=True)
-            handle, probe = tempfile.mkstemp(prefix=f"{TMP_PREFIX}probe-", dir=self.root)
-            os.close(handle)
-            os.unlink(probe)
+            probe_writable(self.root, prefix=f"{TMP_PREFIX}probe-")
         except OSError as err:
             raise CacheError(f"the feature cache {self.root} is not writable: {err}. {hint}") from err
 

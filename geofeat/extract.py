@@ -44,7 +44,7 @@ from geofeat.cache import MANIFEST_SUFFIX, FeatureCache
 from geofeat.descriptors.compute import compute, entry_key, reusable_descriptor
 from geofeat.descriptors.registry import make_descriptor
 from geofeat.errors import GeofeatError
-from geofeat.files import atomic_write
+from geofeat.files import atomic_write, probe_writable
 from geofeat.mesh import Mesh, load_mesh
 from geofeat.progress import progress_bar
 
@@ -316,9 +316,7 @@ def writable_folder_problem(folder: Path) -> str | None:
     A small file is created and removed there, as the later writes will do.
     """
     try:
-        folder.mkdir(parents=True, exist_ok=True)
-        with tempfile.NamedTemporaryFile(dir=folder, prefix=".geofeat-write-check-"):
-            pass
+        probe_writable(folder, prefix=".geofeat-write-check-")
     except OSError as err:
         return err.strerror or type(err).__name__
     return None

@@ -74,6 +74,23 @@ def fsync_tree(folder: str | os.PathLike) -> None:
         fsync_folder(path)
 
 
+def probe_writable(folder: str | os.PathLike, prefix: str, suffix: str = "") -> None:
+    """Create ``folder`` when missing, then create and remove one empty file there.
+
+    The probe is named ``<prefix>...<suffix>``, so that a store that classifies its files by
+    name sees one left behind by a killed process as a temporary file.
+
+    Raises
+    ------
+    OSError
+        Read-only file system, no permission, no space, or ``folder`` is not a folder.
+    """
+    Path(folder).mkdir(parents=True, exist_ok=True)
+    handle, probe = tempfile.mkstemp(prefix=prefix, suffix=suffix, dir=folder)
+    os.close(handle)
+    os.unlink(probe)
+
+
 def atomic_write(path: str | os.PathLike, write: Callable[[Path], None], *, durable: bool = True) -> Path:
     """Write through a temporary file in the same folder, then rename it over ``path``.
 

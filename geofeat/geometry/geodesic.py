@@ -25,7 +25,6 @@ import logging
 import os
 import re
 import shutil
-import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -34,7 +33,7 @@ from scipy.sparse.csgraph import connected_components, dijkstra
 
 from geofeat.config import cache_dir
 from geofeat.errors import GeofeatError, MeshError, StoreError
-from geofeat.files import EntryFolder, array_crc32, atomic_write
+from geofeat.files import EntryFolder, array_crc32, atomic_write, probe_writable
 from geofeat.lru import LRUCache
 from geofeat.mesh import Mesh
 from geofeat.progress import progress_bar
@@ -922,10 +921,7 @@ class GeodesicStore(EntryFolder):
     def check_writable(self) -> None:
         """Raise `StoreError` unless a file can be created in the folder (created when missing)."""
         try:
-            self.folder.mkdir(parents=True, exist_ok=True)
-            handle, probe = tempfile.mkstemp(prefix=".probe-", suffix=".tmp", dir=self.folder)
-            os.close(handle)
-            os.unlink(probe)
+            probe_writable(self.folder, prefix=".probe-", suffix=".tmp")
         except OSError as err:
             raise StoreError(self._unwritable(err)) from err
 
