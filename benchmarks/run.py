@@ -50,7 +50,16 @@ from geofeat.adapters.heads import Head, Match, load_head, make_head
 from geofeat.datasets import dataset_names, load_dataset
 from geofeat.datasets.records import ShapePair
 from geofeat.descriptors.registry import make_descriptor
-from geofeat.evaluation import SUMMARY_COLUMNS, default_workers, evaluate_dataset, evaluate_pair, summarize, target_distances
+from geofeat.evaluation import (
+    SUMMARY_COLUMNS,
+    _group_by_target,
+    _worker_start,
+    default_workers,
+    evaluate_dataset,
+    evaluate_pair,
+    summarize,
+    target_distances,
+)
 from geofeat.files import atomic_write
 from geofeat.geometry.geodesic import GeodesicStore
 from geofeat.metrics import pck_curve
@@ -310,12 +319,6 @@ def _prepare_one(task: tuple[int, bool]) -> None:
         store.load(meshes[index])
 
 
-def _one_thread() -> None:
-    from threadpoolctl import threadpool_limits
-
-    threadpool_limits(1)
-
-
 def prepare_inputs(
     pairs: list[ShapePair], descriptors: tuple[str, ...], store: GeodesicStore | None, workers: int
 ) -> tuple[int, int]:
@@ -388,10 +391,7 @@ def evaluate_main(kinds: dict[str, list[ShapePair]], matchers: dict, store, work
     global _MAIN
     tasks = []
     for kind, pairs in kinds.items():
-        groups: dict[str, list[int]] = {}
-        for i, pair in enumerate(pairs):
-            groups.setdefault(pair.x.hash, []).append(i)
-        tasks += [(kind, indices) for indices in groups.values()]
+        tasks += [(kind, indices) for indices in _group_by_target([pair.x.hash for pair in pairs])]
     _MAIN = (kinds, matchers, store, set(pictured))
     try:
         done = _run_forked(_evaluate_main_group, sorted(tasks, key=lambda task: -len(task[1])), workers, _import_plotting)
@@ -418,7 +418,7 @@ def _run_forked(function, tasks: list, workers: int, meanwhile=None) -> list:
     from concurrent.futures import ProcessPoolExecutor
 
     context = multiprocessing.get_context("fork")
-    with ProcessPoolExecutor(workers, mp_context=context, initializer=_one_thread) as pool:
+    with ProcessPoolExecutor(workers, mp_context=context, initializer=_worker_start) as pool:
         futures = [pool.submit(function, task) for task in tasks]
         if meanwhile is not None:
             meanwhile()
