@@ -27,8 +27,8 @@ from collections.abc import Callable, Sequence
 import torch
 from torch import nn
 
-from geofeat.adapters.errors import DiffusionNetError
 from geofeat.checks import check_integer, check_number, is_boolean
+from geofeat.errors import DiffusionNetError
 
 from .operators import (
     GRADIENT_REGULARIZATION,

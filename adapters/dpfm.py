@@ -78,22 +78,14 @@ from torch import nn
 
 from geofeat.checks import check_boolean, check_integer
 from geofeat.datasets.records import ShapePair
+from geofeat.errors import HeadError
 from geofeat.lru import LRUCache
 from geofeat.mesh import Mesh
 
 from .diffusion_net import DiffusionNet
 from .fmap_layers import regularized_fmap
 from .functional_maps import nearest_neighbors
-from .heads import (
-    HeadConfig,
-    HeadError,
-    LearnedHead,
-    Match,
-    check_integers,
-    check_numbers,
-    ground_truth_map,
-    ground_truth_overlaps,
-)
+from .heads import HeadConfig, LearnedHead, Match, check_integers, check_numbers, ground_truth_map, ground_truth_overlaps
 from .operators import SurfaceOperators
 from .release import ReleaseState, diffusionnet_state, state_problems
 

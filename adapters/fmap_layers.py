@@ -25,9 +25,9 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from geofeat.adapters.errors import FunctionalMapError
 from geofeat.adapters.functional_maps import MASK_KINDS, laplacian_mask
 from geofeat.checks import check_number
+from geofeat.errors import FunctionalMapError
 
 __all__ = [
     "RegularizedFMap",

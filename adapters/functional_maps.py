@@ -15,8 +15,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from geofeat.adapters.errors import FunctionalMapError
 from geofeat.checks import check_integer
+from geofeat.errors import FunctionalMapError
 from geofeat.geometry.spectral import SpectralBasis
 
 if TYPE_CHECKING:

@@ -38,7 +38,7 @@ from geofeat.checks import canonical, check_integer, check_number, is_boolean
 from geofeat.datasets.records import Match, ShapePair  # Match is re-exported: heads return it
 from geofeat.descriptors.compute import compute
 from geofeat.devices import resolve_device
-from geofeat.errors import GeofeatError
+from geofeat.errors import GeofeatError, HeadError, UnusablePair
 from geofeat.files import atomic_write, load_torch_file
 from geofeat.jsonconfig import JsonConfig
 from geofeat.lru import LRUCache
@@ -81,14 +81,6 @@ _INPUTS_KEPT = 64
 #: Input feature arrays a head keeps in memory (a target shape is matched to several sources in a row).
 _FEATURES_KEPT = 4
 WEIGHTS_FILE = "weights.safetensors"
-
-
-class HeadError(GeofeatError, ValueError):
-    """Bad head settings, inputs or checkpoints."""
-
-
-class UnusablePair(HeadError):
-    """A training pair a head cannot learn from (e.g. two partial shapes that do not overlap); `fit` skips it."""
 
 
 @dataclass

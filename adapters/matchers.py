@@ -11,11 +11,12 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from geofeat.errors import FunctionalMapError
 from geofeat.geometry.spectral import spectral_basis
 from geofeat.mesh import Mesh
 
 from . import functional_maps as fm
-from .functional_maps import FunctionalMapError, NearestNeighborIndex
+from .functional_maps import NearestNeighborIndex
 
 if TYPE_CHECKING:
     import torch

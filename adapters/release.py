@@ -31,7 +31,7 @@ from typing import Any, NamedTuple
 
 import torch
 
-from .heads import HeadError
+from geofeat.errors import HeadError
 
 __all__ = ["DIFFUSIONNET_STYLES", "ReleaseState", "check_state", "diffusionnet_state", "state_problems"]
 

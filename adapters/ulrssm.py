@@ -79,6 +79,7 @@ import torch.nn.functional as F
 
 from geofeat.checks import canonical, check_boolean, check_number, is_boolean, is_integer
 from geofeat.datasets.records import ShapePair
+from geofeat.errors import HeadError
 from geofeat.mesh import Mesh
 
 from .diffusion_net import GRADIENT_MIXINGS, DiffusionNet
@@ -94,7 +95,7 @@ from .fmap_layers import (
     soft_pointmap,
 )
 from .functional_maps import nearest_neighbors
-from .heads import HeadConfig, HeadError, LearnedHead, Match, check_integers, check_numbers
+from .heads import HeadConfig, LearnedHead, Match, check_integers, check_numbers
 from .operators import SurfaceOperators
 from .release import ReleaseState, diffusionnet_state
 

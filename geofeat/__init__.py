@@ -7,25 +7,59 @@
 """
 
 from geofeat._version import __version__
-from geofeat.cache import CacheError, FeatureCache
+from geofeat.cache import FeatureCache
 from geofeat.config import cache_dir, set_cache_dir
 from geofeat.descriptors import Descriptor, compute, compute_many, descriptors
-from geofeat.errors import DescriptorError, GeofeatError, MeshError, MissingDependencyError, StoreError
-from geofeat.geometry.errors import SpectralError
+from geofeat.errors import (
+    BackboneError,
+    CacheError,
+    DamagedCheckpointError,
+    DatasetError,
+    DescriptorError,
+    DeviceError,
+    DiffusionNetError,
+    DistributedError,
+    ExtractError,
+    FunctionalMapError,
+    GeodesicMemoryError,
+    GeofeatError,
+    HeadError,
+    MeshError,
+    MetricError,
+    MissingDependencyError,
+    RenderError,
+    SpectralError,
+    StoreError,
+    TrainingError,
+    UnusablePair,
+)
 from geofeat.mesh import Mesh, load_mesh, normalize
 
 __all__ = [
+    "BackboneError",
     "CacheError",
+    "DamagedCheckpointError",
     "DatasetError",
     "Descriptor",
     "DescriptorError",
+    "DeviceError",
+    "DiffusionNetError",
+    "DistributedError",
+    "ExtractError",
     "FeatureCache",
+    "FunctionalMapError",
+    "GeodesicMemoryError",
     "GeofeatError",
+    "HeadError",
     "Mesh",
     "MeshError",
+    "MetricError",
     "MissingDependencyError",
+    "RenderError",
     "SpectralError",
     "StoreError",
+    "TrainingError",
+    "UnusablePair",
     "__version__",
     "cache_dir",
     "compute",
@@ -35,12 +69,3 @@ __all__ = [
     "normalize",
     "set_cache_dir",
 ]
-
-
-def __getattr__(name: str):
-    """``geofeat.DatasetError``, imported on first use (``import geofeat`` does not load the datasets)."""
-    if name == "DatasetError":
-        from geofeat.datasets.errors import DatasetError
-
-        return DatasetError
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

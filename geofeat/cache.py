@@ -39,14 +39,10 @@ import h5py
 import numpy as np
 
 from geofeat import config
-from geofeat.errors import StoreError
+from geofeat.errors import CacheError
 from geofeat.files import EntryFolder, StoreInfo, array_crc32, fsync_file, fsync_folder, probe_writable
 
 log = logging.getLogger(__name__)
-
-
-class CacheError(StoreError):
-    """The feature cache cannot be used (bad location, unwritable directory)."""
 
 
 #: What `FeatureCache.info` returns (the summary every store folder gives).

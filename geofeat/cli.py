@@ -21,7 +21,7 @@ import textwrap
 from pathlib import Path
 
 from geofeat.cache import FeatureCache
-from geofeat.errors import GeofeatError, StoreError
+from geofeat.errors import ExtractError, GeofeatError, StoreError
 from geofeat.files import EntryFolder
 from geofeat.progress import hidden_progress
 
@@ -354,15 +354,7 @@ def _train_command(args: argparse.Namespace) -> int:
 
 def _extract_command(args: argparse.Namespace) -> int:
     from geofeat import distributed
-    from geofeat.extract import (
-        ExportSpec,
-        ExtractError,
-        dataset_shapes,
-        default_manifest_path,
-        extract,
-        folder_shapes,
-        parse_params,
-    )
+    from geofeat.extract import ExportSpec, dataset_shapes, default_manifest_path, extract, folder_shapes, parse_params
 
     params = parse_params(args.param or [])
     if args.data is not None:

@@ -28,7 +28,7 @@ from typing import TypeVar
 import torch
 
 from geofeat.devices import resolve_device
-from geofeat.errors import GeofeatError
+from geofeat.errors import DistributedError
 
 log = logging.getLogger(__name__)
 
@@ -36,10 +36,6 @@ T = TypeVar("T")
 
 #: Variables ``torchrun`` sets for every worker; all of them mean "started by torchrun".
 TORCHRUN_VARIABLES = ("RANK", "WORLD_SIZE", "LOCAL_RANK", "MASTER_ADDR", "MASTER_PORT")
-
-
-class DistributedError(GeofeatError, RuntimeError):
-    """The torchrun environment is inconsistent, or the process group cannot be started."""
 
 
 @dataclass(frozen=True)

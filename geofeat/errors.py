@@ -1,57 +1,68 @@
-"""Exception types of the core. Every error geofeat raises for bad input derives from `GeofeatError`.
+"""Every exception type geofeat raises on purpose; all derive from `GeofeatError`.
 
-The core's own errors are defined here: `GeofeatError`, `MeshError` (meshes, files),
-`DescriptorError` (bad parameters; the default of `geofeat.checks`), `MissingDependencyError`
-(optional dependencies, `geofeat.registry`), `DeviceError` (`geofeat.devices`) and `StoreError`
-(stores of computed arrays on disk, `geofeat.files.EntryFolder`). Every other
-error type is defined beside the layer that raises it and is re-exported here (imported on
-first use, so this module never imports a layer above the core):
+Each type is a plain subclass, defined here and nowhere else, so that this module imports
+nothing and any layer can raise any of them. Each also derives from the built-in type a
+caller would catch without knowing geofeat (`ValueError` for bad input, `OSError` for
+stores on disk, `ImportError` for a missing extra, ...).
 
-========================  ==========================================
-``SpectralError``         `geofeat.geometry.errors`
-``CacheError``            `geofeat.cache`
-``DatasetError``          `geofeat.datasets.errors`
-``MetricError``           `geofeat.metrics`
-``RenderError``           `geofeat.render.errors`
-``BackboneError``         `geofeat.backbones.errors`
-``TrainingError``         `geofeat.train.errors`
-``FunctionalMapError``    `geofeat.adapters.errors`
-``DiffusionNetError``     `geofeat.adapters.errors`
-========================  ==========================================
+========================  ===================================================================
+type                      raised for
+========================  ===================================================================
+``MeshError``             mesh arrays and mesh files
+``DescriptorError``       descriptor names and parameters (the default of `geofeat.checks`)
+``MissingDependencyError``  an optional dependency that is not installed
+``DeviceError``           torch devices
+``StoreError``            stores of computed arrays on disk (`geofeat.files.EntryFolder`)
+``CacheError``            the feature cache
+``SpectralError``         the Laplace-Beltrami eigenproblem
+``GeodesicMemoryError``   an all-pairs geodesic matrix that does not fit in memory
+``RenderError``           cameras, rasterization, shading and back-projection
+``BackboneError``         DINO backbones, their weights and LoRA adapters
+``DatasetError``          benchmark folders, files and loader options
+``MetricError``           inputs to the metrics
+``TrainingError``         GeoLoRA training: losses, options, checkpoints
+``DamagedCheckpointError``  a damaged training checkpoint (resuming falls back to an older one)
+``DistributedError``      the ``torchrun`` environment and process groups
+``ExtractError``          ``geofeat extract``: collections and export targets
+``FunctionalMapError``    functional-map routines
+``DiffusionNetError``     DiffusionNet options, features and operators
+``HeadError``             head settings, inputs and checkpoints
+``UnusablePair``          a training pair a head cannot learn from (skipped by ``fit``)
+========================  ===================================================================
 """
 
 from __future__ import annotations
 
-import importlib
-from typing import Any
-
-#: Error types defined in the layer that raises them: name -> module.
-MOVED = {
-    "SpectralError": "geofeat.geometry.errors",
-    "CacheError": "geofeat.cache",
-    "DatasetError": "geofeat.datasets.errors",
-    "MetricError": "geofeat.metrics",
-    "RenderError": "geofeat.render.errors",
-    "BackboneError": "geofeat.backbones.errors",
-    "TrainingError": "geofeat.train.errors",
-    "FunctionalMapError": "geofeat.adapters.errors",
-    "DiffusionNetError": "geofeat.adapters.errors",
-}
-
-
-def __getattr__(name: str) -> Any:
-    """``geofeat.errors.X`` for the error types defined in the layers (`MOVED`)."""
-    if name in MOVED:
-        return getattr(importlib.import_module(MOVED[name]), name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-
-
-def __dir__() -> list[str]:
-    return sorted([*globals(), *MOVED])
+__all__ = [
+    "BackboneError",
+    "CacheError",
+    "DamagedCheckpointError",
+    "DatasetError",
+    "DescriptorError",
+    "DeviceError",
+    "DiffusionNetError",
+    "DistributedError",
+    "ExtractError",
+    "FunctionalMapError",
+    "GeodesicMemoryError",
+    "GeofeatError",
+    "HeadError",
+    "MeshError",
+    "MetricError",
+    "MissingDependencyError",
+    "RenderError",
+    "SpectralError",
+    "StoreError",
+    "TrainingError",
+    "UnusablePair",
+]
 
 
 class GeofeatError(Exception):
     """Base class of every error geofeat raises on purpose."""
+
+
+# ----------------------------------------------------------------------------- core
 
 
 class MeshError(GeofeatError, ValueError):
@@ -72,3 +83,78 @@ class DeviceError(GeofeatError, ValueError):
 
 class StoreError(GeofeatError, OSError):
     """A store of computed arrays on disk (`geofeat.files.EntryFolder`) cannot be read, written or cleared."""
+
+
+class CacheError(StoreError):
+    """The feature cache cannot be used (bad location, unwritable directory)."""
+
+
+class DistributedError(GeofeatError, RuntimeError):
+    """The torchrun environment is inconsistent, or the process group cannot be started."""
+
+
+# ----------------------------------------------------------------------------- geometry
+
+
+class SpectralError(GeofeatError, RuntimeError):
+    """The Laplace-Beltrami eigenproblem could not be solved, even after every fallback."""
+
+
+class GeodesicMemoryError(GeofeatError, MemoryError):
+    """An all-pairs geodesic matrix does not fit in memory."""
+
+
+# ----------------------------------------------------------------------------- rendering and backbones
+
+
+class RenderError(GeofeatError, ValueError):
+    """Bad input to the rendering layer: cameras, image size, mesh tensors, shading or back-projection settings."""
+
+
+class BackboneError(GeofeatError, ValueError):
+    """A DINO backbone cannot be loaded or used: missing or malformed weights, bad options or images."""
+
+
+# ----------------------------------------------------------------------------- datasets, metrics, training
+
+
+class DatasetError(GeofeatError, ValueError):
+    """A benchmark dataset cannot be used: folder layout, file contents or loader options are wrong."""
+
+
+class MetricError(GeofeatError, ValueError):
+    """Inputs to a metric have the wrong shape, dtype or values."""
+
+
+class TrainingError(GeofeatError, ValueError):
+    """Bad input to a training routine (loss tensors of the wrong shape, dtype or values, bad options, checkpoints)."""
+
+
+class DamagedCheckpointError(TrainingError):
+    """A training checkpoint that cannot be read (truncated, not written by the trainer); resuming falls back to an older one."""
+
+
+# ----------------------------------------------------------------------------- heads
+
+
+class FunctionalMapError(GeofeatError, ValueError):
+    """Bad input to a functional-map routine (shapes, sizes, indices)."""
+
+
+class DiffusionNetError(GeofeatError, ValueError):
+    """Bad input to DiffusionNet: options, feature tensors or operators that do not fit together."""
+
+
+class HeadError(GeofeatError, ValueError):
+    """Bad head settings, inputs or checkpoints."""
+
+
+class UnusablePair(HeadError):
+    """A training pair a head cannot learn from (e.g. two partial shapes that do not overlap); `fit` skips it."""
+
+
+# ----------------------------------------------------------------------------- applications
+
+
+class ExtractError(GeofeatError, ValueError):
+    """Bad input to ``geofeat extract``: no shapes, an unknown layout, an export target that cannot be used."""

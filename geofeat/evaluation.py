@@ -31,11 +31,10 @@ from typing import Any
 import numpy as np
 
 from geofeat import metrics
-from geofeat.datasets.errors import DatasetError
 from geofeat.datasets.records import Match, ShapePair
+from geofeat.errors import DatasetError, MetricError
 from geofeat.geometry.geodesic import GeodesicEntries, GeodesicStore, evaluation_distances, memory_limit
 from geofeat.mesh import Mesh
-from geofeat.metrics import MetricError
 from geofeat.progress import progress_bar
 
 log = logging.getLogger(__name__)

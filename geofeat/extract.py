@@ -43,7 +43,7 @@ from geofeat._version import __version__
 from geofeat.cache import MANIFEST_SUFFIX, FeatureCache
 from geofeat.descriptors.compute import compute, entry_key, reusable_descriptor
 from geofeat.descriptors.registry import make_descriptor
-from geofeat.errors import GeofeatError
+from geofeat.errors import ExtractError, GeofeatError
 from geofeat.files import atomic_write, probe_writable
 from geofeat.mesh import Mesh, load_mesh
 from geofeat.progress import progress_bar
@@ -58,10 +58,6 @@ LAYOUTS = ("mirror", "beside")
 MANIFEST_FORMAT = 1
 #: How long a rank waits at the barrier for the slowest rank (a shard of ViT features can take hours).
 BARRIER_TIMEOUT_MINUTES = 24 * 60.0
-
-
-class ExtractError(GeofeatError, ValueError):
-    """Bad input to `extract`: no shapes, an unknown layout, an export target that cannot be used."""
 
 
 @dataclass(frozen=True)

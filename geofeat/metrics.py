@@ -29,13 +29,9 @@ from typing import Protocol, runtime_checkable
 
 import numpy as np
 
-from geofeat.errors import GeofeatError
+from geofeat.errors import MetricError
 
 log = logging.getLogger(__name__)
-
-
-class MetricError(GeofeatError, ValueError):
-    """Inputs to a metric have the wrong shape, dtype or values."""
 
 
 #: Default PCK thresholds (normalised geodesic distance): 0 to 0.25 in steps of 0.0025.

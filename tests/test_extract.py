@@ -17,7 +17,8 @@ from shapes import bumpy, free_port
 import geofeat
 from geofeat import distributed
 from geofeat.cli import main
-from geofeat.extract import ExportSpec, ExtractError, ShapeSource, dataset_shapes, extract, folder_shapes, parse_params
+from geofeat.errors import ExtractError
+from geofeat.extract import ExportSpec, ShapeSource, dataset_shapes, extract, folder_shapes, parse_params
 
 PARAMS = ["--param", "n_eig=12", "--param", "n_descr=8"]
 KW = {"n_eig": 12, "n_descr": 8}

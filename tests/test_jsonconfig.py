@@ -6,7 +6,7 @@ from dataclasses import dataclass, field
 
 import pytest
 
-from geofeat.errors import BackboneError, TrainingError
+from geofeat.errors import BackboneError, HeadError, TrainingError
 from geofeat.jsonconfig import JsonConfig
 
 
@@ -42,7 +42,7 @@ def test_unknown_keys_warned_kept_aside_and_saved_back(tmp_path, caplog):
 
 
 def test_every_configuration_uses_it(tmp_path):
-    from geofeat.adapters.heads import HeadConfig, HeadError, head_class
+    from geofeat.adapters.heads import HeadConfig, head_class
     from geofeat.backbones.lora import LoraSettings
     from geofeat.train.config import TrainConfig
 

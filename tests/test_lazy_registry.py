@@ -4,7 +4,7 @@ import sys
 
 import pytest
 
-from geofeat.errors import DatasetError, DescriptorError, GeofeatError, MissingDependencyError
+from geofeat.errors import DatasetError, DescriptorError, GeofeatError, HeadError, MissingDependencyError
 from geofeat.registry import LazyEntry, as_entry, lookup
 
 
@@ -35,7 +35,7 @@ def test_lookup_suggests_close_names():
 
 
 def test_the_three_registries_share_it():
-    from geofeat.adapters.heads import HeadError, head_class
+    from geofeat.adapters.heads import head_class
     from geofeat.datasets.registry import load_dataset
     from geofeat.descriptors.registry import descriptor_class
 

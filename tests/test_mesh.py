@@ -5,7 +5,8 @@ import pytest
 from shapes import bumpy, sphere
 
 import geofeat
-from geofeat import Mesh, MeshError
+from geofeat import Mesh
+from geofeat.errors import MeshError
 
 
 def write_off(path, verts, faces):

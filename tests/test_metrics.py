@@ -3,10 +3,9 @@
 import numpy as np
 import pytest
 
-from geofeat import GeofeatError
+from geofeat.errors import GeofeatError, MetricError
 from geofeat.metrics import (
     DEFAULT_PCK_THRESHOLDS,
-    MetricError,
     chirality_accuracy,
     geodesic_errors,
     mean_geodesic_error,

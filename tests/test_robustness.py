@@ -38,13 +38,13 @@ from shapes import REPO, bumpy, sphere
 from test_cache import KILLED_WRITER, _writer
 
 import geofeat
-from geofeat import CacheError, DescriptorError, FeatureCache, GeofeatError, Mesh, MeshError
+from geofeat import FeatureCache, Mesh
 from geofeat.backbones import load_backbone
 from geofeat.checks import canonical, check_boolean, check_integer, check_number
 from geofeat.cli import main as cli_main
 from geofeat.descriptors import registry
 from geofeat.descriptors.base import Descriptor
-from geofeat.errors import BackboneError, TrainingError
+from geofeat.errors import BackboneError, CacheError, DescriptorError, GeofeatError, MeshError, TrainingError
 from geofeat.geometry.geodesic import GeodesicStore
 
 TESTS = Path(__file__).resolve().parent

@@ -80,8 +80,7 @@ from typing import TYPE_CHECKING, Any
 
 import torch
 
-from geofeat.backbones.errors import BackboneError
-from geofeat.errors import MissingDependencyError
+from geofeat.errors import BackboneError, MissingDependencyError
 
 if TYPE_CHECKING:
     from transformers import PreTrainedConfig

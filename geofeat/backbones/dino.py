@@ -35,9 +35,9 @@ import torch
 import torch.nn.functional as F
 
 from geofeat.backbones.convert import convert_official, require_transformers, unwrap_official_checkpoint
-from geofeat.backbones.errors import BackboneError
 from geofeat.checks import check_integer
 from geofeat.devices import resolve_device
+from geofeat.errors import BackboneError
 from geofeat.files import is_unsafe_pickle_error, load_torch_file, unsafe_pickle_message
 
 if TYPE_CHECKING:

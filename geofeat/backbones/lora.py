@@ -45,9 +45,8 @@ from torch import Tensor
 
 from geofeat._version import __version__
 from geofeat.backbones.dino import DinoBackbone, state_dict_digest
-from geofeat.backbones.errors import BackboneError
 from geofeat.checks import check_integer, check_number
-from geofeat.errors import MissingDependencyError
+from geofeat.errors import BackboneError, MissingDependencyError
 from geofeat.files import atomic_write, load_torch_file
 from geofeat.jsonconfig import JsonConfig
 

@@ -22,8 +22,8 @@ from typing import ClassVar, Protocol
 
 import numpy as np
 
-from geofeat.datasets.errors import DatasetError
 from geofeat.datasets.records import PROTOCOLS, ShapePair
+from geofeat.errors import DatasetError
 from geofeat.lru import LRUCache
 from geofeat.mesh import Mesh, load_mesh
 

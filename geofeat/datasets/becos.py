@@ -46,8 +46,8 @@ from geofeat.datasets.base import (
     has_counterpart,
     layout_error,
 )
-from geofeat.datasets.errors import DatasetError
 from geofeat.datasets.records import ShapePair
+from geofeat.errors import DatasetError
 
 log = logging.getLogger(__name__)
 

@@ -36,8 +36,8 @@ from geofeat.datasets.base import (
     read_indices,
     split_pair_stem,
 )
-from geofeat.datasets.errors import DatasetError
 from geofeat.datasets.records import ShapePair
+from geofeat.errors import DatasetError
 
 TREE = """\
 CP2P24/

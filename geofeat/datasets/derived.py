@@ -19,8 +19,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial import cKDTree
 
-from geofeat.datasets.errors import DatasetError
 from geofeat.datasets.records import ShapePair
+from geofeat.errors import DatasetError
 from geofeat.geometry.partial import make_partial
 from geofeat.mesh import Mesh
 

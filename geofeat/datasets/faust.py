@@ -41,8 +41,8 @@ from geofeat.datasets.base import (
     read_indices,
     trailing_number,
 )
-from geofeat.datasets.errors import DatasetError
 from geofeat.datasets.records import ShapePair
+from geofeat.errors import DatasetError
 from geofeat.mesh import Mesh
 
 log = logging.getLogger(__name__)

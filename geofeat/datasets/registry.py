@@ -19,8 +19,8 @@ import os
 from collections.abc import Callable
 
 from geofeat.datasets.base import PairDataset
-from geofeat.datasets.errors import DatasetError
 from geofeat.datasets.faust import FaustRemeshed, ScapeRemeshed
+from geofeat.errors import DatasetError
 from geofeat.registry import LazyEntry, lookup
 
 log = logging.getLogger(__name__)

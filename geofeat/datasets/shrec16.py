@@ -55,8 +55,8 @@ from geofeat.datasets.base import (
     read_indices,
     read_table,
 )
-from geofeat.datasets.errors import DatasetError
 from geofeat.datasets.records import ShapePair
+from geofeat.errors import DatasetError
 
 log = logging.getLogger(__name__)
 

@@ -13,10 +13,11 @@ from concurrent.futures import ProcessPoolExecutor, as_completed
 import numpy as np
 
 from geofeat._version import __version__
-from geofeat.cache import CacheError, FeatureCache, cache_key
+from geofeat.cache import FeatureCache, cache_key
 from geofeat.checks import canonical, check_integer
 from geofeat.descriptors.base import Descriptor
 from geofeat.descriptors.registry import make_descriptor
+from geofeat.errors import CacheError
 from geofeat.lru import LRUCache
 from geofeat.mesh import Mesh, as_mesh
 from geofeat.progress import progress_bar

@@ -32,7 +32,7 @@ import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components, dijkstra
 
 from geofeat.config import cache_dir
-from geofeat.errors import GeofeatError, MeshError, StoreError
+from geofeat.errors import GeodesicMemoryError, GeofeatError, MeshError, StoreError
 from geofeat.files import EntryFolder, array_crc32, atomic_write, probe_writable
 from geofeat.lru import LRUCache
 from geofeat.mesh import Mesh
@@ -400,10 +400,6 @@ MEMORY_ENV = "GEOFEAT_GEODESIC_MEMORY"
 #: Default bound: this fraction of the memory available when the evaluation starts.
 MEMORY_FRACTION = 0.5
 _UNITS = {"": 1, "k": 1 << 10, "m": 1 << 20, "g": 1 << 30, "t": 1 << 40}
-
-
-class GeodesicMemoryError(GeofeatError, MemoryError):
-    """An all-pairs geodesic matrix does not fit in memory."""
 
 
 def parse_size(value: int | float | str, name: str, error: type[GeofeatError] = GeofeatError) -> int:

@@ -13,7 +13,7 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 from geofeat.checks import check_integer
-from geofeat.geometry.errors import SpectralError
+from geofeat.errors import SpectralError
 from geofeat.geometry.laplacian import laplacian
 from geofeat.lru import LRUCache
 from geofeat.mesh import Mesh

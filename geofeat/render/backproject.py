@@ -39,7 +39,7 @@ from scipy.spatial import ConvexHull, QhullError, cKDTree
 from scipy.spatial.distance import pdist
 
 from geofeat.checks import check_choice, check_integer
-from geofeat.errors import GeofeatError
+from geofeat.errors import RenderError
 
 BACKPROJECT_MODES = ("ball", "face", "ball_last")
 #: Ball radius as a fraction of the shape's size (GeoLoRA / Diff3f ``tolerance``).
@@ -47,10 +47,6 @@ BALL_RADIUS_FRACTION = 0.004
 #: What the radius fraction multiplies: the bounding-box diagonal, or the largest vertex-to-vertex
 #: distance (the diameter, as GeoLoRA and Diff3f compute it with ``cdist(...).max()``).
 RADIUS_BASES = ("diagonal", "diameter")
-
-
-class BackprojectError(GeofeatError, ValueError):
-    """Bad input to back-projection (mode, shapes)."""
 
 
 @dataclass
@@ -94,10 +90,10 @@ class VertexFeatureAccumulator:
 
     def __post_init__(self) -> None:
         if self.mode not in BACKPROJECT_MODES:
-            raise BackprojectError(f"backprojection mode must be one of {BACKPROJECT_MODES}; found {self.mode!r}.")
-        self.radius_basis = check_choice(self.radius_basis, "radius_basis", RADIUS_BASES, error=BackprojectError)
+            raise RenderError(f"backprojection mode must be one of {BACKPROJECT_MODES}; found {self.mode!r}.")
+        self.radius_basis = check_choice(self.radius_basis, "radius_basis", RADIUS_BASES, error=RenderError)
         if self.max_neighbours is not None:
-            self.max_neighbours = check_integer(self.max_neighbours, "max_neighbours", low=1, error=BackprojectError)
+            self.max_neighbours = check_integer(self.max_neighbours, "max_neighbours", low=1, error=RenderError)
         self.verts = np.asarray(self.verts, dtype=np.float64)
         self.faces = np.asarray(self.faces, dtype=np.int64)
         if self.radius is None:
@@ -123,7 +119,7 @@ class VertexFeatureAccumulator:
         bary : torch.Tensor, shape (N, H, W, 3), float
         """
         if pixel_features.shape[:3] != pix_to_face.shape or pixel_features.shape[-1] != self.n_channels:
-            raise BackprojectError(
+            raise RenderError(
                 f"pixel features of shape {tuple(pixel_features.shape)} do not match fragments of shape "
                 f"{tuple(pix_to_face.shape)} with {self.n_channels} channels."
             )
@@ -148,12 +144,12 @@ class VertexFeatureAccumulator:
         """
         pixels = torch.nonzero((pix_to_face >= 0).reshape(-1)).squeeze(1).cpu().numpy()
         if features.ndim != 2 or features.shape != (pixels.size, self.n_channels):
-            raise BackprojectError(
+            raise RenderError(
                 f"foreground features must have shape ({pixels.size}, {self.n_channels}) (one row per foreground pixel); "
                 f"found {tuple(features.shape)}."
             )
         if points is not None and tuple(points.shape) != (pixels.size, 3):
-            raise BackprojectError(
+            raise RenderError(
                 f"points must have shape ({pixels.size}, 3), one per foreground pixel; found {tuple(points.shape)}."
             )
         if self.mode == "ball_last":
@@ -227,7 +223,7 @@ class VertexFeatureAccumulator:
             Vertices that received at least one pixel.
         """
         if fill not in ("nearest", "zero"):
-            raise BackprojectError(f"fill must be 'nearest' or 'zero'; found {fill!r}.")
+            raise RenderError(f"fill must be 'nearest' or 'zero'; found {fill!r}.")
         seen = self.weights > 0
         features = (self.sums / torch.where(seen, self.weights, 1.0)[:, None].to(self.sums.dtype)).float()  # unseen rows: 0
         if fill == "nearest" and bool(seen.any()) and not bool(seen.all()):

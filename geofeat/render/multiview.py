@@ -51,17 +51,11 @@ import torch.nn.functional as F
 
 from geofeat.backbones.dino import grid_sample_patch_features, sample_patch_features
 from geofeat.checks import check_choice, check_integer
+from geofeat.errors import RenderError
 from geofeat.mesh import Mesh
 from geofeat.progress import progress_bar
-from geofeat.render.backproject import (
-    BACKPROJECT_MODES,
-    RADIUS_BASES,
-    BackprojectError,
-    VertexFeatureAccumulator,
-    foreground_pixels,
-)
+from geofeat.render.backproject import BACKPROJECT_MODES, RADIUS_BASES, VertexFeatureAccumulator, foreground_pixels
 from geofeat.render.cameras import Cameras
-from geofeat.render.errors import RenderError
 from geofeat.render.rasterizer import RasterSettings
 from geofeat.render.shading import render_phong
 
@@ -130,15 +124,15 @@ class FeatureRecipe:
     cull_backfaces: bool = True
 
     def __post_init__(self) -> None:
-        check_choice(self.backproject, "backproject", BACKPROJECT_MODES, error=BackprojectError)
-        check_choice(self.pixel_grid, "pixel_grid", PIXEL_GRIDS, error=BackprojectError)
-        check_choice(self.input_codec, "input_codec", INPUT_CODECS, error=BackprojectError)
-        check_choice(self.precision, "precision", tuple(PRECISIONS), error=BackprojectError)
-        check_choice(self.radius_basis, "radius_basis", RADIUS_BASES, error=BackprojectError)
+        check_choice(self.backproject, "backproject", BACKPROJECT_MODES, error=RenderError)
+        check_choice(self.pixel_grid, "pixel_grid", PIXEL_GRIDS, error=RenderError)
+        check_choice(self.input_codec, "input_codec", INPUT_CODECS, error=RenderError)
+        check_choice(self.precision, "precision", tuple(PRECISIONS), error=RenderError)
+        check_choice(self.radius_basis, "radius_basis", RADIUS_BASES, error=RenderError)
         if self.input_size is not None:
-            check_integer(self.input_size, "input_size", low=1, error=BackprojectError)
+            check_integer(self.input_size, "input_size", low=1, error=RenderError)
         if self.max_neighbours is not None:
-            check_integer(self.max_neighbours, "max_neighbours", low=1, error=BackprojectError)
+            check_integer(self.max_neighbours, "max_neighbours", low=1, error=RenderError)
 
     @property
     def dtype(self) -> torch.dtype:
@@ -242,7 +236,7 @@ def multiview_features(
     ------
     RenderError
         ``mesh`` has no faces.
-    BackprojectError
+    RenderError
         Unknown ``backproject`` or ``fill`` mode, or a bad ``batch_size``.
     """
     if mesh.faces is None:
@@ -253,8 +247,8 @@ def multiview_features(
     recipe = RECIPES["default"] if recipe is None else recipe
     if backproject is not None:
         recipe = replace(recipe, backproject=backproject)
-    fill = check_choice(fill, "fill", FILL_MODES, error=BackprojectError)
-    batch_size = len(cameras) if batch_size is None else check_integer(batch_size, "batch_size", low=1, error=BackprojectError)
+    fill = check_choice(fill, "fill", FILL_MODES, error=RenderError)
+    batch_size = len(cameras) if batch_size is None else check_integer(batch_size, "batch_size", low=1, error=RenderError)
     timer = timer or _no_timer
     device = backbone.device
     size = (cameras.height, cameras.width)

@@ -15,9 +15,9 @@ from dataclasses import dataclass
 from typing import Any, ClassVar
 
 from geofeat.checks import canonical, is_boolean, is_finite_number, is_integer
+from geofeat.errors import TrainingError
 from geofeat.geometry.partial import PARTIAL_KINDS
 from geofeat.jsonconfig import JsonConfig
-from geofeat.train.errors import TrainingError
 
 __all__ = ["LOSSES", "RESUMABLE_CHANGES", "TrainConfig"]
 

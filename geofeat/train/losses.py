@@ -30,7 +30,7 @@ import numpy as np
 import torch
 import torch.nn.functional as fn
 
-from geofeat.train.errors import TrainingError
+from geofeat.errors import TrainingError
 
 __all__ = [
     "DEFAULT_OFFSET",

@@ -19,12 +19,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from geofeat.errors import MeshError
+from geofeat.errors import MeshError, TrainingError
 from geofeat.geometry import geodesic
 from geofeat.geometry.partial import largest_component_submesh
 from geofeat.mesh import MESH_SUFFIXES, Mesh, load_mesh
 from geofeat.progress import progress_bar
-from geofeat.train.errors import TrainingError
 
 log = logging.getLogger(__name__)
 

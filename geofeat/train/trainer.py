@@ -77,6 +77,7 @@ from geofeat import distributed
 from geofeat.backbones import DinoBackbone, load_backbone
 from geofeat.backbones.lora import LoraSettings, add_lora, load_adapter, save_adapter
 from geofeat.datasets.records import Match
+from geofeat.errors import DamagedCheckpointError, TrainingError
 from geofeat.evaluation import evaluate_pair, summarize
 from geofeat.files import atomic_write, fsync_folder, fsync_tree, load_torch_file
 from geofeat.geometry.partial import make_partial
@@ -85,7 +86,6 @@ from geofeat.progress import progress_bar
 from geofeat.render import make_cameras, multiview_features
 from geofeat.render.multiview import RECIPES
 from geofeat.train.config import RESUMABLE_CHANGES, TrainConfig
-from geofeat.train.errors import TrainingError
 from geofeat.train.losses import geodesic_point_info_nce, point_info_nce
 from geofeat.train.shapes import GeodesicStore, load_training_shapes
 
@@ -106,10 +106,6 @@ PHASES = ("geodesics", "partial", "render", "forward", "backproject", "loss", "b
 _STATE_FILE = "trainer_state.pt"
 _LOG_COLUMNS = ("step", "elapsed_s", "loss", "n_partials", "val_geodesic_error", *(f"t_{p}" for p in PHASES))
 _TMP_FOLDER = re.compile(r"\.step_\d+\.tmp-(\d+)")
-
-
-class _DamagedCheckpoint(TrainingError):
-    """A checkpoint file that cannot be read (truncated, not written by torch.save); resuming falls back."""
 
 
 def rotate_about_up(mesh: Mesh, angle_degrees: float) -> Mesh:
@@ -395,27 +391,31 @@ class GeoLoraTrainer:
 
         Raises
         ------
-        _DamagedCheckpoint
+        DamagedCheckpointError
             A file is truncated or unreadable, or the state does not fit the folder.
         TrainingError
             ``trainer_state.pt`` is a pickle refused for safety.
         """
         state = load_torch_file(
-            folder / _STATE_FILE, TrainingError, damaged_error=_DamagedCheckpoint, what="a trainer state",
+            folder / _STATE_FILE, TrainingError, damaged_error=DamagedCheckpointError, what="a trainer state",
             map_location=self.device,
         )  # fmt: skip
         if not isinstance(state, dict) or not {"step", "optimizer"} <= set(state):
-            raise _DamagedCheckpoint(f"{folder / _STATE_FILE} lacks 'step' or 'optimizer'; it was not written by the trainer.")
+            raise DamagedCheckpointError(
+                f"{folder / _STATE_FILE} lacks 'step' or 'optimizer'; it was not written by the trainer."
+            )
         expected = int(folder.name.split("_")[-1])
         if int(state["step"]) != expected:
-            raise _DamagedCheckpoint(f"{folder / _STATE_FILE} is for step {int(state['step'])}, its folder for step {expected}.")
+            raise DamagedCheckpointError(
+                f"{folder / _STATE_FILE} is for step {int(state['step'])}, its folder for step {expected}."
+            )
         try:
             import safetensors.torch
 
             safetensors.torch.load_file(str(folder / "adapter.safetensors"))
             json.loads((folder / "adapter_config.json").read_text())
         except Exception as exc:  # SafetensorError, OSError, JSONDecodeError have no common base class
-            raise _DamagedCheckpoint(f"the adapter in {folder} cannot be read ({type(exc).__name__}: {exc}).") from exc
+            raise DamagedCheckpointError(f"the adapter in {folder} cannot be read ({type(exc).__name__}: {exc}).") from exc
         return state
 
     def _readable_checkpoint(self) -> tuple[Path | None, dict | None]:
@@ -424,7 +424,7 @@ class GeoLoraTrainer:
         for folder in reversed(candidates):
             try:
                 return folder, self._read_checkpoint(folder)
-            except _DamagedCheckpoint as err:
+            except DamagedCheckpointError as err:
                 aside = folder.with_name(f".{folder.name}.damaged")
                 shutil.rmtree(aside, ignore_errors=True)
                 os.replace(folder, aside)

@@ -10,7 +10,6 @@ import geofeat
 from geofeat.adapters import operators as ops_module
 from geofeat.adapters.diffusion_net import (
     DiffusionNet,
-    DiffusionNetError,
     LearnedDiffusion,
     SurfaceOperators,
     clear_operator_cache,
@@ -22,7 +21,7 @@ from geofeat.adapters.diffusion_net import (
     vertex_normals,
 )
 from geofeat.descriptors.spectral import heat_kernel_signature, wave_kernel_signature
-from geofeat.errors import GeofeatError
+from geofeat.errors import DiffusionNetError, GeofeatError
 from geofeat.geometry.spectral import spectral_basis
 
 K = 48

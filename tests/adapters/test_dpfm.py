@@ -14,9 +14,10 @@ from geofeat.adapters.dpfm import (
     sample_interpolation,
     weighted_overlap_bce,
 )
-from geofeat.adapters.heads import HeadError, Match, UnusablePair, ground_truth_overlaps, load_head, make_head
+from geofeat.adapters.heads import Match, ground_truth_overlaps, load_head, make_head
 from geofeat.adapters.operators import surface_operators
 from geofeat.datasets.records import ShapePair
+from geofeat.errors import HeadError, UnusablePair
 from geofeat.geometry import make_partial
 
 #: CPU-sized settings: a small network on 642-vertex shapes.

@@ -12,8 +12,9 @@ from geofeat.adapters.dpfm import (
     _MultiHeadAttention,
     reference_sample_interpolation,
 )
-from geofeat.adapters.heads import HeadError, load_head, make_head
+from geofeat.adapters.heads import load_head, make_head
 from geofeat.datasets import load_dataset
+from geofeat.errors import HeadError
 from geofeat.geometry.geodesic import geodesic_matrix
 from geofeat.metrics import template_geodesic_errors
 

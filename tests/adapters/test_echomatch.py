@@ -18,8 +18,9 @@ from geofeat.adapters.echomatch import (
     sampled_reflection,
     spatial_neighbours,
 )
-from geofeat.adapters.heads import HeadError, ground_truth_overlaps, load_head, make_head
+from geofeat.adapters.heads import ground_truth_overlaps, load_head, make_head
 from geofeat.datasets.records import ShapePair
+from geofeat.errors import HeadError
 from geofeat.geometry import make_partial
 from geofeat.metrics import overlap_iou
 

@@ -23,8 +23,9 @@ from geofeat.adapters.echomatch import (
     self_nce_loss,
     spatial_neighbours,
 )
-from geofeat.adapters.heads import HeadError, load_head, make_head
+from geofeat.adapters.heads import load_head, make_head
 from geofeat.datasets.records import ShapePair
+from geofeat.errors import HeadError
 from geofeat.geometry import make_partial
 
 #: ``options/echo_match/train/echo_match_*_xyz.yaml`` and the constructor of ``Echo_Match_Net``.

@@ -7,18 +7,9 @@ import pytest
 import torch
 from shapes import bumpy
 
-from geofeat.adapters.heads import (
-    FunctionalMapHead,
-    HeadConfig,
-    HeadError,
-    LearnedHead,
-    Match,
-    UnusablePair,
-    input_features,
-    load_head,
-    make_head,
-)
+from geofeat.adapters.heads import FunctionalMapHead, HeadConfig, LearnedHead, Match, input_features, load_head, make_head
 from geofeat.datasets.records import ShapePair
+from geofeat.errors import HeadError, UnusablePair
 from geofeat.geometry import make_partial
 
 

@@ -7,8 +7,8 @@ from scipy.spatial import cKDTree
 
 import geofeat
 from geofeat.adapters import functional_maps as fm
-from geofeat.adapters.functional_maps import FunctionalMapError
 from geofeat.adapters.matchers import fmap_match, nn_match
+from geofeat.errors import FunctionalMapError
 from geofeat.geometry.geodesic import distances_from
 from geofeat.geometry.spectral import spectral_basis
 

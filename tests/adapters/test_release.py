@@ -7,10 +7,11 @@ import pytest
 import torch
 
 from geofeat.adapters.diffusion_net import DiffusionNet, SpatialGradientFeatures
-from geofeat.adapters.heads import HeadError, load_head, make_head, normalized_mesh
+from geofeat.adapters.heads import load_head, make_head, normalized_mesh
 from geofeat.adapters.release import check_state, diffusionnet_state
 from geofeat.adapters.ulrssm import ULRSSMHead
 from geofeat.datasets import load_dataset
+from geofeat.errors import HeadError
 from geofeat.geometry.geodesic import geodesic_matrix
 from geofeat.metrics import template_geodesic_errors
 

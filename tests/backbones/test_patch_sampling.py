@@ -6,8 +6,9 @@ import torch
 from shapes import bumpy
 
 from geofeat.backbones import sample_patch_features, upsample_patch_features
+from geofeat.errors import RenderError
 from geofeat.render import make_cameras, render_phong
-from geofeat.render.backproject import BackprojectError, VertexFeatureAccumulator, foreground_pixels
+from geofeat.render.backproject import VertexFeatureAccumulator, foreground_pixels
 
 
 @pytest.mark.parametrize("grid_hw, out_hw", [((4, 4), (64, 64)), ((5, 3), (37, 50)), ((8, 8), (8, 8))])
@@ -59,7 +60,7 @@ def test_foreground_back_projection_equals_the_full_one(mode):
     (a, seen_a), (b, seen_b) = full.result("zero"), foreground.result("zero")
     np.testing.assert_allclose(a, b, atol=1e-5)
     np.testing.assert_array_equal(seen_a, seen_b)
-    with pytest.raises(BackprojectError, match="one row per foreground pixel"):
+    with pytest.raises(RenderError, match="one row per foreground pixel"):
         foreground.add_foreground(torch.zeros(3, 5), fragments.pix_to_face, fragments.bary)
 
 

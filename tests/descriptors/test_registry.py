@@ -3,8 +3,8 @@ import pytest
 from shapes import bumpy
 
 import geofeat
-from geofeat import DescriptorError, MissingDependencyError
 from geofeat.descriptors import registry
+from geofeat.errors import DescriptorError, MissingDependencyError
 
 
 def test_compute_contract_on_faust_path(faust_dir):

@@ -4,7 +4,8 @@ from scipy.spatial.transform import Rotation
 from shapes import bumpy, sphere
 
 import geofeat
-from geofeat import DescriptorError, Mesh
+from geofeat import Mesh
+from geofeat.errors import DescriptorError
 
 
 @pytest.fixture(scope="module")

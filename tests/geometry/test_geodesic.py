@@ -7,7 +7,8 @@ import scipy.sparse as sp
 from scipy.sparse.csgraph import dijkstra
 from shapes import bumpy
 
-from geofeat import Mesh, MeshError
+from geofeat import Mesh
+from geofeat.errors import MeshError
 from geofeat.geometry import geodesic
 from geofeat.geometry.geodesic import clear_geodesic_cache, distances_from, edge_graph, geodesic_matrix
 

@@ -8,11 +8,11 @@ import numpy as np
 import pytest
 from shapes import bumpy
 
-from geofeat import GeofeatError, Mesh, metrics
+from geofeat import Mesh, metrics
+from geofeat.errors import GeodesicMemoryError, GeofeatError
 from geofeat.geometry import geodesic
 from geofeat.geometry.geodesic import (
     GeodesicEntries,
-    GeodesicMemoryError,
     GeodesicStore,
     all_pairs_memory,
     evaluation_distances,

@@ -6,7 +6,8 @@ import trimesh
 from shapes import sphere
 
 import geofeat
-from geofeat import Mesh, MeshError
+from geofeat import Mesh
+from geofeat.errors import MeshError
 from geofeat.geometry.geodesic import distances_from
 from geofeat.geometry.partial import (
     PartialShape,

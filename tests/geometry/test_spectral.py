@@ -7,7 +7,8 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as sla
 from shapes import bumpy, sphere
 
-from geofeat import Mesh, SpectralError
+from geofeat import Mesh
+from geofeat.errors import SpectralError
 from geofeat.geometry import laplacian, spectral, spectral_basis
 
 

@@ -3,7 +3,8 @@ import pytest
 import torch
 from shapes import bumpy
 
-from geofeat.render.backproject import BackprojectError, VertexFeatureAccumulator
+from geofeat.errors import RenderError
+from geofeat.render.backproject import VertexFeatureAccumulator
 
 
 def fake_view(mesh, face_ids, bary):
@@ -73,10 +74,10 @@ def test_batches_accumulate_like_one_pass():
 
 def test_bad_mode_and_shapes():
     mesh = bumpy(0, 1)
-    with pytest.raises(BackprojectError, match="mode"):
+    with pytest.raises(RenderError, match="mode"):
         VertexFeatureAccumulator(mesh.verts, mesh.faces, 3, mode="splat")
     acc = VertexFeatureAccumulator(mesh.verts, mesh.faces, 3)
-    with pytest.raises(BackprojectError, match="do not match"):
+    with pytest.raises(RenderError, match="do not match"):
         acc.add(torch.zeros(1, 2, 2, 4), torch.zeros(1, 2, 2, dtype=torch.int64), torch.zeros(1, 2, 2, 3))
-    with pytest.raises(BackprojectError, match="fill"):
+    with pytest.raises(RenderError, match="fill"):
         acc.result(fill="mean")

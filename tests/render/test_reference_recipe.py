@@ -19,8 +19,8 @@ import torch
 import geofeat
 from geofeat.backbones import load_backbone
 from geofeat.backbones.dino import grid_sample_patch_features
-from geofeat.backbones.errors import BackboneError
 from geofeat.backbones.lora import load_official_lora
+from geofeat.errors import BackboneError
 from geofeat.render import make_cameras, multiview_features
 from geofeat.render.multiview import RECIPES, backbone_input, corner_points
 from geofeat.render.rasterizer import RasterSettings
