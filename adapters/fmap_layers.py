@@ -25,9 +25,10 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from geofeat.adapters.functional_maps import MASK_KINDS, laplacian_mask
 from geofeat.checks import check_number
 from geofeat.errors import FunctionalMapError
+
+from .functional_maps import MASK_KINDS, laplacian_mask
 
 __all__ = [
     "RegularizedFMap",

@@ -32,7 +32,7 @@ import numpy as np
 import torch
 from common import machine
 
-from geofeat.report import markdown_table
+from geofeat.evaluation.report import markdown_table
 
 HERE = Path(__file__).resolve().parent
 

@@ -38,7 +38,11 @@ STAGES = {
         "-",
         ("geometry/geodesic.py", "geodesic_matrix"),
     ],
-    "plots (pck.png, pairs.png)": [("geofeat/report.py", "plot_pck"), "+", ("geofeat/report.py", "plot_pairs")],
+    "plots (pck.png, pairs.png)": [
+        ("geofeat/evaluation/report.py", "plot_pck"),
+        "+",
+        ("geofeat/evaluation/report.py", "plot_pairs"),
+    ],
 }
 
 

@@ -28,8 +28,8 @@ from parity_common import reference_import
 from scipy.spatial import cKDTree
 from tqdm.auto import tqdm
 
-from geofeat import metrics
 from geofeat.datasets import load_dataset
+from geofeat.evaluation import metrics
 from geofeat.geometry.geodesic import geodesic_matrix
 
 HERE = Path(__file__).resolve().parent

@@ -26,7 +26,7 @@ import logging
 import sys
 from pathlib import Path
 
-from geofeat.report import markdown_table
+from geofeat.evaluation.report import markdown_table
 
 HERE = Path(__file__).resolve().parent
 TITLES = {"ulrssm": "ULRSSM", "dpfm": "DPFM", "echomatch": "EchoMatch"}

@@ -50,7 +50,8 @@ from geofeat.adapters.heads import Head, Match, load_head, make_head
 from geofeat.datasets import dataset_names, load_dataset
 from geofeat.datasets.records import ShapePair
 from geofeat.descriptors.registry import make_descriptor
-from geofeat.evaluation import (
+from geofeat.evaluation.metrics import pck_curve
+from geofeat.evaluation.protocol import (
     SUMMARY_COLUMNS,
     _group_by_target,
     _worker_start,
@@ -60,10 +61,9 @@ from geofeat.evaluation import (
     summarize,
     target_distances,
 )
+from geofeat.evaluation.report import PairPicture, markdown_table, plot_matches, plot_pairs, plot_pck
 from geofeat.files import atomic_write
 from geofeat.geometry.geodesic import GeodesicStore
-from geofeat.metrics import pck_curve
-from geofeat.report import PairPicture, markdown_table, plot_matches, plot_pairs, plot_pck
 
 HERE = Path(__file__).resolve().parent
 REPO = HERE.parent
@@ -329,7 +329,7 @@ def prepare_inputs(
     number of meshes that had work and the number of meshes.
     """
     global _PREPARE
-    from geofeat.cache import FeatureCache
+    from geofeat.descriptors.cache import FeatureCache
     from geofeat.descriptors.compute import entry_key
 
     features = FeatureCache()
@@ -446,7 +446,7 @@ def main_job(args) -> int:
     """The default run: training-free pipelines against the references on full and CUTS pairs (see the module notes)."""
     from common import machine
 
-    from geofeat.cache import FeatureCache
+    from geofeat.descriptors.cache import FeatureCache
 
     start = time.perf_counter()
     out = output_folder(args)

@@ -30,8 +30,8 @@ import torch
 from common import DEFAULT_DATA, faust_test_shapes, machine, write_results
 
 from geofeat.backbones import DinoBackbone
+from geofeat.evaluation.report import plot_mesh_colors
 from geofeat.render import make_cameras, multiview_features, render_phong
-from geofeat.report import plot_mesh_colors
 
 HERE = Path(__file__).resolve().parent
 

@@ -76,7 +76,7 @@ def child(target: Path) -> None:
     from scipy.spatial import cKDTree
 
     from geofeat.datasets.records import Match, ShapePair
-    from geofeat.evaluation import evaluate_dataset, summarize
+    from geofeat.evaluation.protocol import evaluate_dataset, summarize
     from geofeat.geometry.geodesic import GeodesicStore
     from geofeat.geometry.partial import make_partial
     from geofeat.mesh import Mesh

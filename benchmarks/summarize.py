@@ -15,8 +15,8 @@ from pathlib import Path
 
 import numpy as np
 
-from geofeat.evaluation import SUMMARY_COLUMNS
-from geofeat.report import markdown_table, plot_pck
+from geofeat.evaluation.protocol import SUMMARY_COLUMNS
+from geofeat.evaluation.report import markdown_table, plot_pck
 
 COLUMNS = [
     ("dataset", "dataset", "s"),

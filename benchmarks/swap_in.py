@@ -67,7 +67,7 @@ from parity_common import reference_import
 
 import geofeat
 from geofeat.adapters.ulrssm import ULRSSMHead
-from geofeat.extract import save_npy
+from geofeat.apps.extract import save_npy
 
 HERE = Path(__file__).resolve().parent
 TEST_SHAPES = [f"tr_reg_{i:03d}" for i in range(80, 100)]

@@ -32,7 +32,7 @@ from tqdm.auto import tqdm
 from geofeat.adapters.dpfm import DPFMHead
 from geofeat.adapters.heads import load_head
 from geofeat.datasets import load_dataset
-from geofeat.evaluation import evaluate_pair, summarize
+from geofeat.evaluation.protocol import evaluate_pair, summarize
 
 HERE = Path(__file__).resolve().parent
 

@@ -7,9 +7,9 @@
 """
 
 from geofeat._version import __version__
-from geofeat.cache import FeatureCache
 from geofeat.config import cache_dir, set_cache_dir
 from geofeat.descriptors import Descriptor, compute, compute_many, descriptors
+from geofeat.descriptors.cache import FeatureCache
 from geofeat.errors import (
     BackboneError,
     CacheError,

@@ -2,7 +2,7 @@
 
 import sys
 
-from geofeat.cli import main
+from geofeat.apps.cli import main
 
 if __name__ == "__main__":
     sys.exit(main())

@@ -12,7 +12,7 @@ single process: rank 0 of 1, `barrier` does nothing, `init_process_group` starts
 ...     distributed.barrier()
 
 The backend is NCCL when every rank of a node has a GPU of its own and gloo otherwise. Used by
-`geofeat.extract` (sharded feature extraction); the trainer uses it for DDP.
+`geofeat.apps.extract` (sharded feature extraction); the trainer uses it for DDP.
 """
 
 from __future__ import annotations

@@ -2,7 +2,7 @@
 
 Every bounded in-process cache (descriptor instances, spectral bases, geodesic matrices,
 surface operators, dataset meshes, the heads' per-mesh inputs) is an `LRUCache`. Persistent
-stores on disk are elsewhere (`geofeat.cache`).
+stores on disk are elsewhere (`geofeat.descriptors.cache`).
 """
 
 from __future__ import annotations

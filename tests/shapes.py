@@ -42,6 +42,6 @@ def sphere(subdivisions: int = 3, radius: float = 1.0) -> geofeat.Mesh:
 
 def bumpy(seed: int = 0, subdivisions: int = 3) -> geofeat.Mesh:
     """A seeded smooth asymmetric closed surface."""
-    from geofeat.demo import blob
+    from geofeat.apps.demo import blob
 
     return blob(subdivisions, seed, f"bumpy{seed}")

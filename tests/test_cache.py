@@ -14,7 +14,7 @@ from shapes import REPO, bumpy
 
 import geofeat
 from geofeat import FeatureCache
-from geofeat.cli import main as cli_main
+from geofeat.apps.cli import main as cli_main
 
 
 def test_default_location_env_var_and_setting(tmp_path, monkeypatch, isolated_cache):
@@ -199,6 +199,6 @@ def test_cli_info_verify_clear(tmp_path, capsys):
 def test_cli_uses_environment_cache(isolated_cache, capsys):
     geofeat.compute(bumpy(0), "hks")
     result = subprocess.run(
-        [sys.executable, "-m", "geofeat.cli", "cache", "info"], capture_output=True, text=True, env=os.environ
+        [sys.executable, "-m", "geofeat.apps.cli", "cache", "info"], capture_output=True, text=True, env=os.environ
     )
     assert result.returncode == 0 and f"cache: {isolated_cache / 'features'}" in result.stdout and "entries: 1" in result.stdout

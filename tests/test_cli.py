@@ -5,8 +5,8 @@ from pathlib import Path
 
 import pytest
 
-from geofeat import cli
-from geofeat.cli import build_parser, main, numpydoc_parameters
+from geofeat.apps import cli
+from geofeat.apps.cli import build_parser, main, numpydoc_parameters
 from geofeat.descriptors.registry import descriptor_entry
 
 
@@ -164,6 +164,6 @@ def test_console_script_help():
 
 def test_errors_are_reported_without_traceback(tmp_path):
     result = subprocess.run(
-        [sys.executable, "-m", "geofeat.cli", "cache", "info", "--dir", str(tmp_path)], capture_output=True, text=True
+        [sys.executable, "-m", "geofeat.apps.cli", "cache", "info", "--dir", str(tmp_path)], capture_output=True, text=True
     )
     assert result.returncode == 0

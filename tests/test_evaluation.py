@@ -1,4 +1,4 @@
-"""geofeat.evaluation: per-pair records, both protocols, the benchmark summary and the dataset loop."""
+"""geofeat.evaluation.protocol: per-pair records, both protocols, the benchmark summary and the dataset loop."""
 
 from __future__ import annotations
 
@@ -12,10 +12,10 @@ import pytest
 import torch
 
 import geofeat
-from geofeat import metrics
 from geofeat.datasets import Match, ShapePair, load_dataset
 from geofeat.errors import DatasetError, MetricError
-from geofeat.evaluation import (
+from geofeat.evaluation import metrics
+from geofeat.evaluation.protocol import (
     BenchmarkSummary,
     PairEvaluation,
     evaluate_dataset,
@@ -198,7 +198,7 @@ def _thread_counts() -> tuple[list[int], int]:
 def test_forked_workers_run_one_blas_and_one_torch_thread():
     from concurrent.futures import ProcessPoolExecutor
 
-    from geofeat.evaluation import _worker_start
+    from geofeat.evaluation.protocol import _worker_start
 
     with ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("fork"), initializer=_worker_start) as pool:
         blas, torch_threads = pool.submit(_thread_counts).result()
@@ -213,7 +213,7 @@ import multiprocessing, sys
 from concurrent.futures import ProcessPoolExecutor
 from geofeat.adapters.heads import make_head
 from geofeat.datasets import load_dataset
-from geofeat.evaluation import _worker_start, evaluate_dataset
+from geofeat.evaluation.protocol import _worker_start, evaluate_dataset
 
 head = make_head("nn", descriptor="xyz", progress=False)
 records, _ = evaluate_dataset(load_dataset("synthetic_cuts"), lambda i, pair: head.match(pair), 2, workers=2, progress=False)

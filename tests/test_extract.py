@@ -16,9 +16,9 @@ from shapes import bumpy, free_port
 
 import geofeat
 from geofeat import distributed
-from geofeat.cli import main
+from geofeat.apps.cli import main
+from geofeat.apps.extract import ExportSpec, ShapeSource, dataset_shapes, extract, folder_shapes, parse_params
 from geofeat.errors import ExtractError
-from geofeat.extract import ExportSpec, ShapeSource, dataset_shapes, extract, folder_shapes, parse_params
 
 PARAMS = ["--param", "n_eig=12", "--param", "n_descr=8"]
 KW = {"n_eig": 12, "n_descr": 8}
@@ -246,7 +246,7 @@ def test_shard_and_rank_environment(monkeypatch, tmp_path):
 
 LAUNCHER = """
 import os, signal, sys
-from geofeat.cli import main
+from geofeat.apps.cli import main
 from geofeat.descriptors.registry import RegistryEntry, register
 from geofeat.descriptors.spectral import HKS
 
@@ -315,7 +315,7 @@ def test_a_killed_rank_leaves_a_store_that_a_rerun_completes(collection, tmp_pat
 
 def test_writes_that_fail_after_the_checks_are_recorded_and_the_manifest_kept(collection, tmp_path, monkeypatch, capsys):
     """A disk that fills after the up-front checks: each lost export is in the manifest, the HDF5 one too, exit 1."""
-    from geofeat import extract as extract_module
+    from geofeat.apps import extract as extract_module
 
     real_save = extract_module.save_npy
 

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from geofeat.errors import GeofeatError, MetricError
-from geofeat.metrics import (
+from geofeat.evaluation.metrics import (
     DEFAULT_PCK_THRESHOLDS,
     chirality_accuracy,
     geodesic_errors,

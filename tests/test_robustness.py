@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import csv
 import errno
+import importlib
 import importlib.util
 import json
 import logging
@@ -39,9 +40,9 @@ from test_cache import KILLED_WRITER, _writer
 
 import geofeat
 from geofeat import FeatureCache, Mesh
+from geofeat.apps.cli import main as cli_main
 from geofeat.backbones import load_backbone
 from geofeat.checks import canonical, check_boolean, check_integer, check_number
-from geofeat.cli import main as cli_main
 from geofeat.descriptors import registry
 from geofeat.descriptors.base import Descriptor
 from geofeat.errors import BackboneError, CacheError, DescriptorError, GeofeatError, MeshError, TrainingError
@@ -145,7 +146,7 @@ def read_only(ctx: Ctx, root: Path) -> None:
             refuse(name)
         return real_file(name, mode, *args, **kwargs)
 
-    patch.setattr("geofeat.cache.h5py.File", h5_file)
+    patch.setattr(importlib.import_module("geofeat.descriptors.cache").h5py, "File", h5_file)
 
 
 def store_with_entries(ctx: Ctx, n: int = 2) -> FeatureCache:
@@ -993,7 +994,7 @@ def forged_hit(kind: str):
     """Replace the cached HKS of a mesh by a well-formed entry (valid checksum) of the wrong content, then compute again."""
 
     def run(ctx: Ctx):
-        from geofeat.cache import _checksum
+        from geofeat.descriptors.cache import _checksum
 
         mesh = bumpy(0, 2)
         store = FeatureCache(ctx.tmp / "store")
@@ -1048,7 +1049,7 @@ def geodesic_pairs(n_targets: int = 1):
 
 def evaluated(ctx: Ctx, store=None, n_targets: int = 1, **options):
     """Errors and chirality of `geodesic_pairs` through `evaluate_dataset`."""
-    from geofeat.evaluation import evaluate_dataset
+    from geofeat.evaluation.protocol import evaluate_dataset
 
     pairs, matches = geodesic_pairs(n_targets)
     with ctx.caplog.at_level(logging.WARNING, logger="geofeat"):
@@ -1057,8 +1058,8 @@ def evaluated(ctx: Ctx, store=None, n_targets: int = 1, **options):
 
 
 def evaluated_reference(ctx: Ctx, n_targets: int = 1):
+    from geofeat.evaluation.metrics import chirality_accuracy, geodesic_errors
     from geofeat.geometry.geodesic import geodesic_matrix
-    from geofeat.metrics import chirality_accuracy, geodesic_errors
 
     pairs, matches = geodesic_pairs(n_targets)
     out = []
@@ -1083,7 +1084,7 @@ def bound_forced_low(ctx: Ctx):
 
 def bound_shared_by_workers(ctx: Ctx):
     """Two targets, two forked workers: each worker's bound is half the one given (written to a file by each worker)."""
-    import geofeat.evaluation as evaluation
+    import geofeat.evaluation.protocol as evaluation
 
     seen = ctx.tmp / "bounds.txt"
     real = evaluation.target_distances
@@ -1179,10 +1180,10 @@ def mesh_tree(ctx: Ctx, relatives: list[str]) -> Path:
 
 
 def extract_tree(relatives: list[str], export: tuple | None, read_only_place: str | None = None, manifest: str | None = None):
-    """`geofeat.extract.extract` HKS over a mesh tree; ``read_only_place`` ("data", "export") is made read-only first."""
+    """`geofeat.apps.extract.extract` HKS over a mesh tree; ``read_only_place`` ("data", "export") is made read-only first."""
 
     def run(ctx: Ctx):
-        from geofeat.extract import ExportSpec, extract, folder_shapes
+        from geofeat.apps.extract import ExportSpec, extract, folder_shapes
 
         root = mesh_tree(ctx, relatives)
         spec = None

@@ -35,7 +35,7 @@ class ShapePair:
     corr_x, corr_y : numpy.ndarray, shape (T,), int64, or None
         For datasets with a common template (FAUST_r, SCAPE_r): the vertex of ``x`` and of
         ``y`` at each of the T template points. The references evaluate geodesic errors at
-        these points (``protocol="template"`` of `geofeat.metrics.template_geodesic_errors`);
+        these points (``protocol="template"`` of `geofeat.evaluation.metrics.template_geodesic_errors`);
         ``map_yx`` is derived from them.
     corr_x_sym : numpy.ndarray, shape (T,), int64, or None
         The vertex of ``x`` at each point of the left-right mirrored template.

@@ -13,9 +13,9 @@ from concurrent.futures import ProcessPoolExecutor, as_completed
 import numpy as np
 
 from geofeat._version import __version__
-from geofeat.cache import FeatureCache, cache_key
 from geofeat.checks import canonical, check_integer
 from geofeat.descriptors.base import Descriptor
+from geofeat.descriptors.cache import FeatureCache, cache_key
 from geofeat.descriptors.registry import make_descriptor
 from geofeat.errors import CacheError
 from geofeat.lru import LRUCache
@@ -69,7 +69,7 @@ def resolve_cache(cache: CacheArg) -> FeatureCache | None:
 
 
 def entry_key(descriptor: Descriptor, mesh: Mesh) -> str:
-    """The feature-store key of ``descriptor`` on ``mesh`` (see `geofeat.cache.cache_key`): what `compute` looks up."""
+    """The feature-store key of ``descriptor`` on ``mesh`` (see `geofeat.descriptors.cache.cache_key`): what `compute` looks up."""
     return cache_key(mesh.hash, descriptor.name, descriptor.params_json(), descriptor.version, descriptor.weights_digest())
 
 

@@ -559,7 +559,7 @@ class GeodesicEntries:
     """Some entries of a mesh's evaluation geodesic matrix, computed without forming the matrix.
 
     Stands for ``geodesic_matrix(mesh, "dijkstra", normalize=True)`` in the metrics of
-    `geofeat.metrics` (it is a `geofeat.metrics.DistanceEntries`), in two rounds:
+    `geofeat.evaluation.metrics` (it is a `geofeat.evaluation.metrics.DistanceEntries`), in two rounds:
 
     1. asking: the metrics run once on it. ``entries[rows, cols]`` records the entries read
        and returns placeholders (``inf`` between connected components, as the matrix

@@ -78,7 +78,7 @@ from geofeat.backbones import DinoBackbone, load_backbone
 from geofeat.backbones.lora import LoraSettings, add_lora, load_adapter, save_adapter
 from geofeat.datasets.records import Match
 from geofeat.errors import DamagedCheckpointError, TrainingError
-from geofeat.evaluation import evaluate_pair, summarize
+from geofeat.evaluation.protocol import evaluate_pair, summarize
 from geofeat.files import atomic_write, fsync_folder, fsync_tree, load_torch_file
 from geofeat.geometry.partial import make_partial
 from geofeat.mesh import Mesh
@@ -678,7 +678,7 @@ class GeoLoraTrainer:
 
         Features use the training view counts (``views_full`` for the full shape,
         ``views_partial`` for the partial one), unseen vertices filled from the nearest seen
-        one; the protocol of `geofeat.evaluation` (``"vertices"``), with the distances of the
+        one; the protocol of `geofeat.evaluation.protocol` (``"vertices"``), with the distances of the
         trainer's float16 geodesic store (about three significant digits). None when no
         validation set.
         """

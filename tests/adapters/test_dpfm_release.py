@@ -15,8 +15,8 @@ from geofeat.adapters.dpfm import (
 from geofeat.adapters.heads import load_head, make_head
 from geofeat.datasets import load_dataset
 from geofeat.errors import HeadError
+from geofeat.evaluation.metrics import template_geodesic_errors
 from geofeat.geometry.geodesic import geodesic_matrix
-from geofeat.metrics import template_geodesic_errors
 
 #: Measured 2026-11-23 with the reference preset and faust.pth on tr_reg_081 -> tr_reg_080 (x = tr_reg_080,
 #: the reference's shape1), template protocol: 1.668 (the reference code: 1.668). The point map does not

@@ -21,8 +21,8 @@ from geofeat.adapters.echomatch import (
 from geofeat.adapters.heads import ground_truth_overlaps, load_head, make_head
 from geofeat.datasets.records import ShapePair
 from geofeat.errors import HeadError
+from geofeat.evaluation.metrics import overlap_iou
 from geofeat.geometry import make_partial
-from geofeat.metrics import overlap_iou
 
 #: CPU-sized settings (the paper's sizes are the defaults).
 SMALL = dict(

@@ -12,8 +12,8 @@ from geofeat.adapters.release import check_state, diffusionnet_state
 from geofeat.adapters.ulrssm import ULRSSMHead
 from geofeat.datasets import load_dataset
 from geofeat.errors import HeadError
+from geofeat.evaluation.metrics import template_geodesic_errors
 from geofeat.geometry.geodesic import geodesic_matrix
-from geofeat.metrics import template_geodesic_errors
 
 #: Measured 2026-11-23 with the ULRSSM reference preset on tr_reg_081 -> tr_reg_080 (template protocol): 1.03.
 ULRSSM_PAIR_BOUND = 1.6

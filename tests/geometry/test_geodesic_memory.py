@@ -8,8 +8,9 @@ import numpy as np
 import pytest
 from shapes import bumpy
 
-from geofeat import Mesh, metrics
+from geofeat import Mesh
 from geofeat.errors import GeodesicMemoryError, GeofeatError
+from geofeat.evaluation import metrics
 from geofeat.geometry import geodesic
 from geofeat.geometry.geodesic import (
     GeodesicEntries,

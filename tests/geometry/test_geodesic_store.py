@@ -166,7 +166,7 @@ def test_info_verify_and_clear_see_every_entry_and_leave_other_files(tmp_path):
 
 
 def test_cache_command_manages_both_stores_and_only_the_folders_named(isolated_cache, capsys):
-    from geofeat.cli import main as cli_main
+    from geofeat.apps.cli import main as cli_main
 
     mesh = bumpy(0, 2)
     geofeat.compute(mesh, "hks", n_eig=8, n_descr=4)

@@ -2,7 +2,7 @@
 
 One module fixture starts two processes with `torch.multiprocessing.spawn` and the variables
 torchrun sets (RANK, WORLD_SIZE, LOCAL_RANK, MASTER_ADDR, MASTER_PORT); each runs the
-``geofeat train-geolora`` command (`geofeat.cli.main`) twice: a new 2-rank run, then the
+``geofeat train-geolora`` command (`geofeat.apps.cli.main`) twice: a new 2-rank run, then the
 resumption on 2 ranks of a run that one process started. The tests compare those runs with
 single-process runs of the same command.
 """
@@ -27,7 +27,7 @@ from tiny_models import tiny_dinov3
 
 import geofeat.train.trainer as trainer_module
 from geofeat import distributed
-from geofeat.cli import main
+from geofeat.apps.cli import main
 from geofeat.train.trainer import GeoLoraTrainer
 
 log = logging.getLogger(__name__)

@@ -9,7 +9,7 @@ from shapes import bumpy, sphere
 from tiny_models import tiny_dinov3
 
 import geofeat
-from geofeat.cli import main
+from geofeat.apps.cli import main
 from geofeat.errors import TrainingError
 from geofeat.train.config import TrainConfig
 from geofeat.train.shapes import load_training_shapes, prepare_full_shape

@@ -10,7 +10,7 @@ import trimesh
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
-from geofeat.cache import FeatureCache
+from geofeat.descriptors.cache import FeatureCache
 from geofeat.descriptors.compute import compute
 from geofeat.geometry.spectral import clear_basis_cache
 from geofeat.mesh import Mesh

@@ -11,10 +11,10 @@ Under ``torchrun`` every rank takes the shapes at positions ``i % world_size == 
 the sorted collection, computes them on its own device (``device="auto"``: the GPU
 ``LOCAL_RANK``) and writes into the shared store; after a barrier rank 0 gathers every
 rank's records and writes the one manifest (and the HDF5 export). Store entries are
-written atomically (`geofeat.cache`), so a rank killed mid-run leaves complete entries
+written atomically (`geofeat.descriptors.cache`), so a rank killed mid-run leaves complete entries
 only.
 
->>> from geofeat.extract import default_manifest_path, extract, folder_shapes
+>>> from geofeat.apps.extract import default_manifest_path, extract, folder_shapes
 >>> manifest = extract(folder_shapes("FAUST_r/off"), "wks", {"n_descr": 128}, store="features/",
 ...                    manifest=default_manifest_path("wks", {"n_descr": 128}, "features/"))
 >>> manifest["n_computed"], manifest["n_present"], manifest["manifest"]
@@ -40,7 +40,7 @@ import torch
 
 from geofeat import distributed
 from geofeat._version import __version__
-from geofeat.cache import MANIFEST_SUFFIX, FeatureCache
+from geofeat.descriptors.cache import MANIFEST_SUFFIX, FeatureCache
 from geofeat.descriptors.compute import compute, entry_key, reusable_descriptor
 from geofeat.descriptors.registry import make_descriptor
 from geofeat.errors import ExtractError, GeofeatError

@@ -14,7 +14,7 @@ trainer's validation):
 Protocols (``protocol=``): ``"vertices"`` evaluates every vertex of ``y`` that has a
 counterpart (the default); ``"template"`` evaluates the template points of datasets with a
 common template (FAUST_r, SCAPE_r), as the ULRSSM and DPFM references do
-(`geofeat.metrics.template_geodesic_errors`). Distances are edge-Dijkstra geodesics on the
+(`geofeat.evaluation.metrics.template_geodesic_errors`). Distances are edge-Dijkstra geodesics on the
 target ``x`` divided by ``sqrt(area(x))``.
 """
 
@@ -30,9 +30,9 @@ from typing import Any
 
 import numpy as np
 
-from geofeat import metrics
 from geofeat.datasets.records import Match, ShapePair
 from geofeat.errors import DatasetError, MetricError
+from geofeat.evaluation import metrics
 from geofeat.geometry.geodesic import GeodesicEntries, GeodesicStore, evaluation_distances, memory_limit
 from geofeat.mesh import Mesh
 from geofeat.progress import progress_bar

@@ -20,7 +20,7 @@ import tempfile
 import textwrap
 from pathlib import Path
 
-from geofeat.cache import FeatureCache
+from geofeat.descriptors.cache import FeatureCache
 from geofeat.errors import ExtractError, GeofeatError, StoreError
 from geofeat.files import EntryFolder
 from geofeat.progress import hidden_progress
@@ -232,7 +232,7 @@ def _quiet_if(hidden: bool):
 
 
 def _demo_command(args: argparse.Namespace) -> int:
-    from geofeat.demo import run_demo
+    from geofeat.apps.demo import run_demo
 
     with tempfile.TemporaryDirectory(prefix="geofeat-demo-") as tmp, _quiet_if(args.no_progress):
         rows = run_demo(args.cache_dir or tmp, seed=args.seed, progress=not args.no_progress)
@@ -354,7 +354,7 @@ def _train_command(args: argparse.Namespace) -> int:
 
 def _extract_command(args: argparse.Namespace) -> int:
     from geofeat import distributed
-    from geofeat.extract import ExportSpec, dataset_shapes, default_manifest_path, extract, folder_shapes, parse_params
+    from geofeat.apps.extract import ExportSpec, dataset_shapes, default_manifest_path, extract, folder_shapes, parse_params
 
     params = parse_params(args.param or [])
     if args.data is not None:
