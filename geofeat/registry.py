@@ -1,13 +1,19 @@
-"""The one lazy-registry mechanism behind descriptor, dataset and head names.
+"""The one registry of names behind descriptors, datasets and heads: `Registry`.
 
-A registry is a plain ``dict`` from a name to a `LazyEntry` (a bare ``"module:attr"``
-string is accepted as an entry without dependencies). The entry imports its target on
-first use, checks its optional dependencies first and, when one is missing, raises
-`MissingDependencyError` naming the extra to install. An unknown name raises the
-registry's own error type, listing the valid names and suggesting close ones.
+A `Registry` maps names to `LazyEntry` records. One rule for every registry:
+
+* names are case-insensitive, ``-`` equals ``_`` and surrounding spaces are ignored
+  (``"FAUST-R "`` is ``"faust_r"``; see `canonical_name`);
+* registering a name that is already there raises the registry's error unless
+  ``overwrite=True`` is passed;
+* an entry's ``"module:attr"`` target is imported on first use (`Registry.load`), after its
+  optional dependencies are checked: a missing one raises `MissingDependencyError` naming the
+  extra to install;
+* an unknown name raises the registry's error, listing the valid names and suggesting close
+  ones (`unknown_name_error`).
 
 Used by `geofeat.descriptors.registry`, `geofeat.datasets.registry` and
-`geofeat.adapters.heads` (`head_class`).
+`geofeat.adapters.heads`.
 """
 
 from __future__ import annotations
@@ -15,13 +21,13 @@ from __future__ import annotations
 import difflib
 import importlib
 import importlib.util
-from collections.abc import Callable, Iterable, Mapping
-from dataclasses import dataclass, field
+from collections.abc import Iterable, Iterator, Mapping
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 from geofeat.errors import GeofeatError, MissingDependencyError
 
-__all__ = ["LazyEntry", "as_entry", "lookup", "unknown_name_error"]
+__all__ = ["LazyEntry", "Registry", "canonical_name", "unknown_name_error"]
 
 
 @dataclass(frozen=True)
@@ -84,11 +90,6 @@ class LazyEntry:
         return getattr(importlib.import_module(module_name), attr)
 
 
-def as_entry(name: str, value: LazyEntry | str | Any) -> LazyEntry:
-    """``value`` as a `LazyEntry` (a ``"module:attr"`` string or an object gets a plain entry)."""
-    return value if isinstance(value, LazyEntry) else LazyEntry(name, value)
-
-
 def unknown_name_error(
     name: Any, names: Iterable[str], kind: str, error: type[GeofeatError], probe: str | None = None
 ) -> GeofeatError:
@@ -105,33 +106,128 @@ def unknown_name_error(
     return error(f"unknown {kind} {name!r}; valid names: {', '.join(names)}.{hint}")
 
 
-def lookup(
-    registry: Mapping[str, LazyEntry | str | Any],
-    name: Any,
-    kind: str,
-    error: type[GeofeatError],
-    canonical: Callable[[Any], str] | None = None,
-) -> LazyEntry:
-    """The entry of ``name`` in ``registry`` (not imported yet).
+def canonical_name(name: Any) -> str:
+    """The registry form of ``name``: stripped, lower case, ``-`` replaced by ``_``."""
+    return str(name).strip().lower().replace("-", "_")
+
+
+def lookup(registry: Mapping[str, LazyEntry | str], name: Any, kind: str, error: type[GeofeatError]) -> LazyEntry:
+    """The entry of ``name`` in a plain dict registry (kept only until the heads move onto `Registry`)."""
+    if not isinstance(name, str) or name not in registry:
+        raise unknown_name_error(name, registry, kind, error, probe=str(name))
+    value = registry[name]
+    return value if isinstance(value, LazyEntry) else LazyEntry(name, value)
+
+
+class Registry:
+    """Names to `LazyEntry` records, with one rule for case, duplicates and unknown names.
 
     Parameters
     ----------
-    registry : Mapping
-        Name to `LazyEntry` (or ``"module:attr"``).
-    name : Any
-        The name asked for; ``canonical(name)`` is looked up when given.
     kind : str
-        For messages.
+        What the registry holds (``"descriptor"``, ``"dataset"``, ``"head"``), for messages.
     error : type
-        Raised for an unknown name (see `unknown_name_error`).
-    canonical : callable, optional
-        Normalises names (e.g. case and ``-`` / ``_``).
+        The `GeofeatError` subclass raised for an unknown or duplicate name.
 
-    Returns
-    -------
-    LazyEntry
+    Examples
+    --------
+    >>> from geofeat.errors import GeofeatError
+    >>> things = Registry("thing", GeofeatError)
+    >>> things.register(LazyEntry("Pretty-Print", "json:dumps", summary="JSON text")).name
+    'pretty_print'
+    >>> things.load("PRETTY_PRINT ")({"a": 1})
+    '{"a": 1}'
+    >>> things.names()
+    ['pretty_print']
     """
-    key = canonical(name) if canonical is not None else name
-    if not isinstance(key, str) or key not in registry:
-        raise unknown_name_error(name, registry, kind, error, probe=str(key))
-    return as_entry(key, registry[key])
+
+    def __init__(self, kind: str, error: type[GeofeatError]) -> None:
+        self.kind = kind
+        self.error = error
+        self._entries: dict[str, LazyEntry] = {}
+
+    def register(self, entry: LazyEntry, overwrite: bool = False) -> LazyEntry:
+        """Add ``entry`` under the canonical form of its name.
+
+        Parameters
+        ----------
+        entry : LazyEntry
+            The record; its name is stored in canonical form (`canonical_name`).
+        overwrite : bool
+            Replace an entry of the same name instead of raising.
+
+        Returns
+        -------
+        LazyEntry
+            The stored record (its name canonical).
+
+        Raises
+        ------
+        GeofeatError
+            Of the registry's error type: the name is taken and ``overwrite`` is false, or
+            ``entry`` is not a `LazyEntry`.
+        """
+        if not isinstance(entry, LazyEntry):
+            raise self.error(
+                f"a {self.kind} is registered as a geofeat.registry.LazyEntry(name, 'module:attr', ...); "
+                f"found {type(entry).__name__}."
+            )
+        key = canonical_name(entry.name)
+        if not key:
+            raise self.error(f"a {self.kind} name must not be empty; found {entry.name!r}.")
+        if key in self._entries and not overwrite:
+            raise self.error(f"a {self.kind} named {key!r} is already registered; pass overwrite=True to replace it.")
+        stored = entry if entry.name == key else replace(entry, name=key)
+        self._entries[key] = stored
+        return stored
+
+    def unregister(self, name: str) -> LazyEntry:
+        """Remove ``name`` and return its entry (the registry's error for an unknown name)."""
+        return self._entries.pop(self.entry(name).name)
+
+    def entry(self, name: Any) -> LazyEntry:
+        """The entry of ``name``, not imported yet.
+
+        Raises
+        ------
+        GeofeatError
+            Of the registry's error type, for an unknown name (valid names and close ones listed).
+        """
+        key = canonical_name(name)
+        if key not in self._entries:
+            raise unknown_name_error(name, self._entries, self.kind, self.error, probe=key)
+        return self._entries[key]
+
+    def load(self, name: Any) -> Any:
+        """The target of ``name``, imported now (see `LazyEntry.load`).
+
+        Raises
+        ------
+        GeofeatError
+            Of the registry's error type, for an unknown name.
+        MissingDependencyError
+            An optional module of the entry is missing (the message names the extra).
+        """
+        return self.entry(name).load(self.kind)
+
+    def names(self) -> list[str]:
+        """The registered names (canonical), sorted."""
+        return sorted(self._entries)
+
+    def copy(self) -> Registry:
+        """A new registry with the same kind, error and entries (e.g. to register temporary names in a test)."""
+        other = Registry(self.kind, self.error)
+        other._entries = dict(self._entries)
+        return other
+
+    def __contains__(self, name: object) -> bool:
+        return canonical_name(name) in self._entries
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self.names())
+
+    def __len__(self) -> int:
+        return len(self._entries)
+
+    def __repr__(self) -> str:
+        return f"Registry({self.kind!r}, {len(self)} names)"

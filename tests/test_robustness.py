@@ -203,9 +203,8 @@ class NaNDescriptor(Descriptor):
 
 
 def register_nan_descriptor(ctx: Ctx) -> None:
-    ctx.monkeypatch.setitem(
-        registry._REGISTRY, "nan_for_tests", registry.RegistryEntry("nan_for_tests", "test_robustness:NaNDescriptor")
-    )
+    ctx.monkeypatch.setattr(registry, "_REGISTRY", registry._REGISTRY.copy())
+    registry.register(registry.RegistryEntry("nan_for_tests", "test_robustness:NaNDescriptor"))
 
 
 def no_entries(ctx: Ctx, _=None) -> None:

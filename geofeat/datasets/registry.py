@@ -6,7 +6,8 @@
 (380, 'tr_reg_080->tr_reg_081')
 >>> pair = pairs[0]                                # ShapePair, meshes read now
 
-Names are case-insensitive and ``-`` equals ``_``. Each name is a loader plus preset options
+Names follow the rule of every geofeat registry (`geofeat.registry.Registry`): case-insensitive,
+``-`` equals ``_``, and registering a name that exists raises `DatasetError` unless ``overwrite=True``. Each name is a loader plus preset options
 (``shrec16_cuts`` is the SHREC'16 loader with ``partiality="cuts"``): a `geofeat.registry.LazyEntry`
 whose loader module is imported when the dataset is first opened.
 """
@@ -21,15 +22,11 @@ from collections.abc import Callable
 from geofeat.datasets.base import PairDataset
 from geofeat.datasets.faust import FaustRemeshed, ScapeRemeshed
 from geofeat.errors import DatasetError
-from geofeat.registry import LazyEntry, lookup
+from geofeat.registry import LazyEntry, Registry, canonical_name
 
 log = logging.getLogger(__name__)
 
-_REGISTRY: dict[str, LazyEntry] = {}
-
-
-def _canonical(name: str) -> str:
-    return str(name).strip().lower().replace("-", "_")
+_REGISTRY = Registry("dataset", DatasetError)
 
 
 def register_dataset(
@@ -51,21 +48,23 @@ def register_dataset(
         Replace an existing entry instead of raising.
     **preset
         Options fixed by this name; a caller passing a different value gets an error.
+
+    Raises
+    ------
+    DatasetError
+        The name is already registered and ``overwrite`` is false.
     """
-    key = _canonical(name)
-    if key in _REGISTRY and not overwrite:
-        raise DatasetError(f"a dataset named {key!r} is already registered; pass overwrite=True to replace it.")
-    _REGISTRY[key] = LazyEntry(key, factory, summary=description, options=dict(preset))
+    _REGISTRY.register(LazyEntry(name, factory, summary=description, options=dict(preset)), overwrite=overwrite)
 
 
 def dataset_names() -> list[str]:
     """Names accepted by `load_dataset`, sorted."""
-    return sorted(_REGISTRY)
+    return _REGISTRY.names()
 
 
 def dataset_description(name: str) -> str:
     """The one-line description of a registered dataset."""
-    return _lookup(name).summary
+    return _REGISTRY.entry(name).summary
 
 
 def load_dataset(name: str, root: str | os.PathLike | None = None, split: str = "test", **options) -> PairDataset:
@@ -95,11 +94,11 @@ def load_dataset(name: str, root: str | os.PathLike | None = None, split: str = 
         Unknown name, an option the loader does not take or that contradicts the name, or a
         missing or malformed dataset.
     """
-    entry = _lookup(name)
+    entry = _REGISTRY.entry(name)
     factory = entry.load("dataset")
     for key, value in entry.options.items():
         if key in options and options[key] != value:
-            raise DatasetError(f"dataset {_canonical(name)!r} fixes {key}={value!r}; found {key}={options[key]!r}.")
+            raise DatasetError(f"dataset {canonical_name(name)!r} fixes {key}={value!r}; found {key}={options[key]!r}.")
     options = {**options, **entry.options}
     accepted = _accepted_options(factory)
     if accepted is not None:
@@ -108,14 +107,10 @@ def load_dataset(name: str, root: str | os.PathLike | None = None, split: str = 
         unknown = sorted(set(options) - accepted)
         if unknown:
             raise DatasetError(
-                f"dataset {_canonical(name)!r} does not take option(s) {', '.join(unknown)}; "
+                f"dataset {canonical_name(name)!r} does not take option(s) {', '.join(unknown)}; "
                 f"it takes: {', '.join(sorted(accepted - set(entry.options))) or 'none'}."
             )
     return factory(root, split, **options)
-
-
-def _lookup(name: str) -> LazyEntry:
-    return lookup(_REGISTRY, name, "dataset", DatasetError, canonical=_canonical)
 
 
 def _accepted_options(factory: Callable) -> set[str] | None:

@@ -1,4 +1,8 @@
-"""The registry of descriptor names: lazy imports and clear errors for missing extras (`geofeat.registry`)."""
+"""The registry of descriptor names: lazy imports and clear errors for missing extras (`geofeat.registry`).
+
+Names follow the rule of every geofeat registry: case-insensitive, ``-`` equals ``_``, and
+registering a name that exists raises `DescriptorError` unless ``overwrite=True``.
+"""
 
 from __future__ import annotations
 
@@ -6,7 +10,7 @@ from dataclasses import dataclass
 
 from geofeat.descriptors.base import Descriptor
 from geofeat.errors import DescriptorError
-from geofeat.registry import LazyEntry, lookup
+from geofeat.registry import LazyEntry, Registry
 
 #: How to build one descriptor: ``LazyEntry(name, "module:ClassName", requires, extra, summary)``.
 RegistryEntry = LazyEntry
@@ -23,12 +27,27 @@ class DescriptorInfo:
     params: dict
 
 
-_REGISTRY: dict[str, LazyEntry] = {}
+_REGISTRY = Registry("descriptor", DescriptorError)
 
 
-def register(entry: RegistryEntry) -> None:
-    """Add (or replace) a registry entry."""
-    _REGISTRY[entry.name] = entry
+def register(entry: RegistryEntry, overwrite: bool = False) -> None:
+    """Make a descriptor available by name (``geofeat.compute(mesh, name)``).
+
+    Parameters
+    ----------
+    entry : RegistryEntry
+        ``RegistryEntry(name, "module:ClassName", requires=..., extra=..., summary=...)``; the
+        target may also be the `Descriptor` subclass itself. The name is stored in canonical
+        form (lower case, ``_`` for ``-``).
+    overwrite : bool
+        Replace an entry of the same name instead of raising.
+
+    Raises
+    ------
+    DescriptorError
+        The name is already registered and ``overwrite`` is false.
+    """
+    _REGISTRY.register(entry, overwrite=overwrite)
 
 
 register(RegistryEntry("hks", "geofeat.descriptors.spectral:HKS", summary="Heat Kernel Signature, log-spaced times"))
@@ -72,7 +91,7 @@ def descriptor_entry(name: str) -> RegistryEntry:
     DescriptorError
         Unknown name (the message lists the valid ones).
     """
-    return lookup(_REGISTRY, name, "descriptor", DescriptorError)
+    return _REGISTRY.entry(name)
 
 
 def descriptor_class(name: str) -> type[Descriptor]:
@@ -85,7 +104,7 @@ def descriptor_class(name: str) -> type[Descriptor]:
     MissingDependencyError
         An optional dependency is missing (the message names the extra to install).
     """
-    return descriptor_entry(name).load("descriptor")
+    return _REGISTRY.load(name)
 
 
 def make_descriptor(name: str, **params) -> Descriptor:
@@ -108,8 +127,8 @@ def descriptors() -> list[DescriptorInfo]:
         Sorted by name.
     """
     infos = []
-    for name in sorted(_REGISTRY):
-        entry = _REGISTRY[name]
+    for name in _REGISTRY.names():
+        entry = _REGISTRY.entry(name)
         missing = entry.missing()
         if missing:
             reason = f"missing {', '.join(missing)}: {entry.install_hint(missing)}"

@@ -41,7 +41,7 @@ def test_missing_root_without_env(monkeypatch):
 
 
 def test_register_dataset(monkeypatch):
-    monkeypatch.setattr(registry, "_REGISTRY", dict(registry._REGISTRY))
+    monkeypatch.setattr(registry, "_REGISTRY", registry._REGISTRY.copy())
     seen = {}
 
     def factory(root, split, **options):
@@ -54,3 +54,5 @@ def test_register_dataset(monkeypatch):
     assert seen == {"root": "somewhere", "split": "val", "kind": "cuts", "seed": 1}
     with pytest.raises(DatasetError, match="already registered"):
         register_dataset("my_set", factory)
+    register_dataset(" MY-SET", factory, description="replaced", overwrite=True)
+    assert registry.dataset_description("my_set") == "replaced" and dataset_names().count("my_set") == 1

@@ -30,7 +30,8 @@ def test_descriptors_listing():
 
 def test_missing_dependency_names_the_extra(monkeypatch):
     entry = registry.RegistryEntry("fake", "geofeat.descriptors.spectral:WKS", requires=("no_such_module_xyz",), extra="dino")
-    monkeypatch.setitem(registry._REGISTRY, "fake", entry)
+    monkeypatch.setattr(registry, "_REGISTRY", registry._REGISTRY.copy())
+    registry.register(entry)
     info = {i.name: i for i in geofeat.descriptors()}["fake"]
     assert not info.available and "geofeat[dino]" in info.reason
     with pytest.raises(MissingDependencyError, match=r"no_such_module_xyz.*pip install 'geofeat\[dino\]'"):
@@ -41,3 +42,19 @@ def test_params_are_stored_as_given_and_json():
     d = registry.make_descriptor("hks", n_descr=8)
     assert d.get_params() == {"n_eig": 128, "n_descr": 8, "laplacian": "robust", "normalize": True}
     assert d.params_json() == '{"laplacian":"robust","n_descr":8,"n_eig":128,"normalize":true}'
+
+
+def test_register_refuses_a_taken_name_unless_overwrite(monkeypatch):
+    monkeypatch.setattr(registry, "_REGISTRY", registry._REGISTRY.copy())
+    with pytest.raises(DescriptorError, match=r"a descriptor named 'wks' is already registered; pass overwrite=True"):
+        registry.register(registry.RegistryEntry("WKS", "geofeat.descriptors.spectral:HKS"))
+    assert registry.descriptor_class("wks").__name__ == "WKS"
+    registry.register(registry.RegistryEntry("WKS", "geofeat.descriptors.spectral:HKS"), overwrite=True)
+    assert registry.descriptor_class("wks").__name__ == "HKS"
+
+
+def test_names_are_case_and_dash_insensitive():
+    assert registry.descriptor_class(" WKS ").__name__ == "WKS"
+    assert registry.descriptor_entry("DinoV3").name == "dinov3"
+    with pytest.raises(DescriptorError, match="Did you mean 'dinov3'"):
+        registry.descriptor_entry("dino-v3")
