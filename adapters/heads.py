@@ -39,12 +39,13 @@ from geofeat.datasets.records import Match, ShapePair  # Match is re-exported: h
 from geofeat.descriptors.compute import compute
 from geofeat.devices import resolve_device
 from geofeat.errors import GeofeatError, HeadError, UnusablePair
-from geofeat.files import atomic_write, load_torch_file
+from geofeat.files import atomic_write
 from geofeat.jsonconfig import JsonConfig
 from geofeat.lru import LRUCache
 from geofeat.mesh import Mesh
 from geofeat.progress import progress_bar
 from geofeat.registry import LazyEntry, lookup
+from geofeat.safe_load import load_torch_file
 
 from . import matchers
 from .functional_maps import NearestNeighborIndex

@@ -21,8 +21,8 @@ import textwrap
 from pathlib import Path
 
 from geofeat.descriptors.cache import FeatureCache
+from geofeat.entry_folder import EntryFolder
 from geofeat.errors import ExtractError, GeofeatError, StoreError
-from geofeat.files import EntryFolder
 from geofeat.progress import hidden_progress
 
 #: What ``geofeat --help`` says about the command (plain text: argparse prints it as it is).

@@ -38,7 +38,7 @@ from geofeat.backbones.convert import convert_official, require_transformers, un
 from geofeat.checks import check_integer
 from geofeat.devices import resolve_device
 from geofeat.errors import BackboneError
-from geofeat.files import is_unsafe_pickle_error, load_torch_file, unsafe_pickle_message
+from geofeat.safe_load import is_unsafe_pickle_error, load_torch_file, unsafe_pickle_message
 
 if TYPE_CHECKING:
     from transformers import PreTrainedModel

@@ -47,8 +47,9 @@ from geofeat._version import __version__
 from geofeat.backbones.dino import DinoBackbone, state_dict_digest
 from geofeat.checks import check_integer, check_number
 from geofeat.errors import BackboneError, MissingDependencyError
-from geofeat.files import atomic_write, load_torch_file
+from geofeat.files import atomic_write
 from geofeat.jsonconfig import JsonConfig
+from geofeat.safe_load import load_torch_file
 
 logger = logging.getLogger(__name__)
 

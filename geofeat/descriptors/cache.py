@@ -39,8 +39,9 @@ import h5py
 import numpy as np
 
 from geofeat import config
+from geofeat.entry_folder import EntryFolder, StoreInfo, array_crc32
 from geofeat.errors import CacheError
-from geofeat.files import EntryFolder, StoreInfo, array_crc32, fsync_file, fsync_folder, probe_writable
+from geofeat.files import fsync_file, fsync_folder, probe_writable
 
 log = logging.getLogger(__name__)
 
@@ -64,7 +65,7 @@ def cache_key(mesh_hash: str, descriptor: str, params_json: str, version: str, w
 
 
 def _checksum(array: np.ndarray) -> str:
-    """The entry's checksum attribute: ``"crc32:"`` and `files.array_crc32` in hex."""
+    """The entry's checksum attribute: ``"crc32:"`` and `geofeat.entry_folder.array_crc32` in hex."""
     return f"crc32:{array_crc32(array):08x}"
 
 

@@ -32,8 +32,9 @@ import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components, dijkstra
 
 from geofeat.config import cache_dir
+from geofeat.entry_folder import EntryFolder, array_crc32
 from geofeat.errors import GeodesicMemoryError, GeofeatError, MeshError, StoreError
-from geofeat.files import EntryFolder, array_crc32, atomic_write, probe_writable
+from geofeat.files import atomic_write, probe_writable
 from geofeat.lru import LRUCache
 from geofeat.mesh import Mesh
 from geofeat.progress import progress_bar
@@ -834,7 +835,7 @@ class GeodesicStore(EntryFolder):
 
     @property
     def root(self) -> Path:
-        """The folder (`geofeat.files.EntryFolder`'s name for it)."""
+        """The folder (`geofeat.entry_folder.EntryFolder`'s name for it)."""
         return self.folder
 
     def _scan(self) -> tuple[list[Path], list[Path], list[Path]]:

@@ -79,12 +79,13 @@ from geofeat.backbones.lora import LoraSettings, add_lora, load_adapter, save_ad
 from geofeat.datasets.records import Match
 from geofeat.errors import DamagedCheckpointError, TrainingError
 from geofeat.evaluation.protocol import evaluate_pair, summarize
-from geofeat.files import atomic_write, fsync_folder, fsync_tree, load_torch_file
+from geofeat.files import atomic_write, fsync_folder, fsync_tree
 from geofeat.geometry.partial import make_partial
 from geofeat.mesh import Mesh
 from geofeat.progress import progress_bar
 from geofeat.render import make_cameras, multiview_features
 from geofeat.render.multiview import RECIPES
+from geofeat.safe_load import load_torch_file
 from geofeat.train.config import RESUMABLE_CHANGES, TrainConfig
 from geofeat.train.losses import geodesic_point_info_nce, point_info_nce
 from geofeat.train.shapes import GeodesicStore, load_training_shapes
