@@ -304,7 +304,7 @@ def main_pairs(seed: int, limit: int | None) -> dict[str, list[ShapePair]]:
     return {"full": [full[i] for i in range(len(full))], "cuts": [cuts[index[pair]] for pair in combinations]}
 
 
-_PREPARE: tuple[list[geofeat.Mesh], tuple[str, ...], GeodesicStore | None] | None = None
+_PREPARE: tuple[list[geofeat.Mesh], list[geofeat.Descriptor], GeodesicStore | None] | None = None
 
 
 def _prepare_one(task: tuple[int, bool]) -> None:
@@ -313,8 +313,8 @@ def _prepare_one(task: tuple[int, bool]) -> None:
 
     meshes, descriptors, store = _PREPARE
     index, target = task
-    for name in descriptors:
-        compute(meshes[index], name)
+    for descriptor in descriptors:
+        compute(meshes[index], descriptor)
     if target and store is not None:
         store.load(meshes[index])
 
@@ -348,7 +348,7 @@ def prepare_inputs(
     if not todo:
         return 0, len(meshes)
     todo.sort(key=lambda task: (-task[1], -mesh_list[task[0]].n_vertices))  # the longest first
-    _PREPARE = (mesh_list, descriptors, store)
+    _PREPARE = (mesh_list, made, store)
     try:
         _run_forked(_prepare_one, todo, workers)
     finally:

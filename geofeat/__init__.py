@@ -8,7 +8,7 @@
 
 from geofeat._version import __version__
 from geofeat.config import cache_dir, set_cache_dir
-from geofeat.descriptors import Descriptor, compute, compute_many, descriptors
+from geofeat.descriptors import Descriptor, compute, compute_many, descriptors, make_descriptor
 from geofeat.descriptors.cache import FeatureCache
 from geofeat.errors import (
     BackboneError,
@@ -66,6 +66,7 @@ __all__ = [
     "compute_many",
     "descriptors",
     "load_mesh",
+    "make_descriptor",
     "normalize",
     "set_cache_dir",
 ]

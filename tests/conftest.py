@@ -45,11 +45,7 @@ def faust_mesh(faust_dir) -> geofeat.Mesh:
 @pytest.fixture(autouse=True)
 def isolated_cache(tmp_path, monkeypatch):
     """Every test gets its own cache directory; the user's cache is never touched."""
-    from geofeat.descriptors.compute import clear_descriptors
-
     monkeypatch.setenv("GEOFEAT_CACHE_DIR", str(tmp_path / "cache"))
     geofeat.set_cache_dir(None)
-    clear_descriptors()
     yield tmp_path / "cache"
     geofeat.set_cache_dir(None)
-    clear_descriptors()

@@ -40,13 +40,13 @@ import torch
 
 from geofeat import distributed
 from geofeat._version import __version__
+from geofeat.descriptors.base import Descriptor
 from geofeat.descriptors.cache import MANIFEST_SUFFIX, FeatureCache
-from geofeat.descriptors.compute import compute, entry_key, reusable_descriptor
+from geofeat.descriptors.compute import Computed, compute_each
 from geofeat.descriptors.registry import make_descriptor
-from geofeat.errors import ExtractError, GeofeatError
+from geofeat.errors import ExtractError
 from geofeat.files import atomic_write, probe_writable
 from geofeat.mesh import Mesh, load_mesh
-from geofeat.progress import progress_bar
 
 log = logging.getLogger(__name__)
 
@@ -406,48 +406,47 @@ def _descriptor_params(name: str, params: Mapping[str, Any], device: torch.devic
     return params
 
 
-def _one_shape(
-    shape: ShapeSource, name: str, params: Mapping[str, Any], store: FeatureCache, export: ExportSpec | None, rank: int
+def _record(
+    shape: ShapeSource,
+    outcome: Computed,
+    descriptor: Descriptor,
+    store: FeatureCache,
+    export: ExportSpec | None,
+    rank: int,
 ) -> dict[str, Any]:
-    """Look up or compute one shape's entry; its manifest record."""
-    start = time.perf_counter()
+    """The manifest record of one shape's outcome, after its export (when one is asked for)."""
     record: dict[str, Any] = {
         "shape": shape.name,
         "path": None if shape.path is None else str(_absolute(shape.path)),
         "rank": rank,
     }
-    try:
-        mesh = shape.load()
-        descriptor = reusable_descriptor(name, **params)
-        key = entry_key(descriptor, mesh)
-        features = store.get(key, n_rows=mesh.n_vertices)
-        status = "present"
-        if features is None:
-            features = compute(mesh, name, cache=store, **params)
-            status = "computed"
-        target = export.target(shape, descriptor.name) if export is not None else None
-        if target is not None:
-            try:
-                save_npy(target, features)
-            except OSError as err:  # the features are in the store; only this shape's export is missing
-                log.warning("shape %s: export to %s failed: %s", shape.name, target, err)
-                record["export_error"] = f"could not write {_absolute(target)}: {err.strerror or err}"
-                target = None
-    except GeofeatError as err:
-        log.warning("shape %s failed: %s", shape.name, err)
-        record.update(status="failed", error=f"{type(err).__name__}: {err}", seconds=round(time.perf_counter() - start, 4))
+    if outcome.error is not None:
+        log.warning("shape %s failed: %s", shape.name, outcome.error)
+        record.update(
+            status="failed", error=f"{type(outcome.error).__name__}: {outcome.error}", seconds=round(outcome.seconds, 4)
+        )
         return record
+    start = time.perf_counter()
+    features = outcome.features
+    target = export.target(shape, descriptor.name) if export is not None else None
+    if target is not None:
+        try:
+            save_npy(target, features)
+        except OSError as err:  # the features are in the store; only this shape's export is missing
+            log.warning("shape %s: export to %s failed: %s", shape.name, target, err)
+            record["export_error"] = f"could not write {_absolute(target)}: {err.strerror or err}"
+            target = None
     record.update(
-        mesh_hash=mesh.hash,
+        mesh_hash=outcome.mesh_hash,
         n_vertices=int(features.shape[0]),
         n_channels=int(features.shape[1]),
         feature_shape=[int(n) for n in features.shape],
         descriptor=descriptor.name,
         params=descriptor.get_params(),
-        key=key,
-        entry=str(_absolute(store.path(key))),
-        status=status,
-        seconds=round(time.perf_counter() - start, 4),
+        key=outcome.key,
+        entry=str(_absolute(store.path(outcome.key))),
+        status=outcome.status,
+        seconds=round(outcome.seconds + time.perf_counter() - start, 4),
         export=None if target is None else str(_absolute(target)),
     )
     return record
@@ -522,13 +521,14 @@ def extract(
     with distributed.process_group(device, timeout_minutes=BARRIER_TIMEOUT_MINUTES) as rank_device:
         info = distributed.group_rank_info()
         params = _descriptor_params(descriptor, params or {}, rank_device)
+        instance = make_descriptor(descriptor, **params)  # one for every shape of this rank (a model loads once)
         store.check_writable(
             "Name a writable folder with --out (or store= in Python); without --out the store is the feature cache, "
             "which GEOFEAT_CACHE_DIR moves."
         )
         # every output place is checked before the work, not found unwritable after it
         if export is not None:
-            export.check(shapes, make_descriptor(descriptor, **params).name)
+            export.check(shapes, instance.name)
         if manifest is not None and info.is_main:
             problem = writable_folder_problem(_absolute(manifest).parent)
             if problem is not None:
@@ -538,8 +538,9 @@ def extract(
         mine = distributed.shard(shapes, info)
         label = f"{descriptor} features" + (f" (rank 0 of {info.world_size})" if info.world_size > 1 else "")
         records = []
-        for shape in progress_bar(mine, desc=label, unit="shape", show=progress and info.is_main):
-            record = _one_shape(shape, descriptor, params, store, export, info.rank)
+        sources = [shape.path if shape.path is not None else shape.mesh for shape in mine]
+        for outcome in compute_each(sources, instance, store, progress=progress and info.is_main, desc=label):
+            record = _record(mine[outcome.index], outcome, instance, store, export, info.rank)
             records.append(record)
             if on_record is not None:
                 on_record(record)
@@ -553,9 +554,9 @@ def extract(
         distributed.barrier()  # every rank's entries are in the store
         gathered = distributed.gather_to_main(records)
         if not info.is_main:
-            return _manifest(descriptor, params, store, info.world_size, records)
+            return _manifest(instance, store, info.world_size, records)
         merged = sorted((r for part in gathered for r in part), key=lambda r: r["shape"])
-        result = _manifest(descriptor, params, store, info.world_size, merged)
+        result = _manifest(instance, store, info.world_size, merged)
         if export is not None and export.format == "h5":
             try:
                 write_h5(export.to, merged, store)
@@ -586,8 +587,7 @@ def _write_manifest(result: dict[str, Any], path: Path, store: FeatureCache) -> 
         return
 
 
-def _manifest(descriptor: str, params: Mapping[str, Any], store: FeatureCache, world: int, records: list[dict]) -> dict:
-    checked = make_descriptor(descriptor, **params)
+def _manifest(checked: Descriptor, store: FeatureCache, world: int, records: list[dict]) -> dict:
     return {
         "format": MANIFEST_FORMAT,
         "geofeat_version": __version__,

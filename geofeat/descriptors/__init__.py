@@ -2,12 +2,21 @@
 
 from geofeat.descriptors.base import Descriptor
 from geofeat.descriptors.compute import compute, compute_many
-from geofeat.descriptors.registry import DescriptorInfo, RegistryEntry, descriptor_class, descriptors, make_descriptor, register
+from geofeat.descriptors.registry import (
+    DescriptorInfo,
+    RegistryEntry,
+    as_descriptor,
+    descriptor_class,
+    descriptors,
+    make_descriptor,
+    register,
+)
 
 __all__ = [
     "Descriptor",
     "DescriptorInfo",
     "RegistryEntry",
+    "as_descriptor",
     "compute",
     "compute_many",
     "descriptor_class",

@@ -108,7 +108,36 @@ def descriptor_class(name: str) -> type[Descriptor]:
 
 
 def make_descriptor(name: str, **params) -> Descriptor:
-    """Build the descriptor ``name`` from keyword parameters, rejecting unknown ones."""
+    """Build the descriptor ``name`` from keyword parameters, rejecting unknown ones.
+
+    Build a model-backed descriptor (DINOv2, DINOv3, GeoLoRA) once and pass the instance to
+    `geofeat.compute` for every mesh: it loads its weights on first use and keeps them.
+
+    Parameters
+    ----------
+    name : str
+        A registered name (see `descriptors`; case-insensitive, ``-`` equals ``_``).
+    **params
+        The descriptor's parameters; the defaults of the others.
+
+    Returns
+    -------
+    Descriptor
+        Not run yet; no weights are loaded here.
+
+    Raises
+    ------
+    DescriptorError
+        Unknown name or parameter (the message lists the valid ones), or a bad value.
+    MissingDependencyError
+        An optional dependency is missing (the message names the extra to install).
+
+    Examples
+    --------
+    >>> from geofeat.descriptors import make_descriptor
+    >>> make_descriptor("wks", n_descr=64)
+    WKS(n_eig=128, n_descr=64, laplacian='robust', normalize=True)
+    """
     cls = descriptor_class(name)
     valid = cls.param_names()
     unknown = sorted(set(params) - set(valid))
@@ -116,6 +145,43 @@ def make_descriptor(name: str, **params) -> Descriptor:
         defaults = ", ".join(f"{k}={v!r}" for k, v in cls.param_defaults().items())
         raise DescriptorError(f"unknown parameter(s) {unknown} for descriptor {name!r}; valid parameters: {defaults}.")
     return cls(**params)
+
+
+def as_descriptor(descriptor: str | Descriptor, **params) -> Descriptor:
+    """A `Descriptor` from a registered name and parameters, or an instance as it is.
+
+    Parameters
+    ----------
+    descriptor : str or Descriptor
+        A registered name (built with `make_descriptor`) or an instance (used as it is).
+    **params
+        Parameters for a name; none may be given with an instance.
+
+    Raises
+    ------
+    DescriptorError
+        An instance together with parameters, a class instead of an instance, anything else
+        that is neither, or what `make_descriptor` raises.
+    """
+    if isinstance(descriptor, Descriptor):
+        if params:
+            raise DescriptorError(
+                f"parameters {sorted(params)} were given with the descriptor instance {descriptor!r}; "
+                f"set them on the instance ({type(descriptor).__name__}(...)) or pass the name "
+                f"({descriptor.name!r}) with the parameters, not both."
+            )
+        return descriptor
+    if isinstance(descriptor, type) and issubclass(descriptor, Descriptor):
+        raise DescriptorError(
+            f"expected a descriptor name or instance; found the class {descriptor.__name__}. "
+            f"Pass an instance: {descriptor.__name__}() (parameters as keywords)."
+        )
+    if not isinstance(descriptor, str):
+        raise DescriptorError(
+            f"expected a registered descriptor name (e.g. 'wks') or a Descriptor instance; "
+            f"found {descriptor!r} ({type(descriptor).__name__})."
+        )
+    return make_descriptor(descriptor, **params)
 
 
 def descriptors() -> list[DescriptorInfo]:

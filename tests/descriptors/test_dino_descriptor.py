@@ -130,3 +130,20 @@ def test_presets_select_the_recipes_and_keep_explicit_parameters(tiny_dinov3_fol
     assert len(geofeat.FeatureCache().entries()) == 2  # the preset is part of the cache key
     with pytest.raises(DescriptorError, match="preset"):
         geofeat.compute(mesh, "dinov3", preset="dsmk", **params)  # DeepShapeMatchingKit's recipe is for DINOv2
+
+
+def test_an_instance_loads_its_backbone_once_for_every_mesh(tiny_dinov3_folder, monkeypatch):
+    """What the removed LRU of compute did for names, the caller's instance does: one load for many meshes."""
+    import geofeat.backbones
+
+    loads = []
+    real = geofeat.backbones.load_backbone
+    monkeypatch.setattr(geofeat.backbones, "load_backbone", lambda *a, **k: loads.append(a) or real(*a, **k))
+    params = {"weights": str(tiny_dinov3_folder), "views": 2, "image_size": 32, "camera_layout": "uniform"}
+    descriptor = geofeat.make_descriptor("dinov3", **params)
+    meshes = [bumpy(0, 2), bumpy(1, 2)]
+    for mesh in meshes + meshes:  # computed, then read back from the cache
+        geofeat.compute(mesh, descriptor)
+    assert len(loads) == 1
+    geofeat.compute(meshes[0], "dinov3", **params)  # by name: a new instance, which loads its own backbone
+    assert len(loads) == 2
