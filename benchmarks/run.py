@@ -47,6 +47,7 @@ import numpy as np
 
 import geofeat
 from geofeat.adapters.heads import Head, Match, load_head, make_head
+from geofeat.checks import parse_key_values
 from geofeat.datasets import dataset_names, load_dataset
 from geofeat.datasets.records import ShapePair
 from geofeat.descriptors.registry import make_descriptor
@@ -648,17 +649,8 @@ SINGLE_RUN_DEFAULTS = {"pipeline": "nn", "dataset": "synthetic_cuts", "descripto
 
 
 def descriptor_params(pairs: list[str], what: str = "--param") -> dict:
-    """``["k=v", ...]`` to a dict; values parsed as JSON when they parse (numbers, booleans, null), else strings."""
-    params = {}
-    for pair in pairs:
-        key, sep, value = pair.partition("=")
-        if not sep or not key:
-            raise geofeat.DescriptorError(f"{what} takes KEY=VALUE, found {pair!r}")
-        try:
-            params[key] = json.loads(value)
-        except json.JSONDecodeError:
-            params[key] = value
-    return params
+    """``["k=v", ...]`` to a dict (`geofeat.checks.parse_key_values`: JSON values when they parse; a key given twice is refused)."""
+    return parse_key_values(pairs, what, error=geofeat.DescriptorError)
 
 
 def main(argv=None) -> int:

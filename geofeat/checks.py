@@ -12,6 +12,7 @@ parameter, what was expected and what was found.
 
 from __future__ import annotations
 
+import json
 import math
 import os
 from collections.abc import Iterable, Mapping
@@ -30,6 +31,7 @@ __all__ = [
     "is_boolean",
     "is_finite_number",
     "is_integer",
+    "parse_key_values",
 ]
 
 
@@ -188,3 +190,40 @@ def check_choice(
     if isinstance(value, bool) or value not in choices:
         raise error(f"{_prefix(owner, name)} must be one of {choices}; found {_found(value)}.")
     return value
+
+
+def parse_key_values(
+    items: Iterable[str], option: str = "--param", *, error: type[GeofeatError] = DescriptorError
+) -> dict[str, Any]:
+    """Command-line ``KEY=VALUE`` items as a dict: ``["n_descr=128", "laplacian=cotan"]`` -> ``{"n_descr": 128, "laplacian": "cotan"}``.
+
+    Each value is read as JSON when it parses (numbers, ``true``/``false``, ``null``, lists),
+    else kept as the string; the receiver checks the values. Keys are stripped of spaces.
+
+    Parameters
+    ----------
+    items : iterable of str
+        The values of a repeated option, as given.
+    option : str
+        The option's name, for messages (``"--param"``, ``"--head-param"``).
+    error : type
+        The `GeofeatError` subclass to raise (`ExtractError` for ``geofeat extract``).
+
+    Raises
+    ------
+    GeofeatError
+        Of type ``error``: an item without ``=`` or with an empty key, or a key given twice.
+    """
+    params: dict[str, Any] = {}
+    for item in items:
+        key, sep, text = item.partition("=")
+        key = key.strip()
+        if not sep or not key:
+            raise error(f"{option} expects KEY=VALUE (for example {option} n_descr=128); found {item!r}.")
+        if key in params:
+            raise error(f"{option} {key} is given twice ({params[key]!r} and {text!r}); give it once.")
+        try:
+            params[key] = json.loads(text)
+        except ValueError:
+            params[key] = text
+    return params

@@ -21,6 +21,7 @@ from geofeat.topology import edge_counts, triangle_areas, vertex_components
 
 log = logging.getLogger(__name__)
 
+#: File types `load_mesh` reads (and the ones ``geofeat extract --data`` and training folders look for).
 MESH_SUFFIXES = (".off", ".obj", ".ply")
 
 

@@ -42,3 +42,18 @@ def test_training_settings_refuse_bools_and_keep_numpy_scalars_as_python_values(
         TrainConfig(data="x", lr=float("inf"))
     config = TrainConfig(data="x", steps=np.int64(5), lr=np.float32(0.5))
     assert type(config.steps) is int and type(config.lr) is float and config.to_dict()["steps"] == 5
+
+
+def test_key_values_are_json_when_they_parse_and_given_once():
+    from geofeat.checks import parse_key_values
+    from geofeat.errors import ExtractError
+
+    assert parse_key_values(["n_eig=12", " scale =0.5", "normalize=false", "laplacian=cotan", "x=[1, 2]", "s="]) == {
+        "n_eig": 12, "scale": 0.5, "normalize": False, "laplacian": "cotan", "x": [1, 2], "s": "",
+    }  # fmt: skip
+    with pytest.raises(DescriptorError, match=r"--param expects KEY=VALUE \(for example --param n_descr=128\); found 'n_eig'"):
+        parse_key_values(["n_eig"])
+    with pytest.raises(ExtractError, match=r"--head-param expects KEY=VALUE.*found '=3'"):
+        parse_key_values(["=3"], "--head-param", error=ExtractError)
+    with pytest.raises(DescriptorError, match=r"--param n_eig is given twice \(3 and '4'\); give it once"):
+        parse_key_values(["n_eig=3", "n_eig=4"])

@@ -40,18 +40,17 @@ import torch
 
 from geofeat import distributed
 from geofeat._version import __version__
+from geofeat.checks import parse_key_values
 from geofeat.descriptors.base import Descriptor
 from geofeat.descriptors.cache import MANIFEST_SUFFIX, FeatureCache
 from geofeat.descriptors.compute import Computed, compute_each
 from geofeat.descriptors.registry import make_descriptor
 from geofeat.errors import ExtractError
 from geofeat.files import atomic_write, probe_writable
-from geofeat.mesh import Mesh, load_mesh
+from geofeat.mesh import MESH_SUFFIXES, Mesh, load_mesh
 
 log = logging.getLogger(__name__)
 
-#: File types read from a folder (``--data``).
-MESH_SUFFIXES = (".off", ".obj", ".ply")
 EXPORT_FORMATS = ("npy", "h5")
 LAYOUTS = ("mirror", "beside")
 #: Version of the manifest's layout.
@@ -175,29 +174,11 @@ def _unique(shapes: list[ShapeSource], where: str) -> list[ShapeSource]:
 
 
 def parse_params(items: Sequence[str]) -> dict[str, Any]:
-    """``["n_descr=128", "laplacian=cotan"]`` -> ``{"n_descr": 128, "laplacian": "cotan"}``.
+    """``--param`` items of ``geofeat extract`` as a dict (`geofeat.checks.parse_key_values` raising `ExtractError`).
 
-    Each value is read as JSON when it parses (numbers, ``true``/``false``, ``null``, lists),
-    else kept as the string; the descriptor checks the values.
-
-    Raises
-    ------
-    ExtractError
-        An item without ``=`` or with an empty key, or a key given twice.
+    ``["n_descr=128", "laplacian=cotan"]`` -> ``{"n_descr": 128, "laplacian": "cotan"}``.
     """
-    params: dict[str, Any] = {}
-    for item in items:
-        key, sep, text = item.partition("=")
-        key = key.strip()
-        if not sep or not key:
-            raise ExtractError(f"--param expects KEY=VALUE (for example --param n_descr=128); found {item!r}.")
-        if key in params:
-            raise ExtractError(f"--param {key} is given twice ({params[key]!r} and {text!r}); give it once.")
-        try:
-            params[key] = json.loads(text)
-        except ValueError:
-            params[key] = text
-    return params
+    return parse_key_values(items, "--param", error=ExtractError)
 
 
 @dataclass(frozen=True)

@@ -139,6 +139,15 @@ def test_descriptor_parameters_reach_the_descriptor(tmp_path):
     assert bad.returncode == 2 and "unknown parameter(s) ['colour']" in bad.stderr
 
 
+def test_key_value_options_refuse_a_key_given_twice(tmp_path):
+    module = load_run_module()
+    assert module.descriptor_params(["n_descr=16", "laplacian=cotan"]) == {"n_descr": 16, "laplacian": "cotan"}
+    with pytest.raises(module.geofeat.DescriptorError, match=r"--head-param lr is given twice"):
+        module.descriptor_params(["lr=0.1", "lr=0.2"], what="--head-param")
+    result = run("--limit", "1", "--param", "n_descr=16", "--param", "n_descr=8", "--out", str(tmp_path))
+    assert result.returncode == 2 and "--param n_descr is given twice (16 and '8')" in result.stderr
+
+
 @pytest.mark.parametrize(
     "pipeline, dataset", [("ulrssm", "synthetic_cuts"), ("dpfm", "synthetic_p2p"), ("echomatch", "synthetic_p2p")]
 )
