@@ -10,11 +10,13 @@ from pathlib import Path
 import h5py
 import numpy as np
 import pytest
+from cache_writers import N_SHARED_KEYS, shared_key, write_shared_and_own_keys
 from shapes import REPO, bumpy
 
 import geofeat
 from geofeat import FeatureCache
 from geofeat.apps.cli import main as cli_main
+from geofeat.descriptors.spectral import WKS
 
 
 def test_default_location_env_var_and_setting(tmp_path, monkeypatch, isolated_cache):
@@ -29,16 +31,34 @@ def test_default_location_env_var_and_setting(tmp_path, monkeypatch, isolated_ca
     assert geofeat.cache_dir() == tmp_path / "xdg" / "geofeat"
 
 
-def test_hit_returns_the_same_array_and_is_fast(isolated_cache):
-    mesh = bumpy(0, 4)
-    start = time.perf_counter()
+def test_hit_returns_the_stored_array_without_computing(monkeypatch):
+    """A hit reads the entry back and never calls the descriptor's compute (counted, not timed)."""
+    calls = []
+    real_compute = WKS.compute
+
+    def counted_compute(self, mesh):
+        calls.append(mesh.name)
+        return real_compute(self, mesh)
+
+    monkeypatch.setattr(WKS, "compute", counted_compute)
+    mesh = bumpy(0)
     first = geofeat.compute(mesh, "wks")
-    compute_time = time.perf_counter() - start
-    start = time.perf_counter()
+    assert calls == [mesh.name]  # a miss computes once
+    (entry,) = FeatureCache().entries()
+    stored = FeatureCache().get(entry.stem)
+    assert np.array_equal(stored, first)
+
     second = geofeat.compute(mesh, "wks")
-    hit_time = time.perf_counter() - start
+    assert calls == [mesh.name]  # the hit did not compute
     assert np.array_equal(first, second) and second.dtype == np.float32
-    assert hit_time < compute_time
+
+    replaced = stored[::-1] * 2  # a valid entry of other content under the same key
+    FeatureCache().put(entry.stem, replaced)
+    third = geofeat.compute(mesh, "wks")
+    assert calls == [mesh.name] and np.array_equal(third, replaced)  # what the store holds, not a recomputation
+
+    geofeat.compute(mesh, "wks", cache=False)
+    assert calls == [mesh.name, mesh.name]  # the count does see a computation
 
 
 def test_key_separates_params_and_meshes():
@@ -92,33 +112,21 @@ def test_verify_reports_and_removes_damage():
     n_ok, damaged = FeatureCache().verify(remove=False)
     assert (n_ok, damaged) == (2, [entries[1]])
     n_ok, damaged = FeatureCache().verify()
-    assert len(FeatureCache().entries()) == 2
-
-
-def _writer(root: str, worker: int, n: int) -> int:
-    store = FeatureCache(root)
-    rng = np.random.default_rng(worker)
-    for i in range(n):
-        shared_key = f"{i % 4:064x}"  # every worker writes the same 4 keys, with identical content
-        store.put(shared_key, np.full((500, 8), i % 4, dtype=np.float32))
-        own = rng.standard_normal((200, 4)).astype(np.float32)
-        store.put(f"{worker + 1:032x}{i:032x}", own)  # never equal to a shared key
-        got = store.get(shared_key)
-        assert got is not None and got.shape == (500, 8)
-    return n
+    assert (n_ok, damaged) == (2, [entries[1]])
+    assert len(FeatureCache().entries()) == 2 and not entries[1].exists()
 
 
 def test_several_processes_writing_at_once(tmp_path):
     root = str(tmp_path / "store")
     with mp.get_context("spawn").Pool(4) as pool:
-        done = pool.starmap(_writer, [(root, w, 25) for w in range(4)])
+        done = pool.starmap(write_shared_and_own_keys, [(root, w, 25) for w in range(4)])
     assert done == [25] * 4
     store = FeatureCache(root)
     n_ok, damaged = store.verify(remove=False)
-    assert (n_ok, damaged) == (4 + 4 * 25, [])
+    assert (n_ok, damaged) == (N_SHARED_KEYS + 4 * 25, [])
     assert store.temporary_files() == []
-    for i in range(4):
-        assert np.all(store.get(f"{i:064x}") == i)
+    for i in range(N_SHARED_KEYS):
+        assert np.all(store.get(shared_key(i)) == i)
 
 
 def _compute_worker(root: str, seed: int) -> float:
@@ -177,6 +185,7 @@ def test_process_killed_mid_write_leaves_store_readable(tmp_path):
     assert store.get("b" * 64) is None  # the entry is simply absent
     assert np.array_equal(store.get("a" * 64), kept)  # what was there survives
     assert len(store.temporary_files()) == 1 and store.info().entries == 1
+    assert store.info().other_paths == ()  # the half-written file counts as temporary, nothing else is left
     assert store.verify() == (1, [])
 
 

@@ -162,8 +162,32 @@ def test_console_script_help():
     assert result.returncode == 0 and "cache" in result.stdout and "``" not in result.stdout
 
 
-def test_errors_are_reported_without_traceback(tmp_path):
+@pytest.mark.parametrize(
+    ("args", "problem"),
+    [
+        (["--descriptor", "no_such_descriptor", "--data", "{data}"], "unknown descriptor 'no_such_descriptor'"),
+        (["--descriptor", "hks", "--param", "n_eig", "--data", "{data}"], "--param expects KEY=VALUE"),
+        (["--descriptor", "hks", "--data", "{missing}"], "data folder {missing} does not exist"),
+    ],
+    ids=["unknown-descriptor", "param-without-value", "missing-data-folder"],
+)
+def test_errors_are_reported_without_traceback(tmp_path, args, problem):
+    """Bad input to ``geofeat extract`` (a GeofeatError) exits with status 2 and one ``geofeat: error:`` line on stderr."""
+    data, missing = tmp_path / "data", tmp_path / "no-such-folder"
+    data.mkdir()
+    (data / "a.off").write_text("OFF\n3 1 0\n0 0 0\n1 0 0\n0 1 0\n3 0 1 2\n")
+    argv = [a.format(data=data, missing=missing) for a in args]
+    problem = problem.format(missing=missing)
     result = subprocess.run(
-        [sys.executable, "-m", "geofeat.apps.cli", "cache", "info", "--dir", str(tmp_path)], capture_output=True, text=True
+        [sys.executable, "-m", "geofeat", "extract", *argv, "--out", str(tmp_path / "store"), "--no-progress"],
+        capture_output=True,
+        text=True,
+        timeout=300,
     )
-    assert result.returncode == 0
+    assert result.returncode == 2, (result.returncode, result.stdout[-2000:], result.stderr[-2000:])
+    assert "Traceback" not in result.stdout + result.stderr, result.stderr[-3000:]
+    lines = result.stderr.splitlines()
+    assert len(lines) == 1, result.stderr  # the error and nothing else
+    line = lines[0]
+    assert line.startswith("geofeat: error: ") and problem in line, line
+    assert result.stdout == "" and not (tmp_path / "store").exists()  # refused before any work

@@ -1,20 +1,33 @@
 """`__version__` lives in `geofeat._version`, and pyproject.toml reads it from there."""
 
 import ast
-import re
+import importlib.metadata
 from pathlib import Path
+
+from packaging.version import Version  # a dependency of pytest
 
 import geofeat
 from geofeat._version import __version__
+
+try:
+    import tomllib
+except ModuleNotFoundError:  # Python 3.10: pytest depends on tomli there
+    import tomli as tomllib
 
 ROOT = Path(__file__).resolve().parents[1]
 
 
 def test_one_version():
-    assert geofeat.__version__ == __version__ and re.fullmatch(r"\d+\.\d+\.\d+\S*", __version__)
-    pyproject = (ROOT / "pyproject.toml").read_text()
-    assert 'dynamic = ["version"]' in pyproject and 'attr = "geofeat._version.__version__"' in pyproject
-    assert not re.search(r"^version\s*=\s*\"", pyproject, flags=re.MULTILINE)
+    """The installed distribution, the package and pyproject.toml (dynamic) all give the one `_version.__version__`."""
+    assert geofeat.__version__ == __version__
+    assert importlib.metadata.version("geofeat") == __version__  # reinstall (scripts/install.sh) after changing it
+    version = Version(__version__)  # raises InvalidVersion for a string that is not PEP 440
+    assert str(version) == __version__ and len(version.release) == 3  # normalised, MAJOR.MINOR.PATCH
+
+    with open(ROOT / "pyproject.toml", "rb") as handle:
+        pyproject = tomllib.load(handle)
+    assert "version" not in pyproject["project"] and pyproject["project"]["dynamic"] == ["version"]
+    assert pyproject["tool"]["setuptools"]["dynamic"]["version"] == {"attr": "geofeat._version.__version__"}
 
 
 def test_nothing_below_imports_the_package_top():
