@@ -60,11 +60,10 @@ from geofeat.evaluation.protocol import (
     evaluate_dataset,
     evaluate_pair,
     summarize,
-    target_distances,
 )
 from geofeat.evaluation.report import PairPicture, markdown_table, plot_matches, plot_pairs, plot_pck
 from geofeat.files import atomic_write
-from geofeat.geometry.geodesic import GeodesicStore
+from geofeat.geometry.geodesic import GeodesicStore, evaluation_distances
 
 HERE = Path(__file__).resolve().parent
 REPO = HERE.parent
@@ -371,7 +370,7 @@ def _evaluate_main_group(task: tuple[str, list[int]]) -> tuple[str, list[tuple[i
     for i in indices:
         pair = kinds[kind][i]
         if pair.x.hash != target:
-            target, distances = pair.x.hash, target_distances(pair.x, store)
+            target, distances = pair.x.hash, evaluation_distances(pair.x, store)
         records, maps = {}, {}
         for label, match in matchers.items():
             predicted = match(i, pair)
@@ -548,7 +547,7 @@ def main_job(args) -> int:
         "pck_plot_thresholds": [round(value, 5) for value in plot_thresholds.tolist()],
         "rows": rows,
     }
-    (out / "results.json").write_text(json.dumps(result, indent=1) + "\n")
+    atomic_write(out / "results.json", lambda tmp: tmp.write_text(json.dumps(result, indent=1) + "\n"))  # never half-written
     (out / "results.md").write_text(markdown)
 
     print(READING_GUIDE)
@@ -731,7 +730,7 @@ def main(argv=None) -> int:
         **summary.to_dict(),
         "pairs": [record.to_dict() for record in records],
     }
-    (out / "results.json").write_text(json.dumps(result, indent=1) + "\n")
+    atomic_write(out / "results.json", lambda tmp: tmp.write_text(json.dumps(result, indent=1) + "\n"))  # never half-written
     columns = [("pipeline", "pipeline", "s"), ("descriptor", "descriptor", "s"), ("dataset", "dataset", "s"), *SUMMARY_COLUMNS]
     table = markdown_table([result], columns)
     (out / "results.md").write_text(table + "\n")

@@ -34,7 +34,6 @@ from geofeat.datasets.records import Match, ShapePair
 from geofeat.errors import DatasetError, MetricError
 from geofeat.evaluation import metrics
 from geofeat.geometry.geodesic import GeodesicEntries, GeodesicStore, evaluation_distances, memory_limit
-from geofeat.mesh import Mesh
 from geofeat.progress import progress_bar
 
 log = logging.getLogger(__name__)
@@ -49,7 +48,6 @@ __all__ = [
     "evaluate_pair",
     "pair_targets",
     "summarize",
-    "target_distances",
 ]
 
 #: Which points of ``y`` are evaluated: every vertex with a counterpart, or the template points.
@@ -162,34 +160,6 @@ def _check_protocol(protocol: str) -> None:
         raise MetricError(f"protocol must be one of {PROTOCOLS}; found {protocol!r}.")
 
 
-def target_distances(
-    mesh: Mesh, store: GeodesicStore | None = None, limit: int | str | None = None, *, limit_source: str | None = None
-) -> np.ndarray | GeodesicEntries:
-    """The evaluation distances on a target shape: edge-Dijkstra geodesics over ``sqrt(area)``.
-
-    Parameters
-    ----------
-    mesh : Mesh
-        Target (full) shape with V vertices.
-    store : GeodesicStore, optional
-        Read the matrix from (and keep it in) this disk store; a float32 store gives exactly
-        the matrix computed in memory. None computes it (cached in memory).
-    limit : int or str, optional
-        Memory bound of the matrix (`geofeat.geometry.geodesic.memory_limit`: default
-        ``$GEOFEAT_GEODESIC_MEMORY``, else half the available memory).
-    limit_source : str, optional
-        Where the bound comes from, for the warning.
-
-    Returns
-    -------
-    numpy.ndarray, shape (V, V), float32, read-only, or GeodesicEntries
-        The matrix; above the bound (and not in the store), a `GeodesicEntries` that
-        `evaluate_pair` fills with the entries it reads, the same values (see
-        `geofeat.geometry.geodesic.evaluation_distances`).
-    """
-    return evaluation_distances(mesh, store, limit, limit_source=limit_source)
-
-
 def evaluate_pair(
     pair: ShapePair, match: Match, protocol: str = "vertices", distances: np.ndarray | None = None
 ) -> PairEvaluation:
@@ -204,7 +174,8 @@ def evaluate_pair(
     protocol : {"vertices", "template"}
         Evaluated points (see the module notes).
     distances : numpy.ndarray, shape (V_x, V_x), or GeodesicEntries, optional
-        Geodesic distances on ``pair.x`` over ``sqrt(area)`` (`target_distances`); computed
+        Geodesic distances on ``pair.x`` over ``sqrt(area)``
+        (`geofeat.geometry.geodesic.evaluation_distances`); computed
         when not given. A `GeodesicEntries` not computed yet is asked for the entries this
         pair reads and computed.
 
@@ -220,7 +191,7 @@ def evaluate_pair(
         For ``protocol="template"`` on a pair without template points.
     """
     _check_pair(pair, protocol)
-    dist_x = target_distances(pair.x) if distances is None else distances
+    dist_x = evaluation_distances(pair.x) if distances is None else distances
     if isinstance(dist_x, GeodesicEntries) and not dist_x.computed:
         _score(pair, match, protocol, dist_x)  # asks for the entries it reads
         dist_x.compute()
@@ -239,7 +210,7 @@ def _score(pair: ShapePair, match: Match, protocol: str, dist_x: np.ndarray | Ge
     if dist_x.shape != (pair.x.n_vertices, pair.x.n_vertices):
         raise MetricError(
             f"pair {pair.name}: distances must be the (V_x, V_x) = ({pair.x.n_vertices}, {pair.x.n_vertices}) matrix of x; "
-            f"found shape {dist_x.shape}. Pass target_distances(pair.x)."
+            f"found shape {dist_x.shape}. Pass geofeat.geometry.geodesic.evaluation_distances(pair.x)."
         )
     predicted = match.map_yx
     if protocol == "template":
@@ -373,7 +344,7 @@ def _evaluate_group(indices: list[int]) -> list[tuple[int, PairEvaluation, tuple
         if pair.x.hash != target:
             evaluate_waiting()
             bound, source = job.memory
-            target, distances = pair.x.hash, target_distances(pair.x, job.store, bound, limit_source=source)
+            target, distances = pair.x.hash, evaluation_distances(pair.x, job.store, bound, limit_source=source)
         if isinstance(distances, GeodesicEntries):
             _score(pair, match, job.protocol, distances)  # asks for the entries it reads
             waiting.append((i, pair, match))

@@ -148,6 +148,22 @@ def test_key_value_options_refuse_a_key_given_twice(tmp_path):
     assert result.returncode == 2 and "--param n_descr is given twice (16 and '8')" in result.stderr
 
 
+def test_results_json_is_written_atomically(tmp_path, monkeypatch, isolated_cache):
+    module = load_run_module()
+    written = []
+    real = module.atomic_write
+
+    def recording(path, write, **kwargs):
+        written.append(Path(path))
+        return real(path, write, **kwargs)
+
+    monkeypatch.setattr(module, "atomic_write", recording)
+    assert module.main(["--pipeline", "random", "--limit", "1", "--no-progress", "--out", str(tmp_path)]) == 0
+    assert tmp_path / "results.json" in written
+    assert json.loads((tmp_path / "results.json").read_text())["pipeline"] == "random"
+    assert sorted(p.name for p in tmp_path.iterdir() if p.name.startswith(".")) == []  # no temporary file left
+
+
 @pytest.mark.parametrize(
     "pipeline, dataset", [("ulrssm", "synthetic_cuts"), ("dpfm", "synthetic_p2p"), ("echomatch", "synthetic_p2p")]
 )
