@@ -86,7 +86,7 @@ def evaluate(work: Path, n_pairs: int, data_root: str, no_progress: bool) -> lis
     """NN P2F error of the geolora descriptor, before (step 0) and after each run, on both benchmarks."""
     import run as benchmark_run
 
-    from geofeat.train.trainer import latest_checkpoint
+    from geofeat.train.checkpoints import latest_checkpoint
 
     backbone = work / "backbone"
     adapters = {"before (step 0)": work / "run_geodesic" / "checkpoints" / "step_0000000"}

@@ -94,6 +94,7 @@ def save_pretrained(
     extra_files: Mapping[str, Callable[[Path], None]] | None = None,
     error: type[GeofeatError] = StoreError,
     durable: bool = True,
+    overwrite: bool = False,
 ) -> Path:
     """Write a folder of settings and weights in one piece (see the module notes for the layout).
 
@@ -116,6 +117,9 @@ def save_pretrained(
         The `GeofeatError` subclass raised for bad input or a folder that cannot be replaced.
     durable : bool
         ``fsync`` everything before the folder is renamed into place (see `geofeat.files.atomic_folder`).
+    overwrite : bool
+        Replace ``folder`` whatever it holds (to rewrite a folder of an older layout in place);
+        default: only a folder written by `save_pretrained` (or an empty one) is replaced.
 
     Returns
     -------
@@ -159,7 +163,7 @@ def save_pretrained(
         weights = {name: value.detach().to("cpu").contiguous() for name, value in tensors.items()}
     if folder.is_symlink() or folder.is_file():
         raise error(f"{folder} is a file or a link; expected a folder to save into. Choose another path or remove it.")
-    if folder.is_dir() and any(folder.iterdir()) and _read_envelope(folder) is None:
+    if not overwrite and folder.is_dir() and any(folder.iterdir()) and _read_envelope(folder) is None:
         raise error(
             f"{folder} already holds files not written by save_pretrained (no {CONFIG_FILE} with kind and "
             "format_version); they are never overwritten. Choose an empty or new folder, or remove that one."

@@ -119,6 +119,8 @@ def test_a_foreign_folder_or_a_file_is_refused(tmp_path):
     with pytest.raises(StoreError, match="is a file"):
         save_pretrained(tmp_path / "file", "toy", {})
     assert (tmp_path / "file").read_text() == "x"
+    save_pretrained(tmp_path / "mine", "toy", {}, overwrite=True)  # on purpose (a folder converted in place)
+    assert sorted(p.name for p in (tmp_path / "mine").iterdir()) == [CONFIG_FILE]
 
 
 @pytest.mark.parametrize("bad", [{"path": object()}, {"nan": float("nan")}, {1: "int key", "a": 2}])

@@ -28,8 +28,7 @@ from geofeat.backbones.dino import (
     upsample_patch_features,
 )
 from geofeat.backbones.lora import (
-    ADAPTER_CONFIG_FILE,
-    ADAPTER_WEIGHTS_FILE,
+    ADAPTER_KIND,
     OFFICIAL_ALPHA,
     LoraSettings,
     adapter_digest,
@@ -41,11 +40,11 @@ from geofeat.backbones.lora import (
     loaded_adapter_digest,
     lora_state_dict,
     save_adapter,
+    upgrade_adapter,
 )
 
 __all__ = [
-    "ADAPTER_CONFIG_FILE",
-    "ADAPTER_WEIGHTS_FILE",
+    "ADAPTER_KIND",
     "OFFICIAL_ALPHA",
     "LoraSettings",
     "adapter_digest",
@@ -57,6 +56,7 @@ __all__ = [
     "loaded_adapter_digest",
     "lora_state_dict",
     "save_adapter",
+    "upgrade_adapter",
     "IMAGENET_MEAN",
     "IMAGENET_STD",
     "KINDS",

@@ -10,15 +10,21 @@ One adapter (peft's ``"default"``) serves full and partial shapes alike (siamese
 The low-rank update of a projection ``W`` (out, in) is ``W + (alpha / rank) * B @ A`` with
 ``A`` (rank, in) and ``B`` (out, rank).
 
-Adapter folders hold two files:
+Adapter folders are written by `geofeat.pretrained.save_pretrained` (kind ``"lora_adapter"``,
+the layout of heads and trainer checkpoints too):
 
-``adapter.safetensors``
+``weights.safetensors``
     Tensors keyed ``layer.<i>.<target>.lora_A.weight`` (rank, in) and
     ``layer.<i>.<target>.lora_B.weight`` (out, rank), ``<i>`` the block index, ``<target>`` the
     projection's leaf name (``q_proj``, ``k_proj``, ``v_proj`` for DINOv3).
-``adapter_config.json``
-    geofeat version, backbone kind, source and weights digest, rank, alpha, dropout, targets,
-    number of blocks, free-form training settings and extra information.
+``config.json``
+    ``{"kind": "lora_adapter", "format_version", "geofeat_version", "config", "info"}``:
+    ``config`` holds the backbone's kind, source and weights digest, its number of blocks,
+    rank, alpha, dropout, targets, ``shared_a`` and the free-form training settings;
+    ``info`` the extra information (step, loss).
+
+A folder of the older layout (``adapter_config.json`` + ``adapter.safetensors``) is refused
+with a message; `upgrade_adapter` rewrites it in the current layout.
 
 The GeoLoRA release checkpoints (``saved_models/*.pth`` of the authors' repository) adapt the
 fused ``blocks.<i>.attn.qkv`` projection of the official DINOv3 (peft ``r=16``,
@@ -35,6 +41,7 @@ import json
 import logging
 import os
 import re
+import shutil
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -43,19 +50,17 @@ from typing import Any, ClassVar
 import torch
 from torch import Tensor
 
-from geofeat._version import __version__
 from geofeat.backbones.dino import DinoBackbone, state_dict_digest
 from geofeat.checks import check_integer, check_number
 from geofeat.errors import BackboneError, MissingDependencyError
-from geofeat.files import atomic_write
 from geofeat.jsonconfig import JsonConfig
+from geofeat.pretrained import Pretrained, from_pretrained, save_pretrained
 from geofeat.safe_load import load_torch_file
 
 logger = logging.getLogger(__name__)
 
 __all__ = [
-    "ADAPTER_CONFIG_FILE",
-    "ADAPTER_WEIGHTS_FILE",
+    "ADAPTER_KIND",
     "OFFICIAL_ALPHA",
     "LoraSettings",
     "adapter_digest",
@@ -67,12 +72,18 @@ __all__ = [
     "load_official_lora",
     "lora_state_dict",
     "save_adapter",
+    "upgrade_adapter",
 ]
 
-ADAPTER_WEIGHTS_FILE = "adapter.safetensors"
-ADAPTER_CONFIG_FILE = "adapter_config.json"
-_FORMAT = "geofeat-lora"
-_FORMAT_VERSION = 1
+#: The `geofeat.pretrained` kind of adapter folders (trainer checkpoints included).
+ADAPTER_KIND = "lora_adapter"
+#: Files of the older adapter layout, which `upgrade_adapter` rewrites.
+_OLD_CONFIG_FILE, _OLD_WEIGHTS_FILE = "adapter_config.json", "adapter.safetensors"
+_BACKBONE_KEYS = ("backbone_kind", "backbone_digest", "backbone_source", "num_layers")
+_OLD_LAYOUT_HINT = (
+    "Rewrite it in place with geofeat.backbones.lora.upgrade_adapter(folder) (the weights and a trainer checkpoint's "
+    "trainer_state.pt are kept)."
+)
 _ADAPTER = "default"
 _REQUIRED_KEYS = ("backbone_kind", "backbone_digest", "rank", "alpha", "targets")
 _CANONICAL_KEY = re.compile(r"^layer\.(\d+)\.([A-Za-z0-9_]+)\.lora_([AB])\.weight$")
@@ -93,17 +104,6 @@ def _require_peft() -> Any:
     return peft
 
 
-def _require_safetensors() -> Any:
-    try:
-        import safetensors.torch
-    except ImportError as exc:
-        raise MissingDependencyError(
-            "LoRA adapter files need the optional dependency 'safetensors', which is not installed; install it with: "
-            "pip install 'geofeat[dino]'"
-        ) from exc
-    return safetensors.torch
-
-
 # ----------------------------------------------------------------------------- settings
 
 
@@ -111,7 +111,7 @@ def _require_safetensors() -> Any:
 class LoraSettings(JsonConfig):
     """LoRA hyper-parameters, plus free-form training settings stored with the adapter.
 
-    A `geofeat.jsonconfig.JsonConfig` (`to_json` / `from_json` are its `save` / `load`).
+    A `geofeat.jsonconfig.JsonConfig`: `JsonConfig.save` / `JsonConfig.load` write and read it as a JSON file.
 
     Parameters
     ----------
@@ -163,15 +163,6 @@ class LoraSettings(JsonConfig):
     def scaling(self) -> float:
         """``alpha / rank``, the factor applied to ``B @ A``."""
         return self.alpha / self.rank
-
-    def to_json(self, path: str | os.PathLike) -> None:
-        """Write the settings as JSON (atomically; `JsonConfig.save`)."""
-        self.save(path)
-
-    @classmethod
-    def from_json(cls, path: str | os.PathLike) -> LoraSettings:
-        """Read settings written by `to_json` (`JsonConfig.load`: unknown keys warned about and kept aside)."""
-        return cls.load(path)
 
 
 # ----------------------------------------------------------------------------- adding LoRA
@@ -341,42 +332,41 @@ def _load_lora_tensors(backbone: DinoBackbone, tensors: Mapping[str, Tensor], so
 # ----------------------------------------------------------------------------- files
 
 
-def _read_json(path: Path) -> dict[str, Any]:
-    try:
-        data = json.loads(path.read_text())
-    except FileNotFoundError as exc:
-        raise BackboneError(f"{path} does not exist; expected a LoRA adapter written by save_adapter") from exc
-    except (OSError, ValueError) as exc:
-        raise BackboneError(f"could not read {path} as JSON: {exc}") from exc
-    if not isinstance(data, dict):
-        raise BackboneError(f"{path} should hold a JSON object, found {type(data).__name__}")
-    return data
-
-
 def save_adapter(
     backbone: DinoBackbone,
     folder: str | os.PathLike,
     settings: LoraSettings | None = None,
     extra_info: Mapping[str, Any] | None = None,
+    *,
+    extra_files: Mapping[str, Any] | None = None,
 ) -> Path:
-    """Save the backbone's LoRA adapter as ``adapter.safetensors`` + ``adapter_config.json``.
+    """Save the backbone's LoRA adapter as a `geofeat.pretrained` folder (``config.json`` + ``weights.safetensors``).
 
     Parameters
     ----------
     backbone : DinoBackbone
         A backbone with LoRA (`add_lora`, `load_adapter` or `load_official_lora`).
     folder : str or os.PathLike
-        Created if needed; existing adapter files in it are replaced atomically.
+        Created if needed; an adapter (or any folder written by `geofeat.pretrained.save_pretrained`)
+        there is replaced whole and atomically; a folder holding other files is refused.
     settings : LoraSettings, optional
         Its ``training`` dict is stored; its rank, alpha and dropout must agree with the adapter
         (None: read them from the adapter, no training settings).
     extra_info : Mapping, optional
-        JSON-serialisable extra information (e.g. step, loss), stored under ``"extra_info"``.
+        JSON-serialisable extra information (e.g. step, loss), stored as the folder's ``info``.
+    extra_files : Mapping of str to callable, optional
+        More files of the folder, ``{name: writer(path)}`` (the trainer's ``trainer_state.pt``).
 
     Returns
     -------
     pathlib.Path
         The folder.
+
+    Raises
+    ------
+    BackboneError
+        No adapter on the backbone, settings that disagree with it, ``extra_info`` that is not
+        JSON-serialisable, or a folder that holds other files.
     """
     active = _active_settings(backbone)
     if settings is not None:
@@ -390,53 +380,35 @@ def save_adapter(
             )
         active = dataclasses.replace(active, training=dict(settings.training))
     config = {
-        "format": _FORMAT,
-        "format_version": _FORMAT_VERSION,
-        "geofeat_version": __version__,
         "backbone_kind": backbone.kind,
         "backbone_digest": backbone.weights_digest,
         "backbone_source": backbone.source,
         "num_layers": backbone.num_layers,
         **active.to_dict(unknown=False),
-        "extra_info": dict(extra_info or {}),
     }
-    try:
-        text = json.dumps(config, indent=2, sort_keys=True)
-    except (TypeError, ValueError) as exc:
-        raise BackboneError(f"extra_info must be JSON-serialisable: {exc}") from exc
-    folder = Path(folder)
     tensors = lora_state_dict(backbone)
-    st = _require_safetensors()
-    atomic_write(folder / ADAPTER_WEIGHTS_FILE, lambda p: st.save_file(tensors, str(p), metadata={"format": _FORMAT}))
-    atomic_write(folder / ADAPTER_CONFIG_FILE, lambda p: p.write_text(text))
+    folder = save_pretrained(folder, ADAPTER_KIND, config, tensors, info=extra_info, extra_files=extra_files, error=BackboneError)
     logger.info("saved LoRA adapter (%d tensors) to %s", len(tensors), folder)
     return folder
 
 
-def _read_adapter_config(folder: Path) -> dict[str, Any]:
-    config = _read_json(folder / ADAPTER_CONFIG_FILE)
+def _read_adapter(folder: Path) -> tuple[Pretrained, dict[str, Any]]:
+    """The adapter folder and its checked config (the backbone keys and the `LoraSettings` fields)."""
+    saved = from_pretrained(folder, ADAPTER_KIND, BackboneError, older_layout_hint=_OLD_LAYOUT_HINT)
+    config = saved.config
     missing = [k for k in _REQUIRED_KEYS if k not in config]
     if missing:
-        raise BackboneError(f"{folder / ADAPTER_CONFIG_FILE} lacks the keys {missing}; it was not written by save_adapter")
-    known = (
-        {f.name for f in dataclasses.fields(LoraSettings)}
-        | set(_REQUIRED_KEYS)
-        | {"format", "format_version", "geofeat_version", "backbone_source", "num_layers", "extra_info"}
-    )
-    unknown = sorted(set(config) - known)
+        raise BackboneError(
+            f"the config of {folder} lacks the keys {missing}; it was not written by save_adapter. Save the adapter again."
+        )
+    unknown = sorted(set(config) - set(LoraSettings.field_names()) - set(_BACKBONE_KEYS))
     if unknown:
-        logger.debug("ignoring unknown keys %s in %s", unknown, folder / ADAPTER_CONFIG_FILE)
-    return config
+        logger.debug("ignoring unknown keys %s in the config of %s", unknown, folder)
+    return saved, config
 
 
-def _read_adapter_tensors(folder: Path) -> dict[str, Tensor]:
-    path = folder / ADAPTER_WEIGHTS_FILE
-    if not path.is_file():
-        raise BackboneError(f"{path} does not exist; expected a LoRA adapter folder written by save_adapter")
-    try:
-        return _require_safetensors().load_file(str(path))
-    except Exception as exc:  # safetensors raises its own SafetensorError and OSError
-        raise BackboneError(f"could not read {path} as safetensors: {exc}") from exc
+def _settings_of(config: Mapping[str, Any]) -> LoraSettings:
+    return LoraSettings.from_dict({k: config[k] for k in LoraSettings.field_names() if k in config})
 
 
 def _check_backbone(backbone: DinoBackbone, config: Mapping[str, Any], folder: Path) -> None:
@@ -451,7 +423,7 @@ def _check_backbone(backbone: DinoBackbone, config: Mapping[str, Any], folder: P
 
 
 def load_adapter(backbone: DinoBackbone, folder: str | os.PathLike) -> DinoBackbone:
-    """Restore an adapter written by `save_adapter` onto a backbone with the same base weights.
+    """Restore an adapter written by `save_adapter` (or a trainer checkpoint) onto a backbone with the same base weights.
 
     Adds the LoRA layers first when the backbone has none (the base weights are frozen, the
     LoRA parameters trainable, so training can resume); otherwise the existing adapter must
@@ -463,7 +435,8 @@ def load_adapter(backbone: DinoBackbone, folder: str | os.PathLike) -> DinoBackb
     backbone : DinoBackbone
         Its `weights_digest` and kind must match those recorded in the adapter.
     folder : str or os.PathLike
-        Folder holding ``adapter.safetensors`` and ``adapter_config.json``.
+        A folder written by `save_adapter` (``config.json`` of kind ``"lora_adapter"`` and
+        ``weights.safetensors``).
 
     Returns
     -------
@@ -473,18 +446,67 @@ def load_adapter(backbone: DinoBackbone, folder: str | os.PathLike) -> DinoBackb
     Raises
     ------
     BackboneError
-        Missing or malformed files, or another backbone (the message names the one it was trained on).
+        Missing or malformed files, a folder of the older layout (the message says how to
+        upgrade it), or another backbone (the message names the one it was trained on).
     """
     folder = Path(folder)
-    config = _read_adapter_config(folder)
+    saved, config = _read_adapter(folder)
     _check_backbone(backbone, config, folder)
-    settings = LoraSettings.from_dict({k: config[k] for k in LoraSettings.field_names() if k in config})
-    tensors = _read_adapter_tensors(folder)
+    settings = _settings_of(config)
+    tensors = saved.tensors()
     _attach(backbone, settings, str(folder))
     _load_lora_tensors(backbone, tensors, str(folder))
     backbone.model.eval()
     logger.info("loaded LoRA adapter from %s", folder)
     return backbone
+
+
+def upgrade_adapter(folder: str | os.PathLike) -> Path:
+    """Rewrite an adapter folder of the older layout (``adapter_config.json`` + ``adapter.safetensors``) in place.
+
+    The weights, settings and extra information move to the current layout (`save_adapter`);
+    every other file of the folder (a trainer checkpoint's ``trainer_state.pt``) is kept. The
+    folder is replaced atomically, so an interruption leaves the old one.
+
+    Parameters
+    ----------
+    folder : str or os.PathLike
+
+    Returns
+    -------
+    pathlib.Path
+        The folder, now loadable by `load_adapter`.
+
+    Raises
+    ------
+    BackboneError
+        The folder holds no adapter of the older layout, or its files cannot be read.
+    """
+    import safetensors.torch
+
+    folder = Path(folder)
+    old_config, old_weights = folder / _OLD_CONFIG_FILE, folder / _OLD_WEIGHTS_FILE
+    if not old_config.is_file() or not old_weights.is_file():
+        raise BackboneError(f"{folder} holds no {_OLD_CONFIG_FILE} and {_OLD_WEIGHTS_FILE}; there is nothing to upgrade.")
+    try:
+        data = json.loads(old_config.read_text())
+        tensors = safetensors.torch.load_file(str(old_weights))
+    except Exception as exc:  # OSError, JSONDecodeError and SafetensorError have no common base class
+        raise BackboneError(f"could not read the adapter in {folder} ({type(exc).__name__}: {exc}).") from exc
+    if not isinstance(data, dict) or any(k not in data for k in _REQUIRED_KEYS):
+        raise BackboneError(f"{old_config} lacks the keys {list(_REQUIRED_KEYS)}; it was not written by save_adapter.")
+    config = {k: data[k] for k in (*_BACKBONE_KEYS, *LoraSettings.field_names()) if k in data}
+    others = {
+        path.name: (lambda target, source=path: shutil.copyfile(source, target))
+        for path in sorted(folder.iterdir())
+        if path.is_file() and path.name not in (_OLD_CONFIG_FILE, _OLD_WEIGHTS_FILE)
+    }
+    save_pretrained(
+        folder, ADAPTER_KIND, config, tensors, info=data.get("extra_info") or {}, extra_files=others, error=BackboneError,
+        overwrite=True,
+    )  # fmt: skip
+    logger.info("upgraded the adapter in %s to config.json + weights.safetensors", folder)
+    return folder
 
 
 def _attach(backbone: DinoBackbone, settings: LoraSettings, source: str) -> None:
@@ -529,10 +551,8 @@ def adapter_digest(folder: str | os.PathLike) -> str:
     str
         64 hexadecimal characters.
     """
-    folder = Path(folder)
-    config = _read_adapter_config(folder)
-    settings = LoraSettings.from_dict({k: config[k] for k in LoraSettings.field_names() if k in config})
-    return _digest(config["backbone_kind"], config["backbone_digest"], settings, _read_adapter_tensors(folder))
+    saved, config = _read_adapter(Path(folder))
+    return _digest(config["backbone_kind"], config["backbone_digest"], _settings_of(config), saved.tensors())
 
 
 def loaded_adapter_digest(backbone: DinoBackbone) -> str:

@@ -187,8 +187,9 @@ class GeoLoRA(DinoFeatures):
     Parameters
     ----------
     checkpoint : str
-        The adapter: a folder written by `geofeat.backbones.save_adapter` (every checkpoint
-        of ``geofeat train-geolora``, ``<run>/checkpoints/step_NNNNNNN``) or a GeoLoRA release
+        The adapter: a folder written by `geofeat.backbones.save_adapter` (``config.json`` +
+        ``weights.safetensors``; every checkpoint of ``geofeat train-geolora``,
+        ``<run>/checkpoints/step_NNNNNNN``, is one) or a GeoLoRA release
         checkpoint ``.pth`` (``saved_models/*.pth`` of the authors' repository, for DINOv3
         ViT-B/16).
     preset, weights, views, image_size, camera_layout, backproject, layer, device, batch_size, fill, random_rotation, seed

@@ -213,7 +213,7 @@ class Cameras:
         center : array_like, shape (3,)
             A point on the rotation axis (the look-at target).
         """
-        turn = torch.as_tensor(_rotation_about_y(math.radians(angle_degrees)), device=self.device)
+        turn = torch.as_tensor(rotation_about_up(angle_degrees), device=self.device)
         center_t = torch.as_tensor(_as_numpy(center).reshape(3), device=self.device)
         position = (self.position - center_t) @ turn.T + center_t
         rotation = self.rotation @ turn.T
@@ -652,6 +652,21 @@ def _check_rotations(rotation: torch.Tensor) -> None:
         raise RenderError("camera rotations must be proper (det = +1); found a reflection.")
 
 
-def _rotation_about_y(angle: float) -> np.ndarray:
-    c, s = math.cos(angle), math.sin(angle)
+def rotation_about_up(angle_degrees: float) -> np.ndarray:
+    """The rotation about the vertical (+y) axis by ``angle_degrees``, counter-clockwise seen from +y.
+
+    Turns camera rigs (`Cameras.rotated_about_up`) and training shapes
+    (`geofeat.train.trainer.rotate_about_up`): points turn as ``points @ R.T``.
+
+    Parameters
+    ----------
+    angle_degrees : float
+
+    Returns
+    -------
+    numpy.ndarray, shape (3, 3), float64
+        ``[[cos a, 0, sin a], [0, 1, 0], [-sin a, 0, cos a]]``.
+    """
+    a = math.radians(angle_degrees)
+    c, s = math.cos(a), math.sin(a)
     return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])

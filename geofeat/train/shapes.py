@@ -4,7 +4,8 @@ Every full shape is loaded once, decimated when it has more than ``max_vertices`
 (quadric decimation, as the GeoLoRA release does above 12,000) and reduced to its largest
 connected component (geodesics between components are infinite). Its all-pairs geodesic
 matrix (edge Dijkstra, divided by ``sqrt(area)``) is computed once and stored as a float16
-``.npy`` file keyed by the mesh content hash (`geofeat.geometry.geodesic.GeodesicStore`,
+``.npy`` file keyed by the mesh content hash (`TorchGeodesicStore`, the geometry layer's
+`geofeat.geometry.geodesic.GeodesicStore` in float16 handing out torch tensors,
 checksum-verified); steps read it back. float16 keeps
 about three significant digits, plenty for the loss weights ``0.5 + d``, and halves the disk
 use (a 5,000-vertex shape takes 50 MB, a 12,000-vertex one 288 MB).
@@ -27,7 +28,7 @@ from geofeat.progress import progress_bar
 
 log = logging.getLogger(__name__)
 
-__all__ = ["GeodesicStore", "decimate", "load_training_shapes", "prepare_full_shape"]
+__all__ = ["TorchGeodesicStore", "decimate", "load_training_shapes", "prepare_full_shape"]
 
 
 def decimate(mesh: Mesh, max_vertices: int) -> Mesh:
@@ -138,11 +139,12 @@ def load_training_shapes(
     return [prepare_full_shape(m, max_vertices) for m in meshes]
 
 
-class GeodesicStore(geodesic.GeodesicStore):
-    """The geometry layer's `geofeat.geometry.geodesic.GeodesicStore` as training uses it.
+class TorchGeodesicStore(geodesic.GeodesicStore):
+    """The geometry layer's `geofeat.geometry.geodesic.GeodesicStore` handing out torch tensors, as training uses it.
 
-    float16 entries (the loss weights need about three digits), connected shapes only, and
-    matrices handed out as torch tensors.
+    What it adds: matrices handed out as float32 torch tensors on a device, float16 entries
+    (the loss weights need about three digits), connected shapes only, and `TrainingError`
+    (not `MeshError`) for a mesh in several pieces.
 
     Parameters
     ----------

@@ -37,34 +37,16 @@ repeating or skipping a sample (with another rank count, the grouping of samples
 steps differs from the uninterrupted run).
 
 A run folder holds ``config.json``, ``log.csv`` (one row per step: loss, seconds per phase,
-validation error on validation steps) and ``checkpoints/step_NNNNNNN/`` (the adapter as
-``adapter.safetensors`` + ``adapter_config.json``, loadable by the ``geolora`` descriptor,
-and ``trainer_state.pt`` with the optimizer state). Checkpoints are written to a temporary
-folder ``.step_NNNNNNN.tmp-PID``, every file and the folder ``fsync``-ed, then renamed, so an
-interruption never leaves a half-written one; the log rows up to a checkpoint's step are on
-disk before the checkpoint is.
-
-After a crash (``kill -9``, power cut) a resumed run
-
-* drops the log rows of steps after the checkpoint it resumes from (they are trained again);
-* falls back to the previous checkpoint, with a warning, when the newest one cannot be read
-  (a truncated ``trainer_state.pt`` or adapter); the damaged folder is renamed
-  ``.step_NNNNNNN.damaged``;
-* removes the temporary folders of saves that were killed (their process is gone).
+validation error on validation steps) and ``checkpoints/step_NNNNNNN/`` (an adapter folder
+loadable by the ``geolora`` descriptor, with ``trainer_state.pt`` beside it). How
+checkpoints are written, read back and recovered after a crash is `geofeat.train.checkpoints`.
 """
 
 from __future__ import annotations
 
 import contextlib
 import csv
-import json
 import logging
-import math
-import os
-import re
-import shutil
-import signal
-import threading
 import time
 from collections import defaultdict
 from dataclasses import dataclass, field
@@ -75,20 +57,21 @@ import torch
 
 from geofeat import distributed
 from geofeat.backbones import DinoBackbone, load_backbone
-from geofeat.backbones.lora import LoraSettings, add_lora, load_adapter, save_adapter
+from geofeat.backbones.lora import LoraSettings, add_lora, load_adapter
 from geofeat.datasets.records import Match
-from geofeat.errors import DamagedCheckpointError, TrainingError
+from geofeat.errors import TrainingError
 from geofeat.evaluation.protocol import evaluate_pair, summarize
-from geofeat.files import atomic_write, fsync_folder, fsync_tree
 from geofeat.geometry.partial import make_partial
 from geofeat.mesh import Mesh
 from geofeat.progress import progress_bar
 from geofeat.render import make_cameras, multiview_features
+from geofeat.render.cameras import rotation_about_up
 from geofeat.render.multiview import RECIPES
-from geofeat.safe_load import load_torch_file
+from geofeat.train import checkpoints
+from geofeat.train.checkpoints import DeferredInterrupt
 from geofeat.train.config import RESUMABLE_CHANGES, TrainConfig
 from geofeat.train.losses import geodesic_point_info_nce, point_info_nce
-from geofeat.train.shapes import GeodesicStore, load_training_shapes
+from geofeat.train.shapes import TorchGeodesicStore, load_training_shapes
 
 log = logging.getLogger(__name__)
 
@@ -96,100 +79,32 @@ __all__ = [
     "PHASES",
     "GeoLoraTrainer",
     "StepRecord",
-    "complete_checkpoints",
-    "latest_checkpoint",
-    "remove_stale_temporary_folders",
     "rotate_about_up",
 ]
 
 #: Timed phases of a step, in order.
 PHASES = ("geodesics", "partial", "render", "forward", "backproject", "loss", "backward", "optimizer")
-_STATE_FILE = "trainer_state.pt"
 _LOG_COLUMNS = ("step", "elapsed_s", "loss", "n_partials", "val_geodesic_error", *(f"t_{p}" for p in PHASES))
-_TMP_FOLDER = re.compile(r"\.step_\d+\.tmp-(\d+)")
 
 
 def rotate_about_up(mesh: Mesh, angle_degrees: float) -> Mesh:
     """The mesh turned about the y (up) axis through the origin; same vertex order.
 
+    The rotation is `geofeat.render.cameras.rotation_about_up`, the one that turns a camera rig.
+
     Parameters
     ----------
     mesh : Mesh
+        V vertices.
     angle_degrees : float
+        Counter-clockwise seen from +y.
 
     Returns
     -------
     Mesh
+        Vertices (V, 3) float64 turned, faces and name unchanged.
     """
-    a = math.radians(angle_degrees)
-    rotation = np.array([[math.cos(a), 0.0, math.sin(a)], [0.0, 1.0, 0.0], [-math.sin(a), 0.0, math.cos(a)]])
-    return Mesh(mesh.verts @ rotation.T, mesh.faces, mesh.name)
-
-
-def complete_checkpoints(run: str | os.PathLike) -> list[Path]:
-    """The checkpoint folders of a run folder that hold a state file, oldest first.
-
-    Parameters
-    ----------
-    run : str or os.PathLike
-        A run folder (``config.out``).
-
-    Returns
-    -------
-    list of pathlib.Path
-        ``checkpoints/step_NNNNNNN`` folders with a ``trainer_state.pt``, sorted by step.
-    """
-    folder = Path(run) / "checkpoints"
-    if not folder.is_dir():
-        return []
-    return sorted(p for p in folder.glob("step_*") if p.is_dir() and (p / _STATE_FILE).is_file())
-
-
-def latest_checkpoint(run: str | os.PathLike) -> Path | None:
-    """The newest complete checkpoint folder of a run folder, or None."""
-    done = complete_checkpoints(run)
-    return done[-1] if done else None
-
-
-def _process_alive(pid: int) -> bool:
-    if pid == os.getpid():
-        return False  # a save of this process is never under way when this is asked
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:  # someone else's process
-        return True
-    except OSError:
-        return False
-    return True
-
-
-def remove_stale_temporary_folders(run: str | os.PathLike) -> list[Path]:
-    """Delete the ``.step_NNNNNNN.tmp-PID`` folders of checkpoint saves whose process is gone.
-
-    Parameters
-    ----------
-    run : str or os.PathLike
-        A run folder.
-
-    Returns
-    -------
-    list of pathlib.Path
-        The folders removed (a warning names them).
-    """
-    folder = Path(run) / "checkpoints"
-    removed = []
-    if not folder.is_dir():
-        return removed
-    for path in sorted(folder.iterdir()):
-        match = _TMP_FOLDER.fullmatch(path.name)
-        if match and path.is_dir() and not _process_alive(int(match.group(1))):
-            shutil.rmtree(path, ignore_errors=True)
-            removed.append(path)
-    if removed:
-        log.warning("removed %d unfinished checkpoint folder(s) of killed saves: %s", len(removed), [p.name for p in removed])
-    return removed
+    return Mesh(mesh.verts @ rotation_about_up(angle_degrees).T, mesh.faces, mesh.name)
 
 
 @dataclass
@@ -220,29 +135,6 @@ class _Timer:
             if self.cuda:
                 torch.cuda.synchronize()
             self.seconds[phase] += time.perf_counter() - start
-
-
-class _DeferredInterrupt:
-    """Turn the first Ctrl-C into a request to stop after the current step (a second one stops at once)."""
-
-    def __init__(self):
-        self.requested = False
-        self._previous = None
-
-    def _handle(self, signum, frame) -> None:
-        if self.requested:
-            raise KeyboardInterrupt
-        self.requested = True
-        log.warning("Ctrl-C: finishing the current step, then saving a checkpoint (press again to stop at once)")
-
-    def __enter__(self) -> _DeferredInterrupt:
-        if threading.current_thread() is threading.main_thread():
-            self._previous = signal.signal(signal.SIGINT, self._handle)
-        return self
-
-    def __exit__(self, *exc) -> None:
-        if self._previous is not None:
-            signal.signal(signal.SIGINT, self._previous)
 
 
 class GeoLoraTrainer:
@@ -282,7 +174,7 @@ class GeoLoraTrainer:
         )  # fmt: skip
         if not self.shapes:
             raise TrainingError(f"no training shape in {config.data!r}.")
-        self.geodesics = GeodesicStore(config.geodesic_cache)
+        self.geodesics = TorchGeodesicStore(config.geodesic_cache)
         self.backbone = (
             backbone
             if backbone is not None
@@ -355,8 +247,8 @@ class GeoLoraTrainer:
 
     def _start_or_resume_here(self) -> bool:
         """`_start_or_resume` in the process that owns the run folder."""
-        remove_stale_temporary_folders(self.out)
-        checkpoint, state = self._readable_checkpoint()
+        checkpoints.remove_stale_temporary_folders(self.out)
+        checkpoint, state = checkpoints.readable_checkpoint(self.out, self.device)
         if checkpoint is None:
             self._add_lora()
             self._origin = (0, 0)
@@ -387,58 +279,6 @@ class GeoLoraTrainer:
             )  # fmt: skip
         return True
 
-    def _read_checkpoint(self, folder: Path) -> dict:
-        """The trainer state of a checkpoint folder, after checking that its adapter files can be read.
-
-        Raises
-        ------
-        DamagedCheckpointError
-            A file is truncated or unreadable, or the state does not fit the folder.
-        TrainingError
-            ``trainer_state.pt`` is a pickle refused for safety.
-        """
-        state = load_torch_file(
-            folder / _STATE_FILE, TrainingError, damaged_error=DamagedCheckpointError, what="a trainer state",
-            map_location=self.device,
-        )  # fmt: skip
-        if not isinstance(state, dict) or not {"step", "optimizer"} <= set(state):
-            raise DamagedCheckpointError(
-                f"{folder / _STATE_FILE} lacks 'step' or 'optimizer'; it was not written by the trainer."
-            )
-        expected = int(folder.name.split("_")[-1])
-        if int(state["step"]) != expected:
-            raise DamagedCheckpointError(
-                f"{folder / _STATE_FILE} is for step {int(state['step'])}, its folder for step {expected}."
-            )
-        try:
-            import safetensors.torch
-
-            safetensors.torch.load_file(str(folder / "adapter.safetensors"))
-            json.loads((folder / "adapter_config.json").read_text())
-        except Exception as exc:  # SafetensorError, OSError, JSONDecodeError have no common base class
-            raise DamagedCheckpointError(f"the adapter in {folder} cannot be read ({type(exc).__name__}: {exc}).") from exc
-        return state
-
-    def _readable_checkpoint(self) -> tuple[Path | None, dict | None]:
-        """The newest checkpoint whose files can all be read, with its state; damaged newer ones are set aside."""
-        candidates = complete_checkpoints(self.out)
-        for folder in reversed(candidates):
-            try:
-                return folder, self._read_checkpoint(folder)
-            except DamagedCheckpointError as err:
-                aside = folder.with_name(f".{folder.name}.damaged")
-                shutil.rmtree(aside, ignore_errors=True)
-                os.replace(folder, aside)
-                log.warning(
-                    "checkpoint %s is damaged (%s); moved it to %s and fell back to the previous one", folder, err, aside.name
-                )
-        if candidates:
-            raise TrainingError(
-                f"no checkpoint of {self.out} can be read (all {len(candidates)} were damaged and moved to "
-                f"{self.out / 'checkpoints'}/.step_*.damaged); start again with another out folder."
-            )
-        return None, None
-
     def _make_optimizer(self) -> None:
         params = [p for p in self.backbone.model.parameters() if p.requires_grad]
         self.optimizer = torch.optim.Adam(params, lr=self.config.lr)
@@ -446,69 +286,18 @@ class GeoLoraTrainer:
     def save_checkpoint(self, extra: dict | None = None) -> Path:
         """Write ``checkpoints/step_NNNNNNN`` (adapter + optimizer state) atomically; returns the folder.
 
-        Only rank 0 writes; on the other ranks this returns the folder without writing.
+        `geofeat.train.checkpoints.write_checkpoint`. Only rank 0 writes; on the other ranks
+        this returns the folder without writing.
         """
-        final = self.out / "checkpoints" / f"step_{self.step:07d}"
-        if not self.ranks.is_main or (final / _STATE_FILE).is_file():
-            return final
-        tmp = final.with_name(f".{final.name}.tmp-{os.getpid()}")
-        shutil.rmtree(tmp, ignore_errors=True)
-        try:
-            save_adapter(self.backbone, tmp, self._lora_settings(), extra_info={"step": self.step, **(extra or {})})
-            state = {
-                "step": self.step,
-                "samples": self._sample_position(self.step),
-                "world_size": self.ranks.world_size,
-                "optimizer": self.optimizer.state_dict(),
-            }
-            torch.save(state, tmp / _STATE_FILE)
-            fsync_tree(tmp)  # the files and the folder are on disk before the rename makes them the checkpoint
-        except BaseException:
-            shutil.rmtree(tmp, ignore_errors=True)
-            raise
-        shutil.rmtree(final, ignore_errors=True)  # an incomplete one (no state file) from a crash
-        os.replace(tmp, final)
-        fsync_folder(final.parent)
-        log.info("saved checkpoint %s", final)
-        return final
-
-    def _truncate_log(self, last_step: int | None) -> None:
-        """Keep the complete rows of ``log.csv`` up to ``last_step`` (None: no row), dropping the rest.
-
-        Rows after the checkpoint a run resumes from were written by the killed process and
-        are written again by the resumed one; a kill can also leave half a row.
-        """
-        path = self.out / "log.csv"
-        if not path.is_file():
-            return
-        with open(path, newline="") as handle:
-            rows = list(csv.DictReader(handle))
-        kept = []
-        for row in rows:
-            try:
-                step = int(row.get("step") or "")
-            except ValueError:
-                continue
-            complete = None not in row and all(row.get(c) is not None for c in _LOG_COLUMNS)
-            if last_step is not None and step <= last_step and complete:
-                kept.append(row)
-        if len(kept) != len(rows) or not rows:
-
-            def write(tmp: Path) -> None:
-                with open(tmp, "w", newline="") as out:
-                    writer = csv.DictWriter(out, fieldnames=_LOG_COLUMNS, extrasaction="ignore")
-                    writer.writeheader()
-                    writer.writerows(kept)
-
-            atomic_write(path, write)
-            where = "a new run" if last_step is None else f"the checkpoint of step {last_step}"
-            log.info("log.csv: dropped %d row(s) written after %s", len(rows) - len(kept), where)
-
-    @staticmethod
-    def _sync_log(handle) -> None:
-        """Put the log rows written so far on disk (before a checkpoint that follows them)."""
-        handle.flush()
-        os.fsync(handle.fileno())
+        if not self.ranks.is_main:
+            return checkpoints.checkpoint_folder(self.out, self.step)
+        state = {
+            "step": self.step,
+            "samples": self._sample_position(self.step),
+            "world_size": self.ranks.world_size,
+            "optimizer": self.optimizer.state_dict(),
+        }
+        return checkpoints.write_checkpoint(self.out, self.step, self.backbone, self._lora_settings(), state, extra)
 
     # ------------------------------------------------------------------ features
 
@@ -755,7 +544,7 @@ class GeoLoraTrainer:
         config, main = self.config, self.ranks.is_main
         resumed = self._start_or_resume()
         if main:
-            self._truncate_log(self.step if resumed else None)
+            checkpoints.truncate_log(self.out, self.step if resumed else None, _LOG_COLUMNS)
         mine = distributed.shard(self.shapes, self.ranks)  # the one-off Dijkstra, shared out among the ranks
         for mesh in progress_bar(mine, desc="geodesics", unit="shape", show=self.progress):
             self.geodesics.ensure(mesh)
@@ -764,10 +553,10 @@ class GeoLoraTrainer:
         with self._log_file() as (handle, writer):
             if not resumed and main:
                 self._validation_row(writer, 0.0)
-                self._sync_log(handle)
+                checkpoints.sync_log(handle)
                 self.save_checkpoint()
             bar = progress_bar(total=config.steps, initial=self.step, desc="GeoLoRA", unit="step", show=self.progress)
-            with _DeferredInterrupt() as interrupt:
+            with DeferredInterrupt() as interrupt:
                 while self.step < config.steps and not self._anywhere(interrupt.requested):
                     record = self.train_step()
                     elapsed = time.perf_counter() - start
@@ -780,7 +569,7 @@ class GeoLoraTrainer:
                         if not out_of_time:
                             self._validation_row(writer, elapsed)
                     if main and config.checkpoint_every and self.step % config.checkpoint_every == 0:
-                        self._sync_log(handle)
+                        checkpoints.sync_log(handle)
                         self.save_checkpoint()
                     if main:
                         handle.flush()
@@ -791,14 +580,14 @@ class GeoLoraTrainer:
             bar.close()
             if interrupted:
                 if main:
-                    self._sync_log(handle)
+                    checkpoints.sync_log(handle)
                 checkpoint = self.save_checkpoint()
                 distributed.barrier()
                 log.warning("interrupted: stopped after step %d; resume with the same out folder (%s)", self.step, checkpoint)
                 raise KeyboardInterrupt
             if main:
                 self._validation_row(writer, time.perf_counter() - start)
-                self._sync_log(handle)
+                checkpoints.sync_log(handle)
             final = self.save_checkpoint()
         distributed.barrier()  # the other ranks return once rank 0 has written the last checkpoint
         return final

@@ -18,7 +18,6 @@ from tiny_models import tiny_dinov3  # noqa: E402
 
 from geofeat.backbones import DinoBackbone  # noqa: E402
 from geofeat.backbones.lora import (  # noqa: E402
-    ADAPTER_CONFIG_FILE,
     LoraSettings,
     adapter_digest,
     add_lora,
@@ -27,8 +26,10 @@ from geofeat.backbones.lora import (  # noqa: E402
     load_official_lora,
     lora_state_dict,
     save_adapter,
+    upgrade_adapter,
 )
 from geofeat.errors import BackboneError, GeofeatError  # noqa: E402
+from geofeat.pretrained import CONFIG_FILE, WEIGHTS_FILE  # noqa: E402
 
 DIM, DEPTH, RANK = 32, 2, 16
 
@@ -106,8 +107,8 @@ def test_custom_settings_and_validation(base_model):
 
 def test_settings_json_round_trip(tmp_path, caplog):
     settings = LoraSettings(rank=8, alpha=16, dropout=0.1, targets=("q_proj",), training={"lr": 1e-4, "views": 49})
-    settings.to_json(tmp_path / "s.json")
-    assert LoraSettings.from_json(tmp_path / "s.json") == settings
+    settings.save(tmp_path / "s.json")
+    assert LoraSettings.load(tmp_path / "s.json") == settings
     data = json.loads((tmp_path / "s.json").read_text()) | {"from_the_future": 1}
     with caplog.at_level(logging.DEBUG, logger="geofeat.backbones.lora"):
         assert LoraSettings.from_dict(data) == settings
@@ -125,11 +126,14 @@ def test_save_load_round_trip(base_model, images, tmp_path):
     settings = LoraSettings(training={"lr": 1e-4, "partial": ["cuts", "holes"]})
     save_adapter(backbone, tmp_path / "adapter", settings, extra_info={"step": 7})
 
-    config = json.loads((tmp_path / "adapter" / ADAPTER_CONFIG_FILE).read_text())
+    envelope = json.loads((tmp_path / "adapter" / CONFIG_FILE).read_text())
+    config = envelope["config"]
+    assert envelope["kind"] == "lora_adapter"
     assert config["backbone_kind"] == "dinov3" and config["backbone_digest"] == backbone.weights_digest
     assert (config["rank"], config["alpha"], sorted(config["targets"])) == (16, 32.0, ["k_proj", "q_proj", "v_proj"])
-    assert config["training"] == settings.training and config["extra_info"] == {"step": 7}
-    assert "geofeat_version" in config
+    assert config["training"] == settings.training and envelope["info"] == {"step": 7}
+    assert "geofeat_version" in envelope
+    assert sorted(p.name for p in (tmp_path / "adapter").iterdir()) == [CONFIG_FILE, WEIGHTS_FILE]
 
     restored = load_adapter(DinoBackbone(fresh, kind="dinov3"), tmp_path / "adapter")
     assert torch.equal(restored.pixel_features(images), expected)
@@ -153,8 +157,10 @@ def test_unknown_config_keys_are_ignored(base_model, images, tmp_path, caplog):
     backbone = add_lora(DinoBackbone(base_model, kind="dinov3"))
     _randomize_lora(backbone)
     save_adapter(backbone, tmp_path)
-    path = tmp_path / ADAPTER_CONFIG_FILE
-    path.write_text(json.dumps(json.loads(path.read_text()) | {"new_option": {"x": 1}, "format_version": 2}))
+    path = tmp_path / CONFIG_FILE
+    envelope = json.loads(path.read_text())
+    envelope["config"]["new_option"] = {"x": 1}
+    path.write_text(json.dumps(envelope | {"new_top_level_key": 2}))
     with caplog.at_level(logging.DEBUG, logger="geofeat.backbones.lora"):
         restored = load_adapter(DinoBackbone(fresh, kind="dinov3"), tmp_path)
     assert "new_option" in caplog.text
@@ -178,9 +184,61 @@ def test_missing_or_incomplete_adapter_errors(base_model, tmp_path):
         load_adapter(backbone, tmp_path / "nowhere")
     with pytest.raises(BackboneError, match="no LoRA adapter"):
         save_adapter(backbone, tmp_path / "x")
-    (tmp_path / ADAPTER_CONFIG_FILE).write_text(json.dumps({"rank": 16}))
+    (tmp_path / CONFIG_FILE).write_text(
+        json.dumps({"kind": "lora_adapter", "format_version": 1, "geofeat_version": "0", "config": {"rank": 16}, "info": {}})
+    )
     with pytest.raises(BackboneError, match="lacks the keys"):
         load_adapter(backbone, tmp_path)
+    (tmp_path / CONFIG_FILE).write_text(
+        json.dumps({"kind": "head", "format_version": 1, "geofeat_version": "0", "config": {}, "info": {}})
+    )
+    with pytest.raises(BackboneError, match="holds a 'head', not a 'lora_adapter'"):
+        load_adapter(backbone, tmp_path)
+
+
+def test_damaged_adapter_weights_are_a_backbone_error(base_model, tmp_path):
+    backbone = add_lora(DinoBackbone(copy.deepcopy(base_model), kind="dinov3"))
+    save_adapter(backbone, tmp_path / "a")
+    weights = tmp_path / "a" / WEIGHTS_FILE
+    weights.write_bytes(weights.read_bytes()[:64])
+    with pytest.raises(BackboneError, match="truncated or damaged"):
+        load_adapter(DinoBackbone(base_model, kind="dinov3"), tmp_path / "a")
+
+
+def test_save_adapter_refuses_a_folder_of_other_files(base_model, tmp_path):
+    backbone = add_lora(DinoBackbone(base_model, kind="dinov3"))
+    (tmp_path / "notes.txt").write_text("mine")
+    with pytest.raises(BackboneError, match="not written by save_pretrained"):
+        save_adapter(backbone, tmp_path)
+    assert [p.name for p in tmp_path.iterdir()] == ["notes.txt"]
+
+
+def test_an_adapter_of_the_older_layout_is_refused_then_upgraded(base_model, images, tmp_path):
+    """adapter_config.json + adapter.safetensors (geofeat before save_pretrained): a clear error, then upgrade_adapter."""
+    import safetensors.torch
+
+    fresh = copy.deepcopy(base_model)
+    backbone = add_lora(DinoBackbone(base_model, kind="dinov3", source="tiny"))
+    _randomize_lora(backbone)
+    save_adapter(backbone, tmp_path / "new", LoraSettings(training={"lr": 1e-4}), extra_info={"step": 3})
+    envelope = json.loads((tmp_path / "new" / CONFIG_FILE).read_text())
+    old = tmp_path / "old"
+    old.mkdir()
+    legacy = {"format": "geofeat-lora", "format_version": 1, **envelope["config"], "extra_info": {"step": 3}}
+    (old / "adapter_config.json").write_text(json.dumps(legacy))
+    safetensors.torch.save_file(lora_state_dict(backbone), str(old / "adapter.safetensors"))
+    (old / "trainer_state.pt").write_bytes(b"kept as it is")
+    with pytest.raises(BackboneError, match=r"older geofeat.*upgrade_adapter\(folder\)"):
+        load_adapter(DinoBackbone(copy.deepcopy(fresh), kind="dinov3"), old)
+    assert upgrade_adapter(old) == old
+    assert sorted(p.name for p in old.iterdir()) == [CONFIG_FILE, "trainer_state.pt", WEIGHTS_FILE]
+    assert (old / "trainer_state.pt").read_bytes() == b"kept as it is"
+    upgraded = json.loads((old / CONFIG_FILE).read_text())
+    assert (upgraded["config"], upgraded["info"]) == (envelope["config"], {"step": 3})
+    restored = load_adapter(DinoBackbone(fresh, kind="dinov3"), old)
+    assert torch.equal(restored.pixel_features(images), backbone.pixel_features(images))
+    with pytest.raises(BackboneError, match="nothing to upgrade"):
+        upgrade_adapter(old)
 
 
 # ----------------------------------------------------------------------------- release checkpoints
@@ -300,7 +358,7 @@ def test_shared_a_is_one_parameter_per_block_and_survives_save_and_load(base_mod
     torch.optim.Adam(trainable, lr=1e-2).step()  # a step keeps the three projections on one A
     expected = backbone.pixel_features(images)
     save_adapter(backbone, tmp_path / "adapter")
-    assert json.loads((tmp_path / "adapter" / ADAPTER_CONFIG_FILE).read_text())["shared_a"] is True
+    assert json.loads((tmp_path / "adapter" / CONFIG_FILE).read_text())["config"]["shared_a"] is True
     restored = load_adapter(DinoBackbone(fresh, kind="dinov3"), tmp_path / "adapter")
     assert torch.equal(restored.pixel_features(images), expected)
     named = dict(restored.model.named_parameters(remove_duplicate=False))
@@ -314,9 +372,10 @@ def test_separate_a_tensors_do_not_load_into_a_shared_adapter(base_model, tmp_pa
     backbone = add_lora(DinoBackbone(copy.deepcopy(base_model), kind="dinov3"))
     _randomize_lora(backbone)  # three different A per block
     save_adapter(backbone, tmp_path / "separate", LoraSettings())
-    config_path = tmp_path / "separate" / ADAPTER_CONFIG_FILE
-    config = json.loads(config_path.read_text())
-    config_path.write_text(json.dumps(config | {"shared_a": True}))
+    config_path = tmp_path / "separate" / CONFIG_FILE
+    envelope = json.loads(config_path.read_text())
+    envelope["config"]["shared_a"] = True
+    config_path.write_text(json.dumps(envelope))
     with pytest.raises(BackboneError, match="different lora_A tensors"):
         load_adapter(DinoBackbone(base_model, kind="dinov3"), tmp_path / "separate")
 

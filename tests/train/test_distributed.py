@@ -25,9 +25,10 @@ import trimesh
 from shapes import bumpy, free_port
 from tiny_models import tiny_dinov3
 
-import geofeat.train.trainer as trainer_module
+import geofeat.train.checkpoints as checkpoints_module
 from geofeat import distributed
 from geofeat.apps.cli import main
+from geofeat.pretrained import WEIGHTS_FILE
 from geofeat.train.trainer import GeoLoraTrainer
 
 log = logging.getLogger(__name__)
@@ -58,8 +59,9 @@ def _rank_main(rank: int, world: int, port: int, root: Path) -> None:
 
         return wrapper
 
-    trainer_module.save_adapter = counted("save_adapter", trainer_module.save_adapter)  # writes a checkpoint's adapter
-    for method in ("validate", "_log_row", "_validation_row", "_truncate_log"):
+    checkpoints_module.save_adapter = counted("save_adapter", checkpoints_module.save_adapter)  # writes a checkpoint's adapter
+    checkpoints_module.truncate_log = counted("_truncate_log", checkpoints_module.truncate_log)
+    for method in ("validate", "_log_row", "_validation_row"):
         setattr(GeoLoraTrainer, method, counted(method, getattr(GeoLoraTrainer, method)))
     record = {}
     with distributed.process_group("cpu"):  # one group for both commands (each leaves a started group running)
@@ -94,7 +96,7 @@ def runs(tmp_path_factory):
 
 
 def _adapter(run: Path, step: int) -> dict[str, torch.Tensor]:
-    return safetensors.torch.load_file(str(run / "checkpoints" / f"step_{step:07d}" / "adapter.safetensors"))
+    return safetensors.torch.load_file(str(run / "checkpoints" / f"step_{step:07d}" / WEIGHTS_FILE))
 
 
 def _max_difference(a: dict[str, torch.Tensor], b: dict[str, torch.Tensor]) -> float:

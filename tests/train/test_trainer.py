@@ -15,9 +15,10 @@ from tiny_models import tiny_dinov3
 from geofeat.backbones import DinoBackbone, lora_state_dict
 from geofeat.errors import TrainingError
 from geofeat.geometry.geodesic import geodesic_matrix
+from geofeat.train.checkpoints import latest_checkpoint
 from geofeat.train.config import TrainConfig
-from geofeat.train.shapes import GeodesicStore
-from geofeat.train.trainer import GeoLoraTrainer, latest_checkpoint, rotate_about_up
+from geofeat.train.shapes import TorchGeodesicStore
+from geofeat.train.trainer import GeoLoraTrainer, rotate_about_up
 
 
 def _backbone() -> DinoBackbone:
@@ -164,7 +165,7 @@ def test_cuda_step_with_autocast(tmp_path):
 
 
 def test_geodesic_store_round_trip_and_repair(tmp_path, caplog):
-    store = GeodesicStore(tmp_path / "g")
+    store = TorchGeodesicStore(tmp_path / "g")
     mesh = bumpy(0, 2)
     dist = store.load(mesh).numpy()
     exact = geodesic_matrix(mesh, normalize=True)
