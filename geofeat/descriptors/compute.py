@@ -158,7 +158,7 @@ def lookup_or_compute(
     return features, key, False
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class Computed:
     """One shape's outcome in `compute_each`.
 
