@@ -6,8 +6,9 @@ Layout: ``<root>/<key[:2]>/<key>.h5`` holding the dataset ``features`` and attri
 Why one file per entry rather than one big HDF5 file: HDF5 is not crash-safe while a file
 is open for writing, and it cannot be written by several processes at once. A per-entry
 file is written under a temporary name in the same directory, flushed to disk, then
-renamed over its final name (``os.replace``, atomic on POSIX and Windows). Readers see
-the whole entry or none; a killed writer leaves at most a temporary file, which
+renamed over its final name (`geofeat.files.atomic_write`: ``os.replace``, atomic on POSIX
+and Windows). Readers see the whole entry or none; a killed writer leaves at most a
+temporary file (``.<key>.h5.<random>.tmp`` beside the entry), which
 `FeatureCache.verify` and `FeatureCache.clear` sweep away; entries written before are
 never touched. A damaged entry (bad CRC-32 checksum, unreadable file) is detected on read,
 deleted and reported as a miss, so it is recomputed, never returned. The file is flushed
@@ -32,7 +33,6 @@ import logging
 import os
 import re
 import time
-import uuid
 from pathlib import Path
 
 import h5py
@@ -41,16 +41,19 @@ import numpy as np
 from geofeat import config
 from geofeat.entry_folder import EntryFolder, StoreInfo, array_crc32
 from geofeat.errors import CacheError
-from geofeat.files import fsync_file, fsync_folder, probe_writable
+from geofeat.files import atomic_write, probe_writable
 
 log = logging.getLogger(__name__)
 
 
 #: What `FeatureCache.info` returns (the summary every store folder gives).
 CacheInfo = StoreInfo
+#: Start of the names of probe files (`FeatureCache.check_writable`) and of the temporary files of older geofeat writers.
 TMP_PREFIX = ".tmp-"
 #: File name of an entry: the 64 hex digits of its key and ``.h5``.
 _ENTRY_NAME = re.compile(r"[0-9a-f]{64}\.h5")
+#: Temporary file of an entry being written (`geofeat.files.atomic_write`): ``.<entry name>.<random>.tmp``.
+_ENTRY_TEMPORARY = re.compile(r"\.[0-9a-f]{64}\.h5\.[^/]+\.tmp")
 #: Ending of the manifests that ``geofeat extract`` writes at the top of the store: not entries, left alone.
 MANIFEST_SUFFIX = ".manifest.json"
 _NOT_WRITABLE_HINT = (
@@ -161,8 +164,8 @@ class FeatureCache(EntryFolder):
             path.parent.mkdir(parents=True, exist_ok=True)
         except OSError as err:
             raise CacheError(f"cannot create cache directory {path.parent}: {err}. {_NOT_WRITABLE_HINT}") from err
-        tmp = path.parent / f"{TMP_PREFIX}{os.getpid()}-{uuid.uuid4().hex}.h5"
-        try:
+
+        def write(tmp: Path) -> None:
             with h5py.File(tmp, "w", locking=False) as fh:
                 fh.create_dataset("features", data=features)
                 fh.attrs["key"] = key
@@ -171,16 +174,11 @@ class FeatureCache(EntryFolder):
                 for name, value in (meta or {}).items():
                     fh.attrs[name] = "" if value is None else str(value)
                 fh.flush()
-            fsync_file(tmp)
-            os.replace(tmp, path)
-            fsync_folder(path.parent)
+
+        try:
+            return atomic_write(path, write)  # the temporary file is removed on any failure
         except OSError as err:
-            self._remove(tmp)
             raise CacheError(f"cannot write the cache entry {path}: {err}. {_NOT_WRITABLE_HINT}") from err
-        except BaseException:
-            self._remove(tmp)
-            raise
-        return path
 
     def check_writable(self, hint: str = _NOT_WRITABLE_HINT) -> None:
         """Raise `CacheError` unless a file can be created in the store (created when missing).
@@ -214,7 +212,7 @@ class FeatureCache(EntryFolder):
                 continue
             for path in folder.iterdir():
                 regular = path.is_file() and not path.is_symlink()
-                if regular and path.name.startswith(TMP_PREFIX):
+                if regular and (_ENTRY_TEMPORARY.fullmatch(path.name) or path.name.startswith(TMP_PREFIX)):
                     temporary.append(path)
                 elif regular and _ENTRY_NAME.fullmatch(path.name) and path.name[:2] == folder.name:
                     entries.append(path)
