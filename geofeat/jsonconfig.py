@@ -10,6 +10,11 @@ are dataclasses deriving from `JsonConfig`. They share:
   geofeat, or a note a user added): a warning names them, they are kept aside in
   `JsonConfig.unknown` and written back by `to_dict` and `save`, so nothing is lost by
   loading and saving a file again. They never change a setting.
+
+`JsonConfig.save` is the one way to write a settings file on its own (the trainer's
+``config.json`` of a run). Settings saved together with weights (heads, LoRA adapters,
+trainer checkpoints) go through `geofeat.pretrained.save_pretrained`, which stores
+`to_dict` under the ``"config"`` key of its ``config.json``.
 """
 
 from __future__ import annotations
