@@ -64,29 +64,34 @@ holds the settings of their code. Where that code differs from our defaults:
 
 from __future__ import annotations
 
-import math
 import re
 from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Any, NamedTuple
+from typing import Any
 
 import numpy as np
 import torch
 import torch.nn.functional as F
-from scipy.spatial import cKDTree
-from torch import nn
 
-from geofeat.checks import check_boolean, check_integer
-from geofeat.datasets.records import ShapePair
+from geofeat.checks import check_boolean
+from geofeat.datasets.records import Match, ShapePair
 from geofeat.errors import HeadError
 from geofeat.lru import LRUCache
 from geofeat.mesh import Mesh
 
-from .diffusion_net import DiffusionNet
-from .fmap_layers import regularized_fmap
+from .dpfm_losses import ground_truth_fmap, nce_loss, template_fmap, weighted_overlap_bce
+from .dpfm_networks import DPFMNet, DPFMOutput
+from .dpfm_sampling import (
+    REFERENCE_CANDIDATE_RATIO,
+    SampleInterpolation,
+    reference_candidates,
+    reference_sample_interpolation,
+    sample_interpolation,
+)
 from .functional_maps import nearest_neighbors
-from .heads import HeadConfig, LearnedHead, Match, check_integers, check_numbers, ground_truth_map, ground_truth_overlaps
-from .operators import SurfaceOperators
+from .heads import HeadConfig, check_integers, check_numbers
+from .inputs import ground_truth_map, ground_truth_overlaps, unit_area_verts
+from .learned import LearnedHead
 from .release import ReleaseState, diffusionnet_state, state_problems
 
 __all__ = [
@@ -95,21 +100,9 @@ __all__ = [
     "HEAD_LAYOUTS",
     "INTERPOLATIONS",
     "POINTMAPS",
-    "CrossAttentionRefiner",
     "DPFMConfig",
     "DPFMHead",
-    "DPFMNet",
-    "DPFMOutput",
-    "ReferenceCandidates",
-    "SampleInterpolation",
     "augment_xyz",
-    "farthest_point_sampling",
-    "ground_truth_fmap",
-    "reference_candidates",
-    "reference_sample_interpolation",
-    "sample_interpolation",
-    "template_fmap",
-    "weighted_overlap_bce",
 ]
 
 #: Which features the functional map is computed from.
@@ -122,19 +115,11 @@ HEAD_LAYOUTS = ("contiguous", "interleaved")
 INTERPOLATIONS = ("nearest", "reference")
 #: Ground-truth functional map of the loss: projection of the point map, or least squares on template points.
 FMAP_GROUND_TRUTHS = ("projection", "template_lstsq")
-#: Reference interpolation: fraction of the vertices in its farthest-point candidate list.
-REFERENCE_CANDIDATE_RATIO = 0.9
-#: Reference interpolation: nearest candidates kept for every vertex.
-REFERENCE_CANDIDATES = 130
 #: Reference augmentation (its training script): maximal rotation about x, y, z in degrees,
 #: noise standard deviation and clip, per-axis scale range.
 AUGMENT_ROTATION_DEGREES = (30.0, 30.0, 60.0)
 AUGMENT_NOISE = (0.01, 0.05)
 AUGMENT_SCALE = (0.9, 1.1)
-#: Added to squared distances before inverting them into interpolation weights (as the reference).
-INTERPOLATION_EPS = 1e-8
-#: Variance floor of the instance normalisation in the message MLPs (torch's InstanceNorm1d default).
-INSTANCE_NORM_EPS = 1e-5
 _SAMPLE_CACHE_SIZE = 64
 
 
@@ -292,219 +277,6 @@ def _check_config(c: DPFMConfig) -> None:
         raise HeadError(f"dpfm: augmentation transforms coordinates; it needs descriptor='xyz', found {c.descriptor!r}.")
 
 
-# ----------------------------------------------------------------------------- sampling
-
-
-def farthest_point_sampling(points, n_samples: int, seed: int | np.random.Generator = 0) -> np.ndarray:
-    """Indices of ``n_samples`` points spread by greedy farthest-point sampling (Euclidean).
-
-    Starts from a point drawn with ``seed``; each next sample is the point farthest from all
-    samples so far (the first on ties). Any prefix of the result is itself a farthest-point
-    sample.
-
-    Parameters
-    ----------
-    points : array_like, shape (N, D)
-    n_samples : int
-        ``1 <= n_samples <= N``.
-    seed : int or numpy.random.Generator
-        Chooses the first sample.
-
-    Returns
-    -------
-    numpy.ndarray, shape (n_samples,), int64
-        Distinct indices into ``points``, in the order they were chosen.
-    """
-    pts = np.asarray(points, dtype=np.float64)
-    if pts.ndim != 2 or pts.shape[0] == 0 or not np.isfinite(pts).all():
-        raise HeadError(f"farthest_point_sampling: points must be a finite (N, D) array with N >= 1; found shape {pts.shape}.")
-    n = pts.shape[0]
-    check_integer(n_samples, "n_samples", owner="farthest_point_sampling", low=1, high=n, error=HeadError)
-    rng = seed if isinstance(seed, np.random.Generator) else np.random.default_rng(seed)
-    chosen = np.empty(int(n_samples), dtype=np.int64)
-    chosen[0] = rng.integers(n)
-    nearest = np.full(n, np.inf)
-    for i in range(1, int(n_samples)):
-        diff = pts - pts[chosen[i - 1]]
-        np.minimum(nearest, np.einsum("nd,nd->n", diff, diff), out=nearest)
-        chosen[i] = int(np.argmax(nearest))
-    return chosen
-
-
-class SampleInterpolation(NamedTuple):
-    """Farthest-point samples of a shape and how every vertex averages them.
-
-    Attributes
-    ----------
-    samples : torch.Tensor, shape (S,), int64
-        Sampled vertex indices.
-    neighbours : torch.Tensor, shape (V, n), int64
-        For every vertex its ``n`` nearest samples, as positions in ``samples``.
-    weights : torch.Tensor, shape (V, n), float32
-        Inverse squared distances, normalised to sum to one per vertex (a sample's own
-        weight is 1 up to ``INTERPOLATION_EPS``).
-    """
-
-    samples: torch.Tensor
-    neighbours: torch.Tensor
-    weights: torch.Tensor
-
-    def to(self, device: torch.device) -> SampleInterpolation:
-        return SampleInterpolation(*(t.to(device) for t in self))
-
-    def interpolate(self, sampled: torch.Tensor) -> torch.Tensor:
-        """Per-vertex features (V, C) from per-sample features (S, C)."""
-        return (sampled[self.neighbours] * self.weights.unsqueeze(-1)).sum(dim=1)
-
-
-def sample_interpolation(points, n_samples: int, n_neighbours: int = 3, seed: int = 0) -> SampleInterpolation:
-    """Farthest-point samples of ``points`` and inverse-squared-distance interpolation weights.
-
-    Parameters
-    ----------
-    points : array_like, shape (V, 3)
-        Vertex positions (the head passes them centred and scaled to unit area).
-    n_samples : int
-        ``1 <= n_samples <= V``.
-    n_neighbours : int
-        Samples averaged per vertex (clipped to ``n_samples``).
-    seed : int
-        Seed of `farthest_point_sampling`.
-
-    Returns
-    -------
-    SampleInterpolation
-        CPU tensors.
-    """
-    pts = np.asarray(points, dtype=np.float64)
-    samples = farthest_point_sampling(pts, n_samples, seed)
-    k = max(1, min(int(n_neighbours), len(samples)))
-    dist, nbr = cKDTree(pts[samples]).query(pts, k=k)
-    dist, nbr = dist.reshape(len(pts), k), nbr.reshape(len(pts), k)
-    inv = 1.0 / (np.square(dist) + INTERPOLATION_EPS)
-    weights = inv / inv.sum(axis=1, keepdims=True)
-    return SampleInterpolation(
-        torch.from_numpy(samples),
-        torch.from_numpy(nbr.astype(np.int64)),
-        torch.from_numpy(weights.astype(np.float32)),
-    )
-
-
-class ReferenceCandidates(NamedTuple):
-    """The per-shape sampling record of the DPFM reference code (what its data loader stores).
-
-    Attributes
-    ----------
-    order : torch.Tensor, shape (S,), int64
-        Vertices of a farthest-point sample of ``int(0.9 V)`` points, in the order chosen.
-    ranks : torch.Tensor, shape (V, n), int64
-        For every vertex, the positions in ``order`` of its ``n = min(130, S)`` nearest
-        samples, nearest first.
-    sq_dists : torch.Tensor, shape (V, n), float32
-        Their squared distances, computed in float32 as ``|p|^2 - 2 p.q + |q|^2``.
-    """
-
-    order: torch.Tensor
-    ranks: torch.Tensor
-    sq_dists: torch.Tensor
-
-
-def reference_candidates(points, seed: int = 0, block: int = 1024, order=None) -> ReferenceCandidates:
-    """Candidate samples of a shape as the DPFM reference code prepares them.
-
-    A farthest-point sample of ``int(0.9 V)`` vertices (`farthest_point_sampling`; the
-    reference starts at a random vertex of torch's global generator) and, for every vertex,
-    its 130 nearest samples by float32 squared distance (the reference's expansion, sorted).
-
-    Parameters
-    ----------
-    points : array_like, shape (V, 3)
-        Vertex positions as the reference sees them (FAUST_r: centred, unit area, float32).
-    seed : int
-        Seed of the first sample.
-    block : int
-        Rows of the distance matrix handled at a time (memory bound).
-    order : array_like of int, shape (S,), optional
-        Use this sample order instead of drawing one (e.g. the reference's own).
-
-    Returns
-    -------
-    ReferenceCandidates
-        CPU tensors.
-    """
-    pts = torch.as_tensor(np.asarray(points, dtype=np.float32))
-    n_vertices = pts.shape[0]
-    n_order = int(REFERENCE_CANDIDATE_RATIO * n_vertices)
-    if n_order < 1:
-        raise HeadError(f"reference_candidates: a shape of {n_vertices} vertices has no {REFERENCE_CANDIDATE_RATIO} sample.")
-    if order is None:
-        order = torch.from_numpy(farthest_point_sampling(pts.double().numpy(), n_order, seed))
-    else:
-        order = torch.as_tensor(np.asarray(order, dtype=np.int64))
-    cand = pts[order]
-    cand_sq = cand.square().sum(-1).view(1, -1)
-    n_keep = min(REFERENCE_CANDIDATES, len(order))
-    ranks, dists = [], []
-    for start in range(0, n_vertices, block):
-        rows = pts[start : start + block]
-        d = -2 * rows @ cand.T
-        d += rows.square().sum(-1).view(-1, 1)
-        d += cand_sq
-        d, index = d.sort(dim=-1)
-        ranks.append(index[:, :n_keep].clone())
-        dists.append(d[:, :n_keep].clone())
-    return ReferenceCandidates(order, torch.cat(ranks), torch.cat(dists))
-
-
-def reference_sample_interpolation(candidates: ReferenceCandidates, n_samples: int) -> SampleInterpolation:
-    """The samples and per-vertex interpolation of the DPFM reference code, quirks included.
-
-    The samples are the first ``n_samples`` of ``candidates.order``. The reference meant
-    every vertex to average its 3 nearest samples, but it reads the candidate ranks (positions
-    in ``order``) as vertex indices: a candidate counts when the vertex with the index of its
-    rank is a sample, and that vertex's features are used, weighted by the candidate's
-    inverse squared distance (``1 / (d^2 + 1e-8)``, normalised, float32). Of the counting
-    candidates it takes the first three of ``torch.argsort(counts, descending=True)``, whose
-    order among equal keys is torch's (unstable sort). Each shape gets its own scrambling,
-    drawn with the random start of the farthest-point sample.
-
-    Parameters
-    ----------
-    candidates : ReferenceCandidates
-        From `reference_candidates` (or the reference's own ``sample_idx`` record).
-    n_samples : int
-        ``1 <= n_samples <= len(candidates.order)``.
-
-    Returns
-    -------
-    SampleInterpolation
-        CPU tensors; ``neighbours`` index the samples.
-
-    Raises
-    ------
-    HeadError
-        A vertex with fewer than 3 counting candidates, or a weight that is not finite
-        (where the reference itself would index out of range or give NaN).
-    """
-    order, ranks, sq_dists = candidates
-    n_vertices = ranks.shape[0]
-    if not 1 <= n_samples <= len(order):
-        raise HeadError(f"reference_sample_interpolation: n_samples must lie in [1, {len(order)}]; found {n_samples}.")
-    samples = order[:n_samples]
-    counts = torch.from_numpy(np.isin(ranks.numpy(), samples.numpy())).int()
-    pick = torch.argsort(counts.unsqueeze(0), dim=-1, descending=True)[0, :, :3]
-    chosen = torch.gather(ranks, 1, pick)
-    if not bool(torch.gather(counts, 1, pick).all()):
-        raise HeadError("reference_sample_interpolation: a vertex has fewer than 3 counting candidates; sample more vertices.")
-    lookup = torch.arange(max(n_vertices, int(chosen.max()) + 1))
-    lookup[samples] = torch.arange(n_samples)
-    recip = 1.0 / (torch.gather(sq_dists, 1, pick) + INTERPOLATION_EPS)
-    weights = recip / recip.sum(dim=1, keepdim=True)
-    if not bool(torch.isfinite(weights).all()):
-        raise HeadError("reference_sample_interpolation: a squared distance of -1e-8 gives an infinite weight.")
-    return SampleInterpolation(samples.clone(), lookup[chosen], weights.float())
-
-
 def augment_xyz(xyz: torch.Tensor, rng: np.random.Generator) -> torch.Tensor:
     """Randomly rotated, noisy and rescaled coordinates (the reference's training augmentation).
 
@@ -534,252 +306,6 @@ def augment_xyz(xyz: torch.Tensor, rng: np.random.Generator) -> torch.Tensor:
     return (xyz @ rotation.T + noise) * scale
 
 
-# ----------------------------------------------------------------------------- network
-
-
-def _instance_norm(h: torch.Tensor) -> torch.Tensor:
-    """Normalise every channel of (N, C) over the N points (no affine part)."""
-    mean = h.mean(dim=0, keepdim=True)
-    var = h.var(dim=0, unbiased=False, keepdim=True)
-    return (h - mean) / torch.sqrt(var + INSTANCE_NORM_EPS)
-
-
-class _MultiHeadAttention(nn.Module):
-    """Scaled dot-product attention of queries (N, d) over keys and values (M, d), ``n_heads`` heads."""
-
-    def __init__(self, dim: int, n_heads: int, layout: str = "contiguous") -> None:
-        super().__init__()
-        self.n_heads, self.head_dim, self.layout = n_heads, dim // n_heads, layout
-        self.query, self.key, self.value, self.merge = (nn.Linear(dim, dim) for _ in range(4))
-
-    def _split(self, t: torch.Tensor) -> torch.Tensor:
-        """(N, d) -> (h, N, d/h) in the channel layout of the heads."""
-        if self.layout == "interleaved":  # channel c = i * h + head
-            return t.reshape(t.shape[0], self.head_dim, self.n_heads).permute(2, 0, 1)
-        return t.reshape(t.shape[0], self.n_heads, self.head_dim).transpose(0, 1)
-
-    def _merge(self, t: torch.Tensor) -> torch.Tensor:
-        """(h, N, d/h) -> (N, d), the inverse of `_split`."""
-        if self.layout == "interleaved":
-            return t.permute(1, 2, 0).reshape(t.shape[1], -1)
-        return t.transpose(0, 1).reshape(t.shape[1], -1)
-
-    def forward(self, x: torch.Tensor, source: torch.Tensor) -> torch.Tensor:
-        q, k, v = self._split(self.query(x)), self._split(self.key(source)), self._split(self.value(source))
-        scores = q @ k.transpose(1, 2) / math.sqrt(self.head_dim)  # (h, N, M)
-        out = torch.softmax(scores, dim=-1) @ v  # (h, N, d/h)
-        return self.merge(self._merge(out))
-
-
-class _AttentionalPropagation(nn.Module):
-    """The update of ``x`` from ``source``: an MLP of ``[x, attention(x, source)]`` (add it to ``x``)."""
-
-    def __init__(self, dim: int, n_heads: int, layout: str = "contiguous") -> None:
-        super().__init__()
-        self.attention = _MultiHeadAttention(dim, n_heads, layout)
-        self.hidden = nn.Linear(2 * dim, 2 * dim)
-        self.out = nn.Linear(2 * dim, dim)
-        nn.init.zeros_(self.out.bias)
-
-    def forward(self, x: torch.Tensor, source: torch.Tensor) -> torch.Tensor:
-        h = torch.cat([x, self.attention(x, source)], dim=-1)
-        return self.out(torch.relu(_instance_norm(self.hidden(h))))
-
-
-class CrossAttentionRefiner(nn.Module):
-    """Cross-attention between the farthest-point samples of two shapes, interpolated back to every vertex.
-
-    Parameters
-    ----------
-    width : int
-        Channels of the features in and out.
-    attention_dim : int
-        Channels inside.
-    n_heads : int
-        Attention heads (divides ``attention_dim``).
-    n_layers : int
-        Rounds of cross-attention (one `_AttentionalPropagation` each, shared by both directions).
-    head_layout : {"contiguous", "interleaved"}
-        Channels of each attention head (see `DPFMConfig`).
-    """
-
-    def __init__(self, width: int, attention_dim: int, n_heads: int, n_layers: int, head_layout: str = "contiguous") -> None:
-        super().__init__()
-        self.first = nn.Linear(width, attention_dim)
-        self.layers = nn.ModuleList(_AttentionalPropagation(attention_dim, n_heads, head_layout) for _ in range(n_layers))
-        self.last = nn.Linear(attention_dim, width)
-
-    def forward(
-        self, feat_x: torch.Tensor, feat_y: torch.Tensor, interp_x: SampleInterpolation, interp_y: SampleInterpolation
-    ) -> tuple[torch.Tensor, torch.Tensor]:
-        """Refine (V_x, width) and (V_y, width) features; returns the same shapes."""
-        hx, hy = self.first(feat_x), self.first(feat_y)
-        all_x = len(interp_x.samples) == hx.shape[0]
-        all_y = len(interp_y.samples) == hy.shape[0]
-        for layer in self.layers:
-            sx = hx if all_x else hx[interp_x.samples]
-            sy = hy if all_y else hy[interp_y.samples]
-            sx = sx + layer(sx, sy)
-            sy = sy + layer(sy, sx)
-            hx = sx if all_x else interp_x.interpolate(sx)
-            hy = sy if all_y else interp_y.interpolate(sy)
-        return self.last(hx), self.last(hy)
-
-
-class _OverlapPredictor(nn.Module):
-    """Overlap logit of every vertex from its L2-normalised features."""
-
-    def __init__(self, width: int) -> None:
-        super().__init__()
-        self.net = nn.Sequential(nn.Linear(width, width), nn.ReLU(), nn.Linear(width, 1))
-
-    def forward(self, feat: torch.Tensor) -> torch.Tensor:
-        return self.net(F.normalize(feat, p=2, dim=-1)).squeeze(-1)
-
-
-class DPFMOutput(NamedTuple):
-    """What `DPFMNet` predicts for a pair.
-
-    Attributes
-    ----------
-    fmap : torch.Tensor, shape (n_fmap, n_fmap)
-        ``C`` (k_y, k_x): ``coeffs_y = C @ coeffs_x``.
-    overlap_logits_x : torch.Tensor, shape (V_x,)
-    overlap_logits_y : torch.Tensor, shape (V_y,)
-        Logits of the overlap probabilities (``sigmoid`` gives them).
-    feat_x : torch.Tensor, shape (V_x, width)
-    feat_y : torch.Tensor, shape (V_y, width)
-        The features the functional map was computed from.
-    """
-
-    fmap: torch.Tensor
-    overlap_logits_x: torch.Tensor
-    overlap_logits_y: torch.Tensor
-    feat_x: torch.Tensor
-    feat_y: torch.Tensor
-
-
-class DPFMNet(nn.Module):
-    """DiffusionNet feature extractor, cross-attention refiner and overlap predictor (the trainable part of DPFM).
-
-    Parameters
-    ----------
-    in_channels : int
-        Input feature channels.
-    config : DPFMConfig
-        Sizes and functional-map settings.
-    """
-
-    def __init__(self, in_channels: int, config: DPFMConfig) -> None:
-        super().__init__()
-        c = config
-        self.config = c
-        self.extractor = DiffusionNet(in_channels, c.width, width=c.width, n_blocks=c.n_blocks, dropout=c.dropout)
-        self.refiner = CrossAttentionRefiner(c.width, c.attention_dim, c.n_heads, c.n_attention_layers, c.head_layout)
-        self.overlap = _OverlapPredictor(c.width)
-
-    def forward(
-        self,
-        input_x: torch.Tensor,
-        input_y: torch.Tensor,
-        ops_x: SurfaceOperators,
-        ops_y: SurfaceOperators,
-        interp_x: SampleInterpolation,
-        interp_y: SampleInterpolation,
-    ) -> DPFMOutput:
-        """Predict the functional map and overlaps of ``y`` to ``x`` from input features (V, C_in)."""
-        c = self.config
-        ext_x, ext_y = self.extractor(input_x, ops_x), self.extractor(input_y, ops_y)
-        ref_x, ref_y = self.refiner(ext_x, ext_y, interp_x, interp_y)
-        logits_x, logits_y = self.overlap(ref_x), self.overlap(ref_y)
-        use_x, use_y = (ref_x, ref_y) if c.fmap_features == "refined" else (ext_x, ext_y)
-        fx, fy = use_x, use_y
-        if c.overlap_weighted_fmap:
-            fx, fy = fx * torch.sigmoid(logits_x).unsqueeze(-1), fy * torch.sigmoid(logits_y).unsqueeze(-1)
-        k = c.n_fmap
-        fmap = regularized_fmap(
-            fx, fy, ops_x.evecs[:, :k], ops_y.evecs[:, :k], ops_x.mass, ops_y.mass, ops_x.evals[:k], ops_y.evals[:k],
-            lambda_=c.lambda_, gamma=c.gamma,
-        )  # fmt: skip
-        return DPFMOutput(fmap, logits_x, logits_y, use_x, use_y)
-
-
-# ----------------------------------------------------------------------------- supervision
-
-
-def ground_truth_fmap(map_yx, evecs_x: torch.Tensor, evecs_y: torch.Tensor, mass_y: torch.Tensor) -> torch.Tensor:
-    """``C_gt = Phi_y^T M_y P_yx Phi_x`` of a possibly partial point map (rows of ``-1`` vertices are zero).
-
-    Parameters
-    ----------
-    map_yx : array_like of int, shape (V_y,)
-        Vertex of ``x`` for every vertex of ``y``, ``-1`` for none.
-    evecs_x : torch.Tensor, shape (V_x, k_x)
-    evecs_y : torch.Tensor, shape (V_y, k_y)
-    mass_y : torch.Tensor, shape (V_y,)
-
-    Returns
-    -------
-    torch.Tensor, shape (k_y, k_x)
-    """
-    index = torch.as_tensor(np.array(map_yx, dtype=np.int64), device=evecs_x.device)
-    valid = (index >= 0).to(evecs_x.dtype)
-    pulled = evecs_x[index.clamp(min=0)] * valid.unsqueeze(-1)  # (V_y, k_x)
-    return evecs_y.T @ (mass_y.unsqueeze(-1) * pulled)
-
-
-def template_fmap(evecs_x: torch.Tensor, evecs_y: torch.Tensor, corr_x, corr_y) -> torch.Tensor:
-    """Least-squares functional map between the eigenvectors at corresponding template points.
-
-    ``C_gt = X^T`` with ``X = argmin ||Phi_x[corr_x] X - Phi_y[corr_y]||_F`` (the ground truth
-    of the DPFM reference code on FAUST_r and SCAPE_r).
-
-    Parameters
-    ----------
-    evecs_x : torch.Tensor, shape (V_x, k_x)
-    evecs_y : torch.Tensor, shape (V_y, k_y)
-    corr_x, corr_y : array_like of int, shape (T,)
-        Vertex of ``x`` and of ``y`` at each template point.
-
-    Returns
-    -------
-    torch.Tensor, shape (k_y, k_x)
-    """
-    index_x = torch.as_tensor(np.asarray(corr_x, dtype=np.int64), device=evecs_x.device)
-    index_y = torch.as_tensor(np.asarray(corr_y, dtype=np.int64), device=evecs_y.device)
-    if index_x.shape != index_y.shape or index_x.ndim != 1:
-        raise HeadError(
-            f"template_fmap: corr_x and corr_y must be (T,) arrays of one length; found {tuple(index_x.shape)}, {tuple(index_y.shape)}."
-        )
-    return torch.linalg.lstsq(evecs_x[index_x], evecs_y[index_y]).solution.T
-
-
-def weighted_overlap_bce(logits: torch.Tensor, target: torch.Tensor, single_class_weight: float = 0.5) -> torch.Tensor:
-    """Class-weighted binary cross-entropy of overlap predictions (DPFM's weighted BCE).
-
-    With ``p`` the fraction of positive vertices, positives weigh ``1 - p`` and negatives
-    ``p``, so both classes contribute equally; the loss is the mean of the weighted terms.
-    When ``target`` holds one class only, every vertex weighs ``single_class_weight``.
-
-    Parameters
-    ----------
-    logits : torch.Tensor, shape (V,)
-    target : torch.Tensor, shape (V,), bool or {0, 1}
-    single_class_weight : float
-
-    Returns
-    -------
-    torch.Tensor, shape ()
-    """
-    target = target.to(logits.dtype)
-    p = target.mean()
-    if float(p) in (0.0, 1.0):
-        weights = torch.full_like(target, float(single_class_weight))
-    else:
-        weights = torch.where(target >= 0.5, 1.0 - p, p)
-    return (weights * F.binary_cross_entropy_with_logits(logits, target, reduction="none")).mean()
-
-
 def _dpfm_extractor_key(ours: str) -> str:
     """The reference (original DiffusionNet) name of a key of our `DiffusionNet` state dict."""
     parts = ours.split(".")
@@ -793,25 +319,13 @@ def _dpfm_extractor_key(ours: str) -> str:
     return f"{block}.mlp.miniMLP_mlp_layer_{int(parts[3]) // 3:03d}.{parts[4]}"
 
 
-def _nce_loss(feat_x, feat_y, map_yx: np.ndarray, n_pairs: int, temperature: float, rng: np.random.Generator):
-    """InfoNCE over corresponding pairs: each chosen ``x`` feature must pick its own ``y`` feature among all chosen."""
-    valid = np.flatnonzero(map_yx >= 0)
-    chosen = rng.choice(valid, n_pairs, replace=False) if len(valid) > n_pairs else valid
-    index_y = torch.as_tensor(chosen, device=feat_y.device)
-    index_x = torch.as_tensor(map_yx[chosen], device=feat_x.device)
-    query = F.normalize(feat_x[index_x], p=2, dim=-1)
-    keys = F.normalize(feat_y[index_y], p=2, dim=-1)
-    logits = -torch.cdist(query, keys) / temperature
-    return F.cross_entropy(logits, torch.arange(len(chosen), device=logits.device))
-
-
 # ----------------------------------------------------------------------------- head
 
 
 class DPFMHead(LearnedHead):
     """DPFM as a geofeat head: supervised training on pairs with ground truth, overlap-aware matches.
 
-    Settings are those of `DPFMConfig`; bad ones raise `geofeat.adapters.heads.HeadError`.
+    Settings are those of `DPFMConfig`; bad ones raise `geofeat.errors.HeadError`.
     """
 
     name = "dpfm"
@@ -996,11 +510,7 @@ class DPFMHead(LearnedHead):
         if c.mesh_normalization is not None or c.interpolation == "reference":
             points = mesh.verts
         else:
-            points = mesh.verts - mesh.verts.mean(axis=0)
-            area = 0.0
-            if mesh.faces is not None:
-                area = mesh.area() if callable(mesh.area) else mesh.area
-            points = points / (math.sqrt(area) if area > 0 else 1.0)
+            points = unit_area_verts(mesh, required=False)
         n_samples = self.n_samples(mesh.n_vertices)
         if c.interpolation == "reference" and n_samples < mesh.n_vertices:
             entry = reference_sample_interpolation(reference_candidates(points, c.seed), n_samples)
@@ -1061,7 +571,7 @@ class DPFMHead(LearnedHead):
             + weighted_overlap_bce(out.overlap_logits_y, target_y, c.single_class_weight)
         )
         if c.w_nce > 0:
-            loss = loss + c.w_nce * _nce_loss(out.feat_x, out.feat_y, map_yx, c.nce_pairs, c.nce_temperature, self._rng)
+            loss = loss + c.w_nce * nce_loss(out.feat_x, out.feat_y, map_yx, c.nce_pairs, c.nce_temperature, self._rng)
         return loss
 
     def predict(self, pair: ShapePair) -> Match:

@@ -114,14 +114,16 @@ from scipy.spatial import cKDTree
 from torch import nn
 
 from geofeat.checks import check_boolean
-from geofeat.datasets.records import ShapePair
+from geofeat.datasets.records import Match, ShapePair
 from geofeat.errors import HeadError
 from geofeat.lru import LRUCache
 from geofeat.mesh import Mesh
 
 from .diffusion_net import DiffusionNet
 from .fmap_layers import regularized_fmap, resolvent_mask
-from .heads import HeadConfig, LearnedHead, Match, check_integers, check_numbers, ground_truth_map, ground_truth_overlaps
+from .heads import HeadConfig, check_integers, check_numbers
+from .inputs import ground_truth_map, ground_truth_overlaps
+from .learned import LearnedHead
 from .operators import SurfaceOperators
 from .release import ReleaseState, diffusionnet_state
 

@@ -5,13 +5,17 @@
 >>> match = head.match(pair)              # map_yx (V_y,), overlap_y (V_y,), overlap_x (V_x,) or None
 >>> head.save("runs/ulrssm"); same = load_head("runs/ulrssm")             # doctest: +SKIP
 
+This module holds the interface (`Head`, `HeadConfig` and its checks), the two
+training-free heads (``nn``, ``fmap``), and building and loading heads by name
+(`make_head`, `load_head`). Around it: what a head reads from a pair (`inputs`: ground
+truth, mesh normalisation, input features), the shared part of the learned heads
+(`learned.LearnedHead`: training loop, per-shape inputs, weights), the names of the heads
+(`head_registry`) and the mapping of the authors' release checkpoints (`release`).
+
 Every head reads its input features from any registered geofeat descriptor
 (``descriptor="wks"``, ``"geolora"`` with ``descriptor_params={"checkpoint": ...}``) or the
-raw vertex coordinates (``descriptor="xyz"``, as the original papers do). Learned heads
-subclass `LearnedHead`: they build a torch module from the input width, give a training loss
-for a pair and a prediction for a pair; the loop (Adam, optional cosine annealing, time
-budget, progress bar) and the checkpoint format (``head_config.json`` + ``weights.safetensors``)
-are shared.
+raw vertex coordinates (``descriptor="xyz"``, as the original papers do). A saved head is a
+folder: ``head_config.json`` + ``weights.safetensors`` for learned heads.
 
 torch is imported inside the methods that need it, not at the top: the training-free heads
 (``nn``, ``fmap``) and the evaluation workers never load it (1 to 2 s of start-up).
@@ -22,10 +26,8 @@ from __future__ import annotations
 import copy
 import dataclasses
 import json
-import logging
 import math
 import os
-import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -34,54 +36,41 @@ from typing import TYPE_CHECKING, Any, ClassVar
 import numpy as np
 
 from geofeat._version import __version__
-from geofeat.checks import canonical, check_integer, check_number, is_boolean
-from geofeat.datasets.records import Match, ShapePair  # Match is re-exported: heads return it
-from geofeat.descriptors.compute import compute
+from geofeat.checks import canonical, check_integer, check_number
+from geofeat.datasets.records import Match, ShapePair
 from geofeat.devices import resolve_device
-from geofeat.errors import GeofeatError, HeadError, UnusablePair
+from geofeat.errors import GeofeatError, HeadError
 from geofeat.files import atomic_write
 from geofeat.jsonconfig import JsonConfig
 from geofeat.lru import LRUCache
 from geofeat.mesh import Mesh
-from geofeat.progress import progress_bar
-from geofeat.registry import LazyEntry, lookup
 from geofeat.safe_load import load_torch_file
 
 from . import matchers
 from .functional_maps import NearestNeighborIndex
+from .head_registry import head_class
+from .inputs import MESH_NORMALIZATIONS, input_features, normalized_pair
 
 if TYPE_CHECKING:
     import torch
 
-    from .operators import SurfaceOperators
-
-log = logging.getLogger(__name__)
-
 __all__ = [
-    "HEADS",
+    "FunctionalMapConfig",
     "FunctionalMapHead",
     "Head",
     "HeadConfig",
-    "HeadError",
-    "LearnedHead",
-    "Match",
-    "UnusablePair",
     "NearestNeighbourHead",
-    "ground_truth_map",
-    "ground_truth_overlaps",
-    "input_features",
+    "check_integers",
+    "check_numbers",
     "load_head",
     "make_head",
-    "normalized_mesh",
-    "normalized_pair",
+    "preset_settings",
 ]
 
 CONFIG_FILE = "head_config.json"
-#: Meshes whose input features and operators a learned head keeps (`LearnedHead.shape_inputs`).
-_INPUTS_KEPT = 64
+WEIGHTS_FILE = "weights.safetensors"
 #: Input feature arrays a head keeps in memory (a target shape is matched to several sources in a row).
 _FEATURES_KEPT = 4
-WEIGHTS_FILE = "weights.safetensors"
 
 
 @dataclass
@@ -175,159 +164,6 @@ def check_numbers(
         setattr(config, name, canonical(value))
 
 
-def ground_truth_map(pair: ShapePair) -> np.ndarray:
-    """The ground-truth ``map_yx`` of a training pair, checked.
-
-    Returns
-    -------
-    numpy.ndarray, shape (V_y,), int64
-        A vertex of ``x`` for every vertex of ``y``, or -1.
-
-    Raises
-    ------
-    HeadError
-        A map of the wrong shape, type or range.
-    UnusablePair
-        No vertex of ``y`` has a counterpart (supervised heads skip such pairs).
-    """
-    map_yx = np.asarray(pair.map_yx)
-    n_x, n_y = pair.x.n_vertices, pair.y.n_vertices
-    if map_yx.shape != (n_y,) or not np.issubdtype(map_yx.dtype, np.integer):
-        raise HeadError(
-            f"pair {pair.name}: map_yx must be an integer array of shape ({n_y},); found {map_yx.dtype} {map_yx.shape}."
-        )
-    if map_yx.size and (map_yx.min() < -1 or map_yx.max() >= n_x):
-        raise HeadError(
-            f"pair {pair.name}: map_yx must hold vertices of x in [0, {n_x - 1}] or -1; "
-            f"found range [{map_yx.min()}, {map_yx.max()}]."
-        )
-    if not (map_yx >= 0).any():
-        raise UnusablePair(f"pair {pair.name}: no correspondence in the ground truth (map_yx is all -1).")
-    return map_yx.astype(np.int64, copy=False)
-
-
-def ground_truth_overlaps(pair: ShapePair) -> tuple[np.ndarray, np.ndarray]:
-    """Ground-truth overlap masks of a training pair: its own, else derived from ``map_yx``.
-
-    Returns
-    -------
-    overlap_x : numpy.ndarray, shape (V_x,), bool
-        ``pair.overlap_x``, else the vertices of ``x`` that some vertex of ``y`` maps to;
-        all True for a full-to-full pair without masks (every vertex of a full shape has a
-        counterpart, even where a sparse ground truth such as FAUST_r's template gives
-        none; the DPFM reference does the same).
-    overlap_y : numpy.ndarray, shape (V_y,), bool
-        ``pair.overlap_y``, else ``map_yx >= 0``; all True for a full-to-full pair.
-    """
-    map_yx = ground_truth_map(pair)
-    overlap_x, overlap_y = pair.overlap_x, pair.overlap_y
-    if pair.protocol == "f2f" and overlap_x is None and overlap_y is None:
-        return np.ones(pair.x.n_vertices, dtype=bool), np.ones(pair.y.n_vertices, dtype=bool)
-    if overlap_x is None:
-        overlap_x = np.zeros(pair.x.n_vertices, dtype=bool)
-        overlap_x[map_yx[map_yx >= 0]] = True
-    if overlap_y is None:
-        overlap_y = map_yx >= 0
-    for name, mask, n in (("overlap_x", overlap_x, pair.x.n_vertices), ("overlap_y", overlap_y, pair.y.n_vertices)):
-        if np.shape(mask) != (n,):
-            raise HeadError(f"pair {pair.name}: {name} must have shape ({n},); found {np.shape(mask)}.")
-    return np.asarray(overlap_x, dtype=bool), np.asarray(overlap_y, dtype=bool)
-
-
-#: Values of `HeadConfig.mesh_normalization`.
-MESH_NORMALIZATIONS = (None, "unit_area")
-
-
-def normalized_mesh(mesh: Mesh, how: str | None, frame: Mesh | None = None) -> Mesh:
-    """A mesh moved and scaled as the references' preprocessing does (see `normalized_pair`).
-
-    Parameters
-    ----------
-    mesh : Mesh
-    how : {None, "unit_area"}
-        None returns ``mesh`` itself. ``"unit_area"``: subtract the mean vertex of
-        ``frame`` and divide by the square root of its total face area, then round to
-        float32 (the references read their preprocessed meshes as float32).
-    frame : Mesh, optional
-        The triangle mesh whose mean and area define the transform (default ``mesh``).
-
-    Returns
-    -------
-    Mesh
-        Same faces, vertex order and name.
-    """
-    if how is None:
-        return mesh
-    if how != "unit_area":
-        raise HeadError(f"mesh_normalization must be one of {MESH_NORMALIZATIONS}; found {how!r}.")
-    frame = mesh if frame is None else frame
-    area = frame.area() if frame.faces is not None else 0.0
-    if not area > 0:
-        raise HeadError(f"mesh {frame.name!r} has no surface area: mesh_normalization='unit_area' needs a triangle mesh.")
-    verts = (mesh.verts - frame.verts.mean(axis=0)) / math.sqrt(area)
-    return Mesh(verts.astype(np.float32).astype(np.float64), mesh.faces, name=mesh.name)
-
-
-def normalized_pair(pair: ShapePair, how: str | None) -> ShapePair:
-    """The pair a head computes on: `HeadConfig.mesh_normalization` applied the way the references' data has it.
-
-    With ``"unit_area"`` every full shape is centred at its mean vertex and scaled to unit
-    area; the partial shape ``y`` of a P2F pair stays in the frame of the full shape ``x``
-    (moved and scaled like it), as in the SHREC'16 data of DPFM and ULRSSM, where a partial
-    shape keeps the coordinates and scale of the full shape it was cut from. The two
-    shapes of a P2P pair are normalised each by itself (the references define no rule).
-
-    Parameters
-    ----------
-    pair : ShapePair
-    how : {None, "unit_area"}
-
-    Returns
-    -------
-    ShapePair
-        ``pair`` itself for None; else the same record with new ``x`` and ``y`` (vertex
-        order, faces, names and ground truth unchanged).
-    """
-    if how is None:
-        return pair
-    x = normalized_mesh(pair.x, how)
-    y = normalized_mesh(pair.y, how, frame=pair.x if pair.protocol == "p2f" else None)
-    return dataclasses.replace(pair, x=x, y=y)
-
-
-def input_features(mesh: Mesh, descriptor: str, params: dict | None = None) -> np.ndarray:
-    """Per-vertex input features of a head: a geofeat descriptor, or ``"xyz"`` coordinates.
-
-    Parameters
-    ----------
-    mesh : Mesh
-    descriptor : str
-        A registered descriptor name, or ``"xyz"``.
-    params : dict, optional
-        The descriptor's parameters. ``"xyz"`` takes one, ``normalize`` (default True):
-        centre the vertices on their mean and scale them to unit surface area, shape by
-        shape; False: the coordinates as they are (the reference presets, whose pairs are
-        already normalised with a partial shape in the frame of its full shape, see
-        `normalized_pair`).
-
-    Returns
-    -------
-    numpy.ndarray, shape (V, C), float32
-    """
-    if descriptor == "xyz":
-        params = dict(params or {})
-        normalize = params.pop("normalize", True)
-        if params or not is_boolean(normalize):
-            raise HeadError(f"descriptor 'xyz' takes only normalize=True/False; found {sorted(params) or normalize!r}.")
-        if not normalize:
-            return np.ascontiguousarray(mesh.verts, dtype=np.float32)
-        verts = mesh.verts - mesh.verts.mean(axis=0)
-        area = mesh.area() if mesh.faces is not None else 0.0
-        scale = math.sqrt(area) if area > 0 else 1.0
-        return np.ascontiguousarray(verts / scale, dtype=np.float32)
-    return compute(mesh, descriptor, **(params or {}))
-
-
 class Head:
     """A matcher: ``fit`` on training pairs (a no-op when training-free), ``match`` a pair, save and load.
 
@@ -352,7 +188,6 @@ class Head:
             raise HeadError(f"head {self.name!r} takes a {self.config_class.__name__}; found {type(config).__name__}.")
         self.config = config
         _check_inputs(config)
-        self._inputs: LRUCache[str, tuple[torch.Tensor, SurfaceOperators]] = LRUCache(_INPUTS_KEPT)
         self._features: LRUCache[tuple[str, str, str], np.ndarray] = LRUCache(_FEATURES_KEPT)
 
     # -- inputs
@@ -386,45 +221,6 @@ class Head:
         c = self.config
         return mesh.hash, c.descriptor, json.dumps(c.descriptor_params, sort_keys=True, default=repr)
 
-    def operators(self, mesh: Mesh) -> SurfaceOperators:
-        """Surface operators of a mesh of a prepared pair, on the CPU."""
-        from .operators import surface_operators
-
-        c = self.config
-        return surface_operators(mesh, c.n_eig, laplacian_kind=c.laplacian, construction=c.operators)
-
-    def shape_inputs(self, mesh: Mesh) -> tuple[torch.Tensor, SurfaceOperators]:
-        """Input features as a tensor (V, C) and the surface operators, on the head's device (kept for 64 meshes)."""
-        import torch
-
-        def build() -> tuple[torch.Tensor, SurfaceOperators]:
-            feats = torch.tensor(self.features(mesh), device=self.device)  # a copy: the array is shared and read-only
-            return feats, self.operators(mesh).to(self.device)
-
-        return self._inputs.get_or_compute(mesh.hash, build)
-
-    def use_inputs(self, mesh: Mesh, features: torch.Tensor, operators: SurfaceOperators) -> None:
-        """Use these input features and operators for ``mesh`` instead of computing them.
-
-        For feeding a head exactly the inputs of another implementation (``benchmarks/parity.py``)
-        or inputs computed elsewhere. They are kept like computed ones (64 meshes).
-
-        Parameters
-        ----------
-        mesh : Mesh
-        features : torch.Tensor, shape (V, C)
-        operators : SurfaceOperators
-            With at least ``n_eig`` eigenpairs where the head needs them.
-        """
-        if features.ndim != 2 or features.shape[0] != mesh.n_vertices or operators.n_vertices != mesh.n_vertices:
-            raise HeadError(
-                f"use_inputs: features (V, C) and operators must be of mesh {mesh.name!r} with {mesh.n_vertices} vertices; "
-                f"found features {tuple(features.shape)} and operators of {operators.n_vertices} vertices."
-            )
-        import torch
-
-        self._inputs.put(mesh.hash, (features.to(self.device, torch.float32), operators.to(self.device)))
-
     # -- the interface
 
     def fit(self, pairs: Sequence[ShapePair]) -> list[float]:
@@ -443,6 +239,9 @@ class Head:
         text = json.dumps(payload, indent=2, sort_keys=True) + "\n"
         atomic_write(folder / CONFIG_FILE, lambda tmp: tmp.write_text(text))
         return folder
+
+    def restore(self, folder: Path) -> None:
+        """Read what `save` wrote beside the configuration (`load_head`); training-free heads have nothing."""
 
 
 class NearestNeighbourHead(Head):
@@ -487,156 +286,13 @@ class FunctionalMapHead(Head):
         return Match(map_yx, np.ones(pair.y.n_vertices, dtype=bool))
 
 
-class LearnedHead(Head):
-    """A head with a torch module: the shared training loop and checkpoint format.
-
-    Subclasses implement `build_model` (the module, from the input width), `training_loss`
-    (a scalar tensor for one pair) and `predict` (a `Match` for one pair, under ``no_grad``).
-    """
-
-    def __init__(self, config: HeadConfig | None = None, **settings: Any):
-        super().__init__(config, **settings)
-        self.model: torch.nn.Module | None = None
-        self.in_channels: int | None = None
-
-    def build_model(self, in_channels: int) -> torch.nn.Module:
-        """The trainable module for ``in_channels`` input features."""
-        raise NotImplementedError
-
-    def training_loss(self, pair: ShapePair) -> torch.Tensor:
-        """Scalar training loss of one pair."""
-        raise NotImplementedError
-
-    def predict(self, pair: ShapePair) -> Match:
-        """The prediction for one pair (gradients off)."""
-        raise NotImplementedError
-
-    def _ensure_model(self, mesh: Mesh) -> torch.nn.Module:
-        import torch
-
-        if self.model is None:
-            torch.manual_seed(self.config.seed)
-            self.in_channels = int(self.shape_inputs(mesh)[0].shape[1])
-            self.model = self.build_model(self.in_channels).to(self.device)
-        return self.model
-
-    def fit(self, pairs: Sequence[ShapePair]) -> list[float]:
-        """Adam over ``epochs`` passes of the pairs in a seeded order; returns the loss of every step."""
-        if len(pairs) == 0:
-            raise HeadError(f"head {self.name!r}: no training pairs.")
-        import torch
-
-        config = self.config
-        model = self._ensure_model(pairs[0].x)
-        optimizer = torch.optim.Adam([p for p in model.parameters() if p.requires_grad], lr=config.lr)
-        total = config.epochs * len(pairs)
-        scheduler = torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, T_max=total) if config.cosine_annealing else None
-        rng = np.random.default_rng(config.seed)
-        losses: list[float] = []
-        start = time.perf_counter()
-        bar = progress_bar(total=total, desc=f"training {self.name}", unit="pair", show=config.progress)
-        try:
-            for _ in range(config.epochs):
-                for index in rng.permutation(len(pairs)):
-                    model.train()
-                    try:
-                        loss = self.training_loss(self.prepare(pairs[int(index)]))
-                    except UnusablePair as skipped:
-                        log.info("%s: skipped a training pair: %s", self.name, skipped)
-                        bar.update(1)
-                        continue
-                    optimizer.zero_grad(set_to_none=True)
-                    loss.backward()
-                    if config.grad_clip is not None:
-                        torch.nn.utils.clip_grad_norm_(model.parameters(), config.grad_clip)
-                    optimizer.step()
-                    if scheduler is not None:
-                        scheduler.step()
-                    losses.append(float(loss.detach()))
-                    bar.update(1)
-                    bar.set_postfix(loss=f"{losses[-1]:.4f}")
-                    if config.max_minutes is not None and time.perf_counter() - start > 60.0 * config.max_minutes:
-                        log.info("%s: time budget spent after %d steps", self.name, len(losses))
-                        return losses
-        finally:
-            bar.close()
-        return losses
-
-    def match(self, pair: ShapePair) -> Match:
-        """`predict` the prepared pair with gradients off and the module in evaluation mode."""
-        import torch
-
-        pair = self.prepare(pair)
-        self._ensure_model(pair.x).eval()
-        with torch.no_grad():
-            return self.predict(pair)
-
-    def save(self, folder: str | os.PathLike) -> Path:
-        """``head_config.json`` and ``weights.safetensors`` (the module's state dict)."""
-        if self.model is None:
-            raise HeadError(f"head {self.name!r} has no model yet: fit it (or load one) before saving.")
-        from safetensors.torch import save_file
-
-        folder = super().save(folder)
-        state = {k: v.detach().to("cpu").contiguous() for k, v in self.model.state_dict().items()}
-        atomic_write(
-            folder / WEIGHTS_FILE, lambda tmp: save_file(state, str(tmp), metadata={"in_channels": str(self.in_channels)})
-        )
-        return folder
-
-    def load_state(self, state: dict[str, torch.Tensor], in_channels: int, source: str) -> None:
-        """Build the module for ``in_channels`` and load ``state`` exactly (see `release.check_state`)."""
-        from .release import check_state
-
-        self.in_channels = int(in_channels)
-        model = self.build_model(self.in_channels)
-        check_state(model, state, source)
-        model.load_state_dict(state, strict=True)
-        self.model = model.to(self.device)
-
-    def load_weights(self, folder: Path, in_channels: int) -> None:
-        """Build the module for ``in_channels`` and load ``weights.safetensors``."""
-        from safetensors.torch import load_file
-
-        self.in_channels = in_channels
-        self.model = self.build_model(in_channels).to(self.device)
-        try:
-            self.model.load_state_dict(load_file(str(folder / WEIGHTS_FILE), device=str(self.device)))
-        except (RuntimeError, OSError) as exc:
-            raise HeadError(f"{folder / WEIGHTS_FILE} does not fit head {self.name!r}: {exc}") from exc
-        except Exception as exc:  # safetensors' SafetensorError on a damaged file
-            raise HeadError(f"{folder / WEIGHTS_FILE} is not a readable safetensors file (truncated or damaged?): {exc}") from exc
-
-
-#: name -> "module:Class" (imported on first use)
-#: Head names: `geofeat.registry.LazyEntry` values (or bare ``"module:Class"`` strings), imported on first use.
-HEADS: dict[str, LazyEntry | str] = {
-    "nn": LazyEntry("nn", "geofeat.adapters.heads:NearestNeighbourHead", summary="nearest neighbour in feature space"),
-    "fmap": LazyEntry("fmap", "geofeat.adapters.heads:FunctionalMapHead", summary="functional map from the input features"),
-    "ulrssm": LazyEntry(
-        "ulrssm",
-        "geofeat.adapters.ulrssm:ULRSSMHead",
-        summary="ULRSSM: unsupervised DiffusionNet features, functional-map losses",
-    ),
-    "dpfm": LazyEntry("dpfm", "geofeat.adapters.dpfm:DPFMHead", summary="DPFM: supervised, overlap-aware functional maps"),
-    "echomatch": LazyEntry(
-        "echomatch", "geofeat.adapters.echomatch:EchoMatchHead", summary="EchoMatch: overlap by correspondence reflection"
-    ),
-}
-
-
-def head_class(name: str) -> type[Head]:
-    """The `Head` subclass registered under ``name`` (`HeadError` for an unknown name, with suggestions)."""
-    return lookup(HEADS, name, "head", HeadError).load("head")
-
-
 def make_head(name: str, preset: str | None = None, **settings: Any) -> Head:
     """Build the head ``name`` from keyword settings of its configuration.
 
     Parameters
     ----------
     name : str
-        A key of `HEADS`.
+        A name of `head_registry.HEADS`.
     preset : str, optional
         A key of the head's ``PRESETS`` (e.g. ``"reference"``: the authors' conventions);
         ``settings`` override the preset's values.
@@ -700,41 +356,15 @@ def load_head(
         )
     cls = head_class(payload.get("head", ""))
     head = cls(cls.config_class.from_dict(payload.get("config", {})))
-    if isinstance(head, LearnedHead):
-        head.load_weights(folder, _saved_in_channels(folder / WEIGHTS_FILE))
+    head.restore(folder)
     return head
 
 
-def _saved_in_channels(path: Path) -> int:
-    """The input width recorded in the metadata of a head's ``weights.safetensors``.
-
-    Raises
-    ------
-    HeadError
-        If the file is missing, unreadable or damaged, or has no ``in_channels`` entry.
-    """
-    from safetensors import safe_open
-
-    if not path.is_file():
-        raise HeadError(f"{path} is missing: a learned head's folder holds its weights there (Head.save writes it).")
-    try:
-        with safe_open(str(path), framework="pt") as handle:
-            metadata = handle.metadata() or {}
-    except Exception as exc:  # safetensors raises its own SafetensorError, and OSError
-        raise HeadError(
-            f"{path} is not a readable safetensors file (truncated or damaged?): {exc}. Save the head again."
-        ) from exc
-    try:
-        return int(metadata["in_channels"])
-    except (KeyError, ValueError) as exc:
-        raise HeadError(f"{path} has no valid 'in_channels' entry in its metadata; it was not written by Head.save.") from exc
-
-
-def _from_release(name: str, checkpoint: Path, preset: str, settings: dict[str, Any]) -> LearnedHead:
-    """`load_head` with a release checkpoint."""
+def _from_release(name: str, checkpoint: Path, preset: str, settings: dict[str, Any]) -> Head:
+    """`load_head` with a release checkpoint (heads with a ``release_state`` class method and ``load_state``)."""
     cls = head_class(name)
     release_state = getattr(cls, "release_state", None)
-    if not issubclass(cls, LearnedHead) or release_state is None:
+    if release_state is None or not hasattr(cls, "load_state"):
         raise HeadError(f"head {name!r} cannot load release checkpoints; heads that can: ulrssm, dpfm, echomatch.")
     if checkpoint.is_dir():
         raise HeadError(

@@ -78,7 +78,7 @@ import torch
 import torch.nn.functional as F
 
 from geofeat.checks import canonical, check_boolean, check_number, is_boolean, is_integer
-from geofeat.datasets.records import ShapePair
+from geofeat.datasets.records import Match, ShapePair
 from geofeat.errors import HeadError
 from geofeat.mesh import Mesh
 
@@ -95,7 +95,8 @@ from .fmap_layers import (
     soft_pointmap,
 )
 from .functional_maps import nearest_neighbors
-from .heads import HeadConfig, LearnedHead, Match, check_integers, check_numbers
+from .heads import HeadConfig, check_integers, check_numbers
+from .learned import LearnedHead
 from .operators import SurfaceOperators
 from .release import ReleaseState, diffusionnet_state
 

@@ -43,15 +43,9 @@ from parity_common import (
 )
 from scipy.spatial import cKDTree
 
-from geofeat.adapters.dpfm import (
-    DPFMHead,
-    ReferenceCandidates,
-    _nce_loss,
-    reference_candidates,
-    reference_sample_interpolation,
-    template_fmap,
-    weighted_overlap_bce,
-)
+from geofeat.adapters.dpfm import DPFMHead
+from geofeat.adapters.dpfm_losses import nce_loss, template_fmap, weighted_overlap_bce
+from geofeat.adapters.dpfm_sampling import ReferenceCandidates, reference_candidates, reference_sample_interpolation
 from geofeat.adapters.heads import load_head
 from geofeat.adapters.operators import surface_operators
 from geofeat.datasets import load_dataset
@@ -282,7 +276,7 @@ def dpfm_stages(repo: Path, checkpoint: Path, data_root: Path, pair: tuple[str, 
                             s.utils.WeightedBCELoss()(prob, mask.float())))  # fmt: skip
         full_map = torch.from_numpy(p2p_ours)
         nce_ref = s.utils.NCESoftmaxLoss(c.nce_temperature, 10**6)(our_feat["x"], our_feat["y"], full_map)
-        nce_ours = _nce_loss(our_feat["x"], our_feat["y"], p2p_ours, 10**6, c.nce_temperature, np.random.default_rng(0))
+        nce_ours = nce_loss(our_feat["x"], our_feat["y"], p2p_ours, 10**6, c.nce_temperature, np.random.default_rng(0))
         rows.append(compare("loss: NCE (all vertices, a full map)", nce_ours, nce_ref))
 
         net_train = copy.deepcopy(net).train()

@@ -60,7 +60,8 @@ from parity_common import Stage, compare, markdown, reference_import, seconds_pe
 
 import geofeat.adapters.echomatch as echomatch_module
 from geofeat.adapters.echomatch import EchoMatchHead
-from geofeat.adapters.heads import ground_truth_map, ground_truth_overlaps, make_head, normalized_mesh
+from geofeat.adapters.heads import make_head
+from geofeat.adapters.inputs import ground_truth_map, ground_truth_overlaps, normalized_mesh
 from geofeat.datasets import load_dataset
 from geofeat.datasets.records import ShapePair
 

@@ -8,7 +8,7 @@ not part of geofeat) into our DPFM head with the matching preset
 
 The reference trained on SHREC'16 shapes as stored: every full shape at unit area, each
 partial shape in the frame and at the scale of its full shape. The presets do the same to a
-pair (``mesh_normalization="unit_area"``, `geofeat.adapters.heads.normalized_pair`) and feed
+pair (``mesh_normalization="unit_area"``, `geofeat.adapters.inputs.normalized_pair`) and feed
 the coordinates as they are (``descriptor_params={"normalize": False}``).
 
 Each checkpoint is run with the presets' interpolation of the refined features

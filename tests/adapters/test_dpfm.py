@@ -6,17 +6,13 @@ import torch
 from shapes import bumpy
 
 from geofeat.adapters import fmap_layers as fl
-from geofeat.adapters.dpfm import (
-    DPFMConfig,
-    DPFMHead,
-    farthest_point_sampling,
-    ground_truth_fmap,
-    sample_interpolation,
-    weighted_overlap_bce,
-)
-from geofeat.adapters.heads import Match, ground_truth_overlaps, load_head, make_head
+from geofeat.adapters.dpfm import DPFMConfig, DPFMHead
+from geofeat.adapters.dpfm_losses import ground_truth_fmap, weighted_overlap_bce
+from geofeat.adapters.dpfm_sampling import sample_interpolation
+from geofeat.adapters.heads import load_head, make_head
+from geofeat.adapters.inputs import ground_truth_overlaps
 from geofeat.adapters.operators import surface_operators
-from geofeat.datasets.records import ShapePair
+from geofeat.datasets.records import Match, ShapePair
 from geofeat.errors import HeadError, UnusablePair
 from geofeat.geometry import make_partial
 
@@ -65,23 +61,10 @@ def _iou(a: np.ndarray, b: np.ndarray) -> float:
 # ----------------------------------------------------------------------------- sampling
 
 
-def test_farthest_point_sampling_is_deterministic_and_spreads_points():
+def test_sample_interpolation_refuses_no_samples():
     points = bumpy(0, 3).verts
-    first = farthest_point_sampling(points, 60, seed=3)
-    np.testing.assert_array_equal(first, farthest_point_sampling(points, 60, seed=3))
-    assert first.dtype == np.int64 and len(np.unique(first)) == 60
-    np.testing.assert_array_equal(farthest_point_sampling(points, 20, seed=3), first[:20])  # prefixes are samples
-
-    def min_distance(index):
-        p = points[index]
-        d = np.linalg.norm(p[:, None] - p[None], axis=-1)
-        return d[np.triu_indices(len(index), 1)].min()
-
-    rng = np.random.default_rng(0)
-    random_best = max(min_distance(rng.choice(len(points), 60, replace=False)) for _ in range(20))
-    assert min_distance(first) > 1.5 * random_best
     with pytest.raises(HeadError, match="n_samples"):
-        farthest_point_sampling(points, 0)
+        sample_interpolation(points, 0)
 
 
 def test_sample_interpolation_reproduces_sampled_values():

@@ -18,7 +18,8 @@ from geofeat.adapters.echomatch import (
     sampled_reflection,
     spatial_neighbours,
 )
-from geofeat.adapters.heads import ground_truth_overlaps, load_head, make_head
+from geofeat.adapters.heads import load_head, make_head
+from geofeat.adapters.inputs import ground_truth_overlaps
 from geofeat.datasets.records import ShapePair
 from geofeat.errors import HeadError
 from geofeat.evaluation.metrics import overlap_iou

@@ -7,8 +7,10 @@ import pytest
 import torch
 from shapes import bumpy
 
-from geofeat.adapters.heads import FunctionalMapHead, HeadConfig, LearnedHead, Match, input_features, load_head, make_head
-from geofeat.datasets.records import ShapePair
+from geofeat.adapters.heads import FunctionalMapHead, HeadConfig, load_head, make_head
+from geofeat.adapters.inputs import input_features
+from geofeat.adapters.learned import LearnedHead
+from geofeat.datasets.records import Match, ShapePair
 from geofeat.errors import HeadError, UnusablePair
 from geofeat.geometry import make_partial
 
@@ -90,9 +92,9 @@ class _AffineHead(LearnedHead):
 
 
 def test_learned_head_trains_saves_and_loads(tmp_path, monkeypatch):
-    from geofeat.adapters import heads
+    from geofeat.adapters import head_registry
 
-    monkeypatch.setitem(heads.HEADS, "test_affine", f"{__name__}:_AffineHead")
+    monkeypatch.setitem(head_registry.HEADS, "test_affine", f"{__name__}:_AffineHead")
     head = _AffineHead(descriptor="wks", n_eig=40, epochs=3, lr=1e-2, cosine_annealing=True, progress=False)
     pairs = [_pair(0), _pair(1)]
     with pytest.raises(HeadError, match="no model yet"):
@@ -121,7 +123,7 @@ class _PickyHead(_AffineHead):
 def test_fit_skips_unusable_pairs(caplog):
     import logging
 
-    caplog.set_level(logging.INFO, logger="geofeat.adapters.heads")
+    caplog.set_level(logging.INFO, logger="geofeat.adapters.learned")
     head = _PickyHead(descriptor="wks", n_eig=40, epochs=2, progress=False)
     losses = head.fit([_pair(0), _pair(1)])
     assert len(losses) == 2  # the bumpy1 pair skipped in both epochs

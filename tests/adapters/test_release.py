@@ -7,7 +7,8 @@ import pytest
 import torch
 
 from geofeat.adapters.diffusion_net import DiffusionNet, SpatialGradientFeatures
-from geofeat.adapters.heads import load_head, make_head, normalized_mesh
+from geofeat.adapters.heads import load_head, make_head
+from geofeat.adapters.inputs import normalized_mesh
 from geofeat.adapters.release import check_state, diffusionnet_state
 from geofeat.adapters.ulrssm import ULRSSMHead
 from geofeat.datasets import load_dataset
@@ -147,7 +148,7 @@ def test_ulrssm_release_checkpoint_matches_a_faust_r_pair(release_checkpoints, f
 
 
 def test_pair_normalisation_keeps_a_partial_in_the_frame_of_its_full_shape(faust_mesh):
-    from geofeat.adapters.heads import normalized_pair
+    from geofeat.adapters.inputs import normalized_pair
     from geofeat.datasets.records import ShapePair
     from geofeat.geometry import make_partial
 

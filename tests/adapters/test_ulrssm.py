@@ -10,9 +10,9 @@ from shapes import bumpy
 
 import geofeat
 from geofeat.adapters.functional_maps import nearest_neighbors
-from geofeat.adapters.heads import HeadConfig, Match, load_head, make_head
+from geofeat.adapters.heads import HeadConfig, load_head, make_head
 from geofeat.adapters.ulrssm import LOSS_TERMS, ULRSSMConfig, ULRSSMHead
-from geofeat.datasets.records import ShapePair
+from geofeat.datasets.records import Match, ShapePair
 from geofeat.errors import HeadError
 from geofeat.geometry import make_partial
 

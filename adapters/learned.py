@@ -1,0 +1,240 @@
+"""`LearnedHead`: the shared part of every head with a torch module (ULRSSM, DPFM, EchoMatch).
+
+A learned head builds its module from the input width (`LearnedHead.build_model`), gives a
+training loss for a pair (`LearnedHead.training_loss`) and a prediction for a pair
+(`LearnedHead.predict`). This module holds what they share: the per-shape inputs (input
+features as a tensor and DiffusionNet's surface operators, kept for the last 64 meshes),
+the training loop (Adam, optional cosine annealing, gradient clipping, time budget,
+progress bar) and the weights of a checkpoint.
+
+torch is imported inside the methods that need it: subclassing costs nothing until a
+module is built.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import time
+from collections.abc import Sequence
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from geofeat.datasets.records import Match, ShapePair
+from geofeat.errors import HeadError, UnusablePair
+from geofeat.files import atomic_write
+from geofeat.lru import LRUCache
+from geofeat.mesh import Mesh
+from geofeat.progress import progress_bar
+
+from .heads import WEIGHTS_FILE, Head, HeadConfig
+
+if TYPE_CHECKING:
+    import torch
+
+    from .operators import SurfaceOperators
+
+log = logging.getLogger(__name__)
+
+__all__ = ["LearnedHead"]
+
+#: Meshes whose input features and operators a learned head keeps (`LearnedHead.shape_inputs`).
+_INPUTS_KEPT = 64
+
+
+class LearnedHead(Head):
+    """A head with a torch module: the shared inputs, training loop and checkpoint weights.
+
+    Subclasses implement `build_model` (the module, from the input width), `training_loss`
+    (a scalar tensor for one pair) and `predict` (a `Match` for one pair, under ``no_grad``).
+    """
+
+    def __init__(self, config: HeadConfig | None = None, **settings: Any):
+        super().__init__(config, **settings)
+        self.model: torch.nn.Module | None = None
+        self.in_channels: int | None = None
+        self._inputs: LRUCache[str, tuple[torch.Tensor, SurfaceOperators]] = LRUCache(_INPUTS_KEPT)
+
+    def build_model(self, in_channels: int) -> torch.nn.Module:
+        """The trainable module for ``in_channels`` input features."""
+        raise NotImplementedError
+
+    def training_loss(self, pair: ShapePair) -> torch.Tensor:
+        """Scalar training loss of one pair."""
+        raise NotImplementedError
+
+    def predict(self, pair: ShapePair) -> Match:
+        """The prediction for one pair (gradients off)."""
+        raise NotImplementedError
+
+    # -- inputs
+
+    def operators(self, mesh: Mesh) -> SurfaceOperators:
+        """Surface operators of a mesh of a prepared pair, on the CPU."""
+        from .operators import surface_operators
+
+        c = self.config
+        return surface_operators(mesh, c.n_eig, laplacian_kind=c.laplacian, construction=c.operators)
+
+    def shape_inputs(self, mesh: Mesh) -> tuple[torch.Tensor, SurfaceOperators]:
+        """Input features as a tensor (V, C) and the surface operators, on the head's device (kept for 64 meshes)."""
+        import torch
+
+        def build() -> tuple[torch.Tensor, SurfaceOperators]:
+            feats = torch.tensor(self.features(mesh), device=self.device)  # a copy: the array is shared and read-only
+            return feats, self.operators(mesh).to(self.device)
+
+        return self._inputs.get_or_compute(mesh.hash, build)
+
+    def use_inputs(self, mesh: Mesh, features: torch.Tensor, operators: SurfaceOperators) -> None:
+        """Use these input features and operators for ``mesh`` instead of computing them.
+
+        For feeding a head exactly the inputs of another implementation (``benchmarks/parity.py``)
+        or inputs computed elsewhere. They are kept like computed ones (64 meshes).
+
+        Parameters
+        ----------
+        mesh : Mesh
+        features : torch.Tensor, shape (V, C)
+        operators : SurfaceOperators
+            With at least ``n_eig`` eigenpairs where the head needs them.
+        """
+        if features.ndim != 2 or features.shape[0] != mesh.n_vertices or operators.n_vertices != mesh.n_vertices:
+            raise HeadError(
+                f"use_inputs: features (V, C) and operators must be of mesh {mesh.name!r} with {mesh.n_vertices} vertices; "
+                f"found features {tuple(features.shape)} and operators of {operators.n_vertices} vertices."
+            )
+        import torch
+
+        self._inputs.put(mesh.hash, (features.to(self.device, torch.float32), operators.to(self.device)))
+
+    def _ensure_model(self, mesh: Mesh) -> torch.nn.Module:
+        import torch
+
+        if self.model is None:
+            torch.manual_seed(self.config.seed)
+            self.in_channels = int(self.shape_inputs(mesh)[0].shape[1])
+            self.model = self.build_model(self.in_channels).to(self.device)
+        return self.model
+
+    # -- training and matching
+
+    def fit(self, pairs: Sequence[ShapePair]) -> list[float]:
+        """Adam over ``epochs`` passes of the pairs in a seeded order; returns the loss of every step."""
+        if len(pairs) == 0:
+            raise HeadError(f"head {self.name!r}: no training pairs.")
+        import torch
+
+        config = self.config
+        model = self._ensure_model(pairs[0].x)
+        optimizer = torch.optim.Adam([p for p in model.parameters() if p.requires_grad], lr=config.lr)
+        total = config.epochs * len(pairs)
+        scheduler = torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, T_max=total) if config.cosine_annealing else None
+        rng = np.random.default_rng(config.seed)
+        losses: list[float] = []
+        start = time.perf_counter()
+        bar = progress_bar(total=total, desc=f"training {self.name}", unit="pair", show=config.progress)
+        try:
+            for _ in range(config.epochs):
+                for index in rng.permutation(len(pairs)):
+                    model.train()
+                    try:
+                        loss = self.training_loss(self.prepare(pairs[int(index)]))
+                    except UnusablePair as skipped:
+                        log.info("%s: skipped a training pair: %s", self.name, skipped)
+                        bar.update(1)
+                        continue
+                    optimizer.zero_grad(set_to_none=True)
+                    loss.backward()
+                    if config.grad_clip is not None:
+                        torch.nn.utils.clip_grad_norm_(model.parameters(), config.grad_clip)
+                    optimizer.step()
+                    if scheduler is not None:
+                        scheduler.step()
+                    losses.append(float(loss.detach()))
+                    bar.update(1)
+                    bar.set_postfix(loss=f"{losses[-1]:.4f}")
+                    if config.max_minutes is not None and time.perf_counter() - start > 60.0 * config.max_minutes:
+                        log.info("%s: time budget spent after %d steps", self.name, len(losses))
+                        return losses
+        finally:
+            bar.close()
+        return losses
+
+    def match(self, pair: ShapePair) -> Match:
+        """`predict` the prepared pair with gradients off and the module in evaluation mode."""
+        import torch
+
+        pair = self.prepare(pair)
+        self._ensure_model(pair.x).eval()
+        with torch.no_grad():
+            return self.predict(pair)
+
+    # -- weights
+
+    def save(self, folder: str | os.PathLike) -> Path:
+        """``head_config.json`` and ``weights.safetensors`` (the module's state dict)."""
+        if self.model is None:
+            raise HeadError(f"head {self.name!r} has no model yet: fit it (or load one) before saving.")
+        from safetensors.torch import save_file
+
+        folder = super().save(folder)
+        state = {k: v.detach().to("cpu").contiguous() for k, v in self.model.state_dict().items()}
+        atomic_write(
+            folder / WEIGHTS_FILE, lambda tmp: save_file(state, str(tmp), metadata={"in_channels": str(self.in_channels)})
+        )
+        return folder
+
+    def restore(self, folder: Path) -> None:
+        """Build the module for the input width recorded in ``folder``'s weights and load them (`load_head`)."""
+        self.load_weights(folder, _saved_in_channels(folder / WEIGHTS_FILE))
+
+    def load_state(self, state: dict[str, torch.Tensor], in_channels: int, source: str) -> None:
+        """Build the module for ``in_channels`` and load ``state`` exactly (see `release.check_state`)."""
+        from .release import check_state
+
+        self.in_channels = int(in_channels)
+        model = self.build_model(self.in_channels)
+        check_state(model, state, source)
+        model.load_state_dict(state, strict=True)
+        self.model = model.to(self.device)
+
+    def load_weights(self, folder: Path, in_channels: int) -> None:
+        """Build the module for ``in_channels`` and load ``weights.safetensors``."""
+        from safetensors.torch import load_file
+
+        self.in_channels = in_channels
+        self.model = self.build_model(in_channels).to(self.device)
+        try:
+            self.model.load_state_dict(load_file(str(folder / WEIGHTS_FILE), device=str(self.device)))
+        except (RuntimeError, OSError) as exc:
+            raise HeadError(f"{folder / WEIGHTS_FILE} does not fit head {self.name!r}: {exc}") from exc
+        except Exception as exc:  # safetensors' SafetensorError on a damaged file
+            raise HeadError(f"{folder / WEIGHTS_FILE} is not a readable safetensors file (truncated or damaged?): {exc}") from exc
+
+
+def _saved_in_channels(path: Path) -> int:
+    """The input width recorded in the metadata of a head's ``weights.safetensors``.
+
+    Raises
+    ------
+    HeadError
+        If the file is missing, unreadable or damaged, or has no ``in_channels`` entry.
+    """
+    from safetensors import safe_open
+
+    if not path.is_file():
+        raise HeadError(f"{path} is missing: a learned head's folder holds its weights there (Head.save writes it).")
+    try:
+        with safe_open(str(path), framework="pt") as handle:
+            metadata = handle.metadata() or {}
+    except Exception as exc:  # safetensors raises its own SafetensorError, and OSError
+        raise HeadError(
+            f"{path} is not a readable safetensors file (truncated or damaged?): {exc}. Save the head again."
+        ) from exc
+    try:
+        return int(metadata["in_channels"])
+    except (KeyError, ValueError) as exc:
+        raise HeadError(f"{path} has no valid 'in_channels' entry in its metadata; it was not written by Head.save.") from exc
