@@ -32,20 +32,17 @@ from geofeat.errors import DiffusionNetError
 
 from .operators import (
     GRADIENT_REGULARIZATION,
-    N_NEIGHBORS_CLOUD,
     SurfaceOperators,
     _same_device,
     clear_operator_cache,
     gradient_matrices,
     surface_operators,
     tangent_frames,
-    vertex_normals,
 )
 
 __all__ = [
     "GRADIENT_MIXINGS",
     "GRADIENT_REGULARIZATION",
-    "N_NEIGHBORS_CLOUD",
     "OUTPUTS_AT",
     "DiffusionNet",
     "DiffusionNetBlock",
@@ -59,7 +56,6 @@ __all__ = [
     "surface_operators",
     "tangent_frames",
     "tangent_gradients",
-    "vertex_normals",
 ]
 
 #: Where `DiffusionNet` can give its outputs (edge and face values average their vertices).

@@ -17,7 +17,7 @@ import numpy as np
 
 from geofeat.checks import check_integer
 from geofeat.errors import FunctionalMapError
-from geofeat.geometry.spectral import SpectralBasis
+from geofeat.geometry.spectral import SpectralBasis, mass_normalize
 
 if TYPE_CHECKING:
     import torch
@@ -364,12 +364,6 @@ def laplacian_mask(evals_x, evals_y, kind: str = "resolvent", gamma: float = 0.5
     return real**2 + imag**2
 
 
-def mass_normalize_columns(desc: np.ndarray, mass: np.ndarray) -> np.ndarray:
-    """Divide every column by its mass-weighted L2 norm (zero columns are left as they are)."""
-    norms = np.sqrt(mass @ np.square(desc))
-    return desc / np.where(norms > 0, norms, 1.0)
-
-
 def fmap_from_descriptors(
     basis_x: SpectralBasis,
     basis_y: SpectralBasis,
@@ -433,7 +427,7 @@ def fmap_from_descriptors(
     if not (descr_weight > 0 and lap_weight >= 0):
         raise FunctionalMapError(f"descr_weight must be > 0 and lap_weight >= 0; found {descr_weight!r} and {lap_weight!r}.")
     if normalize_descriptors:
-        dx, dy = mass_normalize_columns(dx, basis_x.mass), mass_normalize_columns(dy, basis_y.mass)
+        dx, dy = mass_normalize(dx, basis_x.mass), mass_normalize(dy, basis_y.mass)
     a = project(basis_x, dx, k_x)
     b = project(basis_y, dy, k_y)
     weights = laplacian_mask(basis_x.evals[:k_x], basis_y.evals[:k_y], mask, resolvent_gamma)

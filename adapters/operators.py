@@ -25,6 +25,7 @@ from scipy.spatial import cKDTree
 
 from geofeat.devices import resolve_device
 from geofeat.errors import MeshError
+from geofeat.geometry.normals import N_NEIGHBORS_CLOUD, vertex_normals
 from geofeat.geometry.spectral import spectral_basis
 from geofeat.lru import LRUCache
 from geofeat.mesh import Mesh
@@ -33,8 +34,6 @@ from geofeat.topology import unique_edges
 if TYPE_CHECKING:
     import torch
 
-#: Neighbours of each point used for normals and gradients of a point cloud (as in DiffusionNet).
-N_NEIGHBORS_CLOUD = 30
 #: Tikhonov regularisation of the per-vertex least-squares gradient fit, relative to the mean
 #: squared tangent edge length at the vertex (keeps nearly collinear neighbourhoods solvable).
 GRADIENT_REGULARIZATION = 1e-5
@@ -235,62 +234,6 @@ def _sparse32(matrix: sp.spmatrix) -> torch.Tensor:
 
 
 # ----------------------------------------------------------------------------- geometry (float64)
-
-
-def vertex_normals(mesh: Mesh, face_weights: str = "area", normalize_eps: float = 1e-12) -> np.ndarray:
-    """Unit normal at every vertex.
-
-    Parameters
-    ----------
-    mesh : Mesh
-        Triangle mesh or point cloud.
-    face_weights : {"area", "unit"}
-        Sum the adjacent face normals weighted by face area, or normalised (the
-        DiffusionNet reference code; degenerate faces then add nothing).
-    normalize_eps : float
-        With ``face_weights="unit"``: a face normal ``n`` counts as ``n / (|n| + normalize_eps)``.
-
-    Returns
-    -------
-    numpy.ndarray, shape (V, 3), float64
-        On a mesh, the normalised sum of the adjacent face normals (oriented like the
-        faces), weighted as ``face_weights`` says. On a point cloud, and on mesh vertices without a usable face normal
-        (unreferenced, or normals that cancel), the direction of least variance of the
-        `N_NEIGHBORS_CLOUD` nearest points, oriented away from the centroid of the shape.
-    """
-    verts = mesh.verts
-    normals = np.zeros_like(verts)
-    if mesh.faces is not None:
-        tri = verts[mesh.faces]
-        face_normals = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])  # length = 2 * area
-        if face_weights == "unit":
-            face_normals = face_normals / (np.linalg.norm(face_normals, axis=1, keepdims=True) + normalize_eps)
-        elif face_weights != "area":
-            raise MeshError(f"face_weights must be 'area' or 'unit'; found {face_weights!r}.")
-        for corner in range(3):
-            np.add.at(normals, mesh.faces[:, corner], face_normals)
-    lengths = np.linalg.norm(normals, axis=1)
-    scale = max(mesh.bbox_diagonal(), 1e-300)
-    missing = lengths <= (1e-12 if face_weights == "unit" else 1e-12 * scale**2)
-    if missing.any():
-        normals[missing] = _cloud_normals(verts, np.flatnonzero(missing))
-        lengths[missing] = 1.0
-    return normals / lengths[:, None]
-
-
-def _cloud_normals(verts: np.ndarray, which: np.ndarray) -> np.ndarray:
-    """Least-variance direction of the neighbourhood of ``verts[which]``, (n, 3) unit."""
-    n_query = min(N_NEIGHBORS_CLOUD + 1, len(verts))
-    if n_query < 3:
-        normals = np.zeros((len(which), 3))
-        normals[:, 2] = 1.0
-        return normals
-    _, neighbors = cKDTree(verts).query(verts[which], k=n_query)
-    local = verts[neighbors] - verts[which][:, None, :]
-    local -= local.mean(axis=1, keepdims=True)
-    normals = np.linalg.svd(local, full_matrices=False)[2][:, 2, :]
-    outward = np.einsum("nd,nd->n", normals, verts[which] - verts.mean(axis=0))
-    return np.where(outward[:, None] < 0, -normals, normals)
 
 
 def tangent_frames(normals: np.ndarray, normalize_eps: float = 0.0) -> np.ndarray:

@@ -8,7 +8,7 @@ from geofeat.checks import check_boolean, check_choice, check_integer
 from geofeat.descriptors.base import Descriptor
 from geofeat.errors import DescriptorError
 from geofeat.geometry.laplacian import LAPLACIANS
-from geofeat.geometry.spectral import SpectralBasis, spectral_basis
+from geofeat.geometry.spectral import SpectralBasis, mass_normalize, spectral_basis
 from geofeat.mesh import Mesh
 
 #: The WKS energy range is empty when the log non-zero eigenvalues span less than this
@@ -27,23 +27,6 @@ def _checked_spectral_params(descriptor: str, n_eig, n_descr, laplacian, normali
     if params["n_eig"] < 3:
         raise DescriptorError(f"{descriptor}: n_eig must be at least 3 to span a range of scales; found {n_eig}.")
     return params
-
-
-def mass_normalize(features: np.ndarray, mass: np.ndarray) -> np.ndarray:
-    """Scale every channel to unit mass-weighted L2 norm.
-
-    Parameters
-    ----------
-    features : numpy.ndarray, shape (V, C)
-    mass : numpy.ndarray, shape (V,)
-
-    Returns
-    -------
-    numpy.ndarray, shape (V, C)
-        ``features[:, c] / sqrt(sum_i mass_i features[i, c]^2)``.
-    """
-    norms = np.sqrt(mass @ np.square(features))
-    return features / np.where(norms > 0, norms, 1.0)
 
 
 def nonzero_spectrum(basis: SpectralBasis) -> tuple[np.ndarray, np.ndarray]:

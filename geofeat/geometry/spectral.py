@@ -141,6 +141,24 @@ def clear_basis_cache() -> None:
     _basis_cache.clear()
 
 
+def mass_normalize(features: np.ndarray, mass: np.ndarray) -> np.ndarray:
+    """Scale every channel to unit mass-weighted L2 norm (channels of norm zero are left as they are).
+
+    Parameters
+    ----------
+    features : numpy.ndarray, shape (V, C)
+    mass : numpy.ndarray, shape (V,)
+        Vertex areas (`SpectralBasis.mass`).
+
+    Returns
+    -------
+    numpy.ndarray, shape (V, C)
+        ``features[:, c] / sqrt(sum_i mass_i features[i, c]^2)``.
+    """
+    norms = np.sqrt(mass @ np.square(features))
+    return features / np.where(norms > 0, norms, 1.0)
+
+
 def solve_eigenpairs(
     stiffness: sp.spmatrix, mass: np.ndarray, k: int, name: str = "", progress: bool = True
 ) -> tuple[np.ndarray, np.ndarray]:

@@ -39,6 +39,7 @@ import torch
 import torch.nn.functional as F
 
 from geofeat.errors import RenderError
+from geofeat.geometry.normals import vertex_normals as geometry_normals
 from geofeat.mesh import Mesh
 from geofeat.render.cameras import Cameras, as_tensor
 from geofeat.render.rasterizer import Fragments, RasterSettings, mesh_tensors, rasterize
@@ -96,7 +97,9 @@ class Rendering(NamedTuple):
 
 
 def vertex_normals(verts: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
-    """Area-weighted unit vertex normals (as pytorch3d's ``Meshes.verts_normals_packed``).
+    """Area-weighted unit vertex normals (as pytorch3d's ``Meshes.verts_normals_packed``), as a tensor.
+
+    Computed by `geofeat.geometry.normals.vertex_normals` (in float64, without gradients).
 
     Parameters
     ----------
@@ -105,16 +108,14 @@ def vertex_normals(verts: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
 
     Returns
     -------
-    torch.Tensor, shape (V, 3), same dtype as ``verts``
+    torch.Tensor, shape (V, 3), dtype and device of ``verts``
         Sum of the right-hand normals (length twice the area) of the faces around each
-        vertex, normalised; zero for vertices in no face.
+        vertex, normalised; zero for vertices in no face (and where the normals cancel).
     """
-    corners = verts[faces]
-    face_normals = torch.linalg.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0], dim=-1)
-    normals = torch.zeros_like(verts)
-    for k in range(3):
-        normals.index_add_(0, faces[:, k], face_normals)
-    return F.normalize(normals, dim=-1, eps=1e-12)
+    normals = geometry_normals(
+        verts.detach().to("cpu", torch.float64).numpy(), faces.detach().cpu().numpy(), face_weights="area", fallback=False
+    )
+    return torch.from_numpy(normals).to(device=verts.device, dtype=verts.dtype)
 
 
 def shade_phong(

@@ -18,10 +18,10 @@ from geofeat.adapters.diffusion_net import (
     surface_operators,
     tangent_frames,
     tangent_gradients,
-    vertex_normals,
 )
 from geofeat.descriptors.spectral import heat_kernel_signature, wave_kernel_signature
 from geofeat.errors import DiffusionNetError, GeofeatError
+from geofeat.geometry.normals import vertex_normals
 from geofeat.geometry.spectral import spectral_basis
 
 K = 48

@@ -10,6 +10,7 @@ from shapes import bumpy, sphere
 from geofeat import Mesh
 from geofeat.errors import SpectralError
 from geofeat.geometry import laplacian, spectral, spectral_basis
+from geofeat.geometry.spectral import mass_normalize
 
 
 def test_unit_sphere_spectrum_is_l_l_plus_1():
@@ -244,3 +245,12 @@ def test_sparse_solve_is_accurate_near_degenerate_faces(squash):
         np.testing.assert_allclose(evals, ref_evals, atol=1e-9 * ref_evals.max())
         # sign- and rotation-free: squared eigenvectors summed over the first 25 (sphere-like l <= 4 modes, apart from l = 5)
         np.testing.assert_allclose((evecs[:, :25] ** 2).sum(1), (ref_evecs[:, :25] ** 2).sum(1), rtol=1e-6)
+
+
+def test_mass_normalize_gives_unit_mass_norm_and_keeps_zero_channels():
+    mass = np.array([1.0, 2.0, 0.5])
+    features = np.array([[1.0, 0.0, 3.0], [2.0, 0.0, -1.0], [0.0, 0.0, 4.0]])
+    out = mass_normalize(features, mass)
+    np.testing.assert_allclose(mass @ np.square(out[:, [0, 2]]), [1.0, 1.0])
+    np.testing.assert_array_equal(out[:, 1], 0.0)
+    np.testing.assert_allclose(out[:, 0] / out[0, 0], features[:, 0])  # a scaling per channel
