@@ -1,7 +1,9 @@
-"""The names of the heads: `HEADS`, `head_class`.
+"""The names of the heads: `HEADS`, `register_head`, `head_class`.
 
 Every head is registered under a name with its ``"module:Class"`` target, imported on first
-use, so that listing the heads loads neither torch nor a head's module.
+use, so that listing the heads loads neither torch nor a head's module. The rules are those
+of every geofeat registry (`geofeat.registry.Registry`): names are case-insensitive and
+``-`` equals ``_``; a taken name is refused unless ``overwrite=True``.
 """
 
 from __future__ import annotations
@@ -9,29 +11,49 @@ from __future__ import annotations
 from typing import TYPE_CHECKING
 
 from geofeat.errors import HeadError
-from geofeat.registry import LazyEntry, lookup
+from geofeat.registry import LazyEntry, Registry
 
 if TYPE_CHECKING:
     from .heads import Head
 
-__all__ = ["HEADS", "head_class"]
+__all__ = ["HEADS", "head_class", "register_head"]
 
-#: Head names: `geofeat.registry.LazyEntry` values (or bare ``"module:Class"`` strings), imported on first use.
-HEADS: dict[str, LazyEntry | str] = {
-    "nn": LazyEntry("nn", "geofeat.adapters.heads:NearestNeighbourHead", summary="nearest neighbour in feature space"),
-    "fmap": LazyEntry("fmap", "geofeat.adapters.heads:FunctionalMapHead", summary="functional map from the input features"),
-    "ulrssm": LazyEntry(
-        "ulrssm",
-        "geofeat.adapters.ulrssm:ULRSSMHead",
-        summary="ULRSSM: unsupervised DiffusionNet features, functional-map losses",
-    ),
-    "dpfm": LazyEntry("dpfm", "geofeat.adapters.dpfm:DPFMHead", summary="DPFM: supervised, overlap-aware functional maps"),
-    "echomatch": LazyEntry(
-        "echomatch", "geofeat.adapters.echomatch:EchoMatchHead", summary="EchoMatch: overlap by correspondence reflection"
-    ),
-}
+#: The registered heads (`geofeat.registry.Registry` of `geofeat.registry.LazyEntry`).
+HEADS = Registry("head", HeadError)
+
+
+def register_head(name: str, target: str | type[Head], *, summary: str = "", overwrite: bool = False) -> None:
+    """Make a head available by name (`geofeat.adapters.heads.make_head`, `load_head`).
+
+    Parameters
+    ----------
+    name : str
+        Head name (case-insensitive; ``-`` and ``_`` are equivalent); the head class's
+        ``name`` should be the same, since `Head.save` records that one.
+    target : str or type
+        ``"module:Class"``, imported on first use, or the `Head` subclass itself.
+    summary : str
+        One line for listings.
+    overwrite : bool
+        Replace an entry of the same name instead of raising.
+
+    Raises
+    ------
+    HeadError
+        The name is already registered and ``overwrite`` is false.
+    """
+    HEADS.register(LazyEntry(name, target, summary=summary), overwrite=overwrite)
 
 
 def head_class(name: str) -> type[Head]:
     """The `Head` subclass registered under ``name`` (`HeadError` for an unknown name, with suggestions)."""
-    return lookup(HEADS, name, "head", HeadError).load("head")
+    return HEADS.load(name)
+
+
+register_head("nn", "geofeat.adapters.heads:NearestNeighbourHead", summary="nearest neighbour in feature space")
+register_head("fmap", "geofeat.adapters.heads:FunctionalMapHead", summary="functional map from the input features")
+register_head(
+    "ulrssm", "geofeat.adapters.ulrssm:ULRSSMHead", summary="ULRSSM: unsupervised DiffusionNet features, functional-map losses"
+)
+register_head("dpfm", "geofeat.adapters.dpfm:DPFMHead", summary="DPFM: supervised, overlap-aware functional maps")
+register_head("echomatch", "geofeat.adapters.echomatch:EchoMatchHead", summary="EchoMatch: overlap by correspondence reflection")

@@ -94,7 +94,8 @@ class _AffineHead(LearnedHead):
 def test_learned_head_trains_saves_and_loads(tmp_path, monkeypatch):
     from geofeat.adapters import head_registry
 
-    monkeypatch.setitem(head_registry.HEADS, "test_affine", f"{__name__}:_AffineHead")
+    monkeypatch.setattr(head_registry, "HEADS", head_registry.HEADS.copy())
+    head_registry.register_head("test_affine", f"{__name__}:_AffineHead")
     head = _AffineHead(descriptor="wks", n_eig=40, epochs=3, lr=1e-2, cosine_annealing=True, progress=False)
     pairs = [_pair(0), _pair(1)]
     with pytest.raises(HeadError, match="no model yet"):
@@ -143,3 +144,21 @@ def test_setting_checks_name_the_setting_and_keep_their_bounds():
     check_numbers("test", config, ("lr",), 0.0, 1.0)
     with pytest.raises(HeadError, match=r"lr must be a finite number in \(0.0, 1.0\)"):
         check_numbers("test", config, ("lr",), 0.0, 1.0, low_open=True, high_open=True)
+
+
+def test_head_names_follow_the_registry_rules(monkeypatch):
+    from geofeat.adapters import head_registry
+    from geofeat.adapters.heads import NearestNeighbourHead
+
+    assert head_registry.head_class("NN") is NearestNeighbourHead
+    assert isinstance(make_head(" FMap ", k=10), FunctionalMapHead)
+    assert {"nn", "fmap", "ulrssm", "dpfm", "echomatch"} <= set(head_registry.HEADS.names())
+    monkeypatch.setattr(head_registry, "HEADS", head_registry.HEADS.copy())
+    with pytest.raises(HeadError, match="already registered; pass overwrite=True"):
+        head_registry.register_head("nn", FunctionalMapHead)
+    head_registry.register_head("Test-Affine", _AffineHead, summary="a test head")
+    assert head_registry.head_class("test_affine") is _AffineHead
+    head_registry.register_head("test_affine", f"{__name__}:_PickyHead", overwrite=True)
+    assert head_registry.head_class("TEST_AFFINE") is _PickyHead
+    with pytest.raises(HeadError, match="unknown head 'test_afine'.*test_affine"):
+        make_head("test_afine")
