@@ -111,14 +111,6 @@ def canonical_name(name: Any) -> str:
     return str(name).strip().lower().replace("-", "_")
 
 
-def lookup(registry: Mapping[str, LazyEntry | str], name: Any, kind: str, error: type[GeofeatError]) -> LazyEntry:
-    """The entry of ``name`` in a plain dict registry (kept only until the heads move onto `Registry`)."""
-    if not isinstance(name, str) or name not in registry:
-        raise unknown_name_error(name, registry, kind, error, probe=str(name))
-    value = registry[name]
-    return value if isinstance(value, LazyEntry) else LazyEntry(name, value)
-
-
 class Registry:
     """Names to `LazyEntry` records, with one rule for case, duplicates and unknown names.
 
