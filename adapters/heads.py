@@ -15,7 +15,9 @@ truth, mesh normalisation, input features), the shared part of the learned heads
 Every head reads its input features from any registered geofeat descriptor
 (``descriptor="wks"``, ``"geolora"`` with ``descriptor_params={"checkpoint": ...}``) or the
 raw vertex coordinates (``descriptor="xyz"``, as the original papers do). A saved head is a
-folder: ``head_config.json`` + ``weights.safetensors`` for learned heads.
+folder written by `geofeat.pretrained.save_pretrained` (kind ``"head"``): ``config.json``
+with the settings and, under ``info``, the head's name (and a learned head's input width),
+plus ``weights.safetensors`` for learned heads.
 
 torch is imported inside the methods that need it, not at the top: the training-free heads
 (``nn``, ``fmap``) and the evaluation workers never load it (1 to 2 s of start-up).
@@ -26,6 +28,7 @@ from __future__ import annotations
 import copy
 import dataclasses
 import json
+import logging
 import math
 import os
 from collections.abc import Sequence
@@ -35,15 +38,14 @@ from typing import TYPE_CHECKING, Any, ClassVar
 
 import numpy as np
 
-from geofeat._version import __version__
 from geofeat.checks import canonical, check_integer, check_number
 from geofeat.datasets.records import Match, ShapePair
 from geofeat.devices import resolve_device
 from geofeat.errors import GeofeatError, HeadError
-from geofeat.files import atomic_write
 from geofeat.jsonconfig import JsonConfig
 from geofeat.lru import LRUCache
 from geofeat.mesh import Mesh
+from geofeat.pretrained import CONFIG_FILE, WEIGHTS_FILE, Pretrained, from_pretrained, save_pretrained
 from geofeat.safe_load import load_torch_file
 
 from . import matchers
@@ -53,6 +55,8 @@ from .inputs import MESH_NORMALIZATIONS, input_features, normalized_pair
 
 if TYPE_CHECKING:
     import torch
+
+log = logging.getLogger(__name__)
 
 __all__ = [
     "FunctionalMapConfig",
@@ -65,10 +69,14 @@ __all__ = [
     "load_head",
     "make_head",
     "preset_settings",
+    "upgrade_head",
 ]
 
-CONFIG_FILE = "head_config.json"
-WEIGHTS_FILE = "weights.safetensors"
+#: The ``kind`` of a saved head folder (`geofeat.pretrained`).
+HEAD_KIND = "head"
+#: Files of the layout Head.save wrote before `geofeat.pretrained` (see `upgrade_head`).
+_OLD_CONFIG_FILE = "head_config.json"
+_OLD_LAYOUT_HINT = "Rewrite it in place with geofeat.adapters.heads.upgrade_head(folder) (the weights are kept)."
 #: Input feature arrays a head keeps in memory (a target shape is matched to several sources in a row).
 _FEATURES_KEPT = 4
 
@@ -77,7 +85,7 @@ _FEATURES_KEPT = 4
 class HeadConfig(JsonConfig):
     """Settings shared by every head (subclasses add their own fields).
 
-    `Head.save` writes them into ``head_config.json``; reading goes through
+    `Head.save` writes them under ``config`` of the folder's ``config.json``; reading goes through
     `geofeat.jsonconfig.JsonConfig.from_dict` (a key that is no setting: a warning, kept aside).
 
     Parameters
@@ -232,16 +240,34 @@ class Head:
         raise NotImplementedError
 
     def save(self, folder: str | os.PathLike) -> Path:
-        """Write ``head_config.json`` (and the weights of learned heads) into ``folder``."""
-        folder = Path(folder)
-        folder.mkdir(parents=True, exist_ok=True)
-        payload = {"head": self.name, "geofeat_version": __version__, "config": self.config.to_dict()}
-        text = json.dumps(payload, indent=2, sort_keys=True) + "\n"
-        atomic_write(folder / CONFIG_FILE, lambda tmp: tmp.write_text(text))
-        return folder
+        """Write the head into ``folder`` in one piece (`geofeat.pretrained.save_pretrained`, kind ``"head"``).
 
-    def restore(self, folder: Path) -> None:
-        """Read what `save` wrote beside the configuration (`load_head`); training-free heads have nothing."""
+        ``config.json`` holds the settings and, under ``info``, the head's name (and what
+        `saved_state` adds); ``weights.safetensors`` the tensors of a learned head. A folder
+        saved before is replaced; a folder holding other files is refused.
+
+        Returns
+        -------
+        pathlib.Path
+            The folder.
+
+        Raises
+        ------
+        HeadError
+            A setting that is no JSON value, a folder that cannot be replaced, or a learned
+            head without a module.
+        """
+        info, tensors = self.saved_state()
+        return save_pretrained(
+            folder, HEAD_KIND, self.config.to_dict(), tensors, info={"head": self.name} | info, error=HeadError
+        )
+
+    def saved_state(self) -> tuple[dict[str, Any], dict[str, torch.Tensor] | None]:
+        """What `save` writes beside the settings: entries of ``info`` and the tensors (none for training-free heads)."""
+        return {}, None
+
+    def restore(self, saved: Pretrained) -> None:
+        """Take back what `saved_state` gave from a folder read by `load_head`; training-free heads have nothing."""
 
 
 class NearestNeighbourHead(Head):
@@ -342,22 +368,69 @@ def load_head(
         return _from_release(str(source), Path(checkpoint), preset, settings)
     if settings:
         raise HeadError(f"settings {sorted(settings)} only apply with a release checkpoint; change head.config instead.")
-    folder = Path(source)
-    if not folder.is_dir():
-        raise HeadError(f"{folder} is not a folder; expected one written by Head.save ({CONFIG_FILE} and {WEIGHTS_FILE}).")
-    try:
-        payload = json.loads((folder / CONFIG_FILE).read_text())
-    except (OSError, ValueError) as exc:
-        raise HeadError(f"{folder} holds no readable {CONFIG_FILE}: {exc}") from exc
-    if not isinstance(payload, dict) or not isinstance(payload.get("config", {}), dict):
+    saved = from_pretrained(source, HEAD_KIND, HeadError, older_layout_hint=_OLD_LAYOUT_HINT)
+    name = saved.info.get("head")
+    if not isinstance(name, str):
         raise HeadError(
-            f"{folder / CONFIG_FILE} is not a head configuration: expected an object with 'head' (a name) and "
-            "'config' (an object of settings), as Head.save writes."
+            f"{saved.folder / CONFIG_FILE} names no head: expected the head's name under info.head, as Head.save "
+            f"writes; found {name!r}. Save the head again."
         )
-    cls = head_class(payload.get("head", ""))
-    head = cls(cls.config_class.from_dict(payload.get("config", {})))
-    head.restore(folder)
+    cls = head_class(name)
+    head = cls(cls.config_class.from_dict(saved.config))
+    head.restore(saved)
     return head
+
+
+def upgrade_head(folder: str | os.PathLike) -> Path:
+    """Rewrite a head folder of the older layout (``head_config.json`` + ``weights.safetensors``) in place.
+
+    The older `Head.save` wrote ``head_config.json`` (``{"head", "geofeat_version",
+    "config"}``) and, for a learned head, ``weights.safetensors`` with the input width in its
+    metadata. The folder is rewritten whole by `geofeat.pretrained.save_pretrained` with the
+    same settings and tensors, so that `load_head` reads it.
+
+    Parameters
+    ----------
+    folder : str or os.PathLike
+
+    Returns
+    -------
+    pathlib.Path
+        The folder.
+
+    Raises
+    ------
+    HeadError
+        The folder holds no ``head_config.json``, or its files cannot be read.
+    """
+    folder = Path(folder)
+    old_config, weights = folder / _OLD_CONFIG_FILE, folder / WEIGHTS_FILE
+    if not old_config.is_file():
+        raise HeadError(f"{folder} holds no {_OLD_CONFIG_FILE}; there is nothing to upgrade.")
+    try:
+        payload = json.loads(old_config.read_text())
+    except (OSError, ValueError) as exc:
+        raise HeadError(f"could not read {old_config} as JSON ({exc}); the file is damaged.") from exc
+    if not isinstance(payload, dict) or not isinstance(payload.get("head"), str) or not isinstance(payload.get("config"), dict):
+        raise HeadError(f"{old_config} is not a head configuration: expected an object with 'head' (a name) and 'config'.")
+    info: dict[str, Any] = {"head": payload["head"]}
+    tensors = None
+    if weights.is_file():
+        from safetensors import safe_open
+        from safetensors.torch import load_file
+
+        try:
+            with safe_open(str(weights), framework="pt") as handle:
+                info["in_channels"] = int((handle.metadata() or {})["in_channels"])
+            tensors = load_file(str(weights))
+        except Exception as exc:  # SafetensorError, OSError, a missing or bad in_channels entry
+            raise HeadError(
+                f"could not read {weights} with its 'in_channels' metadata ({type(exc).__name__}: {exc}); the file is "
+                "truncated or damaged, or was not written by Head.save."
+            ) from exc
+    save_pretrained(folder, HEAD_KIND, payload["config"], tensors, info=info, error=HeadError, overwrite=True)
+    log.info("upgraded the head in %s to config.json + weights.safetensors", folder)
+    return folder
 
 
 def _from_release(name: str, checkpoint: Path, preset: str, settings: dict[str, Any]) -> Head:
@@ -369,7 +442,7 @@ def _from_release(name: str, checkpoint: Path, preset: str, settings: dict[str, 
     if checkpoint.is_dir():
         raise HeadError(
             f"release checkpoint {checkpoint} is a folder; expected the authors' .pth file. "
-            "A folder saved by geofeat (head_config.json + weights.safetensors) loads with load_head(folder)."
+            f"A folder saved by geofeat ({CONFIG_FILE} + {WEIGHTS_FILE}) loads with load_head(folder)."
         )
     if not checkpoint.is_file():
         raise HeadError(f"release checkpoint {checkpoint} does not exist.")

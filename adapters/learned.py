@@ -14,22 +14,21 @@ module is built.
 from __future__ import annotations
 
 import logging
-import os
 import time
 from collections.abc import Sequence
-from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from geofeat.checks import is_integer
 from geofeat.datasets.records import Match, ShapePair
 from geofeat.errors import HeadError, UnusablePair
-from geofeat.files import atomic_write
 from geofeat.lru import LRUCache
 from geofeat.mesh import Mesh
+from geofeat.pretrained import CONFIG_FILE, Pretrained
 from geofeat.progress import progress_bar
 
-from .heads import WEIGHTS_FILE, Head, HeadConfig
+from .heads import Head, HeadConfig
 
 if TYPE_CHECKING:
     import torch
@@ -174,22 +173,21 @@ class LearnedHead(Head):
 
     # -- weights
 
-    def save(self, folder: str | os.PathLike) -> Path:
-        """``head_config.json`` and ``weights.safetensors`` (the module's state dict)."""
+    def saved_state(self) -> tuple[dict[str, Any], dict[str, torch.Tensor]]:
+        """The input width (``info["in_channels"]``) and the module's state dict, for `Head.save`."""
         if self.model is None:
             raise HeadError(f"head {self.name!r} has no model yet: fit it (or load one) before saving.")
-        from safetensors.torch import save_file
+        return {"in_channels": self.in_channels}, dict(self.model.state_dict())
 
-        folder = super().save(folder)
-        state = {k: v.detach().to("cpu").contiguous() for k, v in self.model.state_dict().items()}
-        atomic_write(
-            folder / WEIGHTS_FILE, lambda tmp: save_file(state, str(tmp), metadata={"in_channels": str(self.in_channels)})
-        )
-        return folder
-
-    def restore(self, folder: Path) -> None:
-        """Build the module for the input width recorded in ``folder``'s weights and load them (`load_head`)."""
-        self.load_weights(folder, _saved_in_channels(folder / WEIGHTS_FILE))
+    def restore(self, saved: Pretrained) -> None:
+        """Build the module for the saved input width and load the saved weights exactly (`load_head`)."""
+        in_channels = saved.info.get("in_channels")
+        if not is_integer(in_channels) or in_channels < 1:
+            raise HeadError(
+                f"{saved.folder / CONFIG_FILE} has no valid 'in_channels' entry under info (found {in_channels!r}); "
+                "it was not written by Head.save. Save the head again."
+            )
+        self.load_state(saved.tensors("cpu"), int(in_channels), source=str(saved.weights_path))
 
     def load_state(self, state: dict[str, torch.Tensor], in_channels: int, source: str) -> None:
         """Build the module for ``in_channels`` and load ``state`` exactly (see `release.check_state`)."""
@@ -200,41 +198,3 @@ class LearnedHead(Head):
         check_state(model, state, source)
         model.load_state_dict(state, strict=True)
         self.model = model.to(self.device)
-
-    def load_weights(self, folder: Path, in_channels: int) -> None:
-        """Build the module for ``in_channels`` and load ``weights.safetensors``."""
-        from safetensors.torch import load_file
-
-        self.in_channels = in_channels
-        self.model = self.build_model(in_channels).to(self.device)
-        try:
-            self.model.load_state_dict(load_file(str(folder / WEIGHTS_FILE), device=str(self.device)))
-        except (RuntimeError, OSError) as exc:
-            raise HeadError(f"{folder / WEIGHTS_FILE} does not fit head {self.name!r}: {exc}") from exc
-        except Exception as exc:  # safetensors' SafetensorError on a damaged file
-            raise HeadError(f"{folder / WEIGHTS_FILE} is not a readable safetensors file (truncated or damaged?): {exc}") from exc
-
-
-def _saved_in_channels(path: Path) -> int:
-    """The input width recorded in the metadata of a head's ``weights.safetensors``.
-
-    Raises
-    ------
-    HeadError
-        If the file is missing, unreadable or damaged, or has no ``in_channels`` entry.
-    """
-    from safetensors import safe_open
-
-    if not path.is_file():
-        raise HeadError(f"{path} is missing: a learned head's folder holds its weights there (Head.save writes it).")
-    try:
-        with safe_open(str(path), framework="pt") as handle:
-            metadata = handle.metadata() or {}
-    except Exception as exc:  # safetensors raises its own SafetensorError, and OSError
-        raise HeadError(
-            f"{path} is not a readable safetensors file (truncated or damaged?): {exc}. Save the head again."
-        ) from exc
-    try:
-        return int(metadata["in_channels"])
-    except (KeyError, ValueError) as exc:
-        raise HeadError(f"{path} has no valid 'in_channels' entry in its metadata; it was not written by Head.save.") from exc

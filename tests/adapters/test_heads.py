@@ -162,3 +162,46 @@ def test_head_names_follow_the_registry_rules(monkeypatch):
     assert head_registry.head_class("TEST_AFFINE") is _PickyHead
     with pytest.raises(HeadError, match="unknown head 'test_afine'.*test_affine"):
         make_head("test_afine")
+
+
+def test_saved_folder_layout_and_the_upgrade_of_an_older_one(tmp_path, monkeypatch):
+    import json
+
+    from safetensors.torch import save_file
+
+    from geofeat.adapters import head_registry
+    from geofeat.adapters.heads import upgrade_head
+
+    monkeypatch.setattr(head_registry, "HEADS", head_registry.HEADS.copy())
+    head_registry.register_head("test_affine", f"{__name__}:_AffineHead")
+    head = _AffineHead(descriptor="xyz", n_eig=40, progress=False)
+    head._ensure_model(_pair().x)
+    head.save(tmp_path / "new")
+    assert sorted(p.name for p in (tmp_path / "new").iterdir()) == ["config.json", "weights.safetensors"]
+    saved = json.loads((tmp_path / "new" / "config.json").read_text())
+    assert saved["kind"] == "head" and saved["info"] == {"head": "test_affine", "in_channels": 3}
+    assert saved["config"] == head.config.to_dict()
+    make_head("fmap", k=12).save(tmp_path / "fmap")
+    assert [p.name for p in (tmp_path / "fmap").iterdir()] == ["config.json"]
+    assert load_head(tmp_path / "fmap").config.k == 12
+
+    old = tmp_path / "old"  # what Head.save wrote before config.json
+    old.mkdir()
+    (old / "head_config.json").write_text(
+        json.dumps({"head": "test_affine", "geofeat_version": "0.9", "config": head.config.to_dict()})
+    )
+    state = {k: v.contiguous() for k, v in head.model.state_dict().items()}
+    save_file(state, str(old / "weights.safetensors"), metadata={"in_channels": "3"})
+    with pytest.raises(HeadError, match=r"older geofeat.*upgrade_head"):
+        load_head(old)
+    upgrade_head(old)
+    again = load_head(old)
+    assert again.config == head.config
+    for key, value in head.model.state_dict().items():
+        torch.testing.assert_close(again.model.state_dict()[key], value, rtol=0, atol=0)
+    with pytest.raises(HeadError, match="nothing to upgrade"):
+        upgrade_head(tmp_path / "new")
+    with pytest.raises(HeadError, match="holds a 'lora_adapter', not a 'head'"):
+        saved["kind"] = "lora_adapter"
+        (tmp_path / "new" / "config.json").write_text(json.dumps(saved))
+        load_head(tmp_path / "new")
