@@ -962,7 +962,7 @@ def saved_head(ctx: Ctx, damage: str) -> Path:
     head.in_channels, head.model = 3, head.build_model(3)
     folder = ctx.tmp / "head"
     head.save(folder)
-    weights, config = folder / "weights.safetensors", folder / "head_config.json"
+    weights, config = folder / "weights.safetensors", folder / "config.json"
     if damage == "truncated":
         weights.write_bytes(weights.read_bytes()[: weights.stat().st_size // 2])
     elif damage == "missing":
@@ -985,10 +985,10 @@ def load_saved_head(damage: str):
 SECOND_PASS += [
     Row("head-folder-sound", "R7", load_saved_head("none"), reference=lambda c: "ULRSSMHead"),
     Row(
-        "head-folder-weights-truncated", "R7", load_saved_head("truncated"), GeofeatError, "weights.safetensors is not a readable"
+        "head-folder-weights-truncated", "R7", load_saved_head("truncated"), GeofeatError, "as safetensors"
     ),
-    Row("head-folder-weights-missing", "R7", load_saved_head("missing"), GeofeatError, "weights.safetensors is missing"),
-    Row("head-folder-config-list", "R7", load_saved_head("config-list"), GeofeatError, "is not a head configuration"),
+    Row("head-folder-weights-missing", "R7", load_saved_head("missing"), GeofeatError, "holds no weights.safetensors"),
+    Row("head-folder-config-list", "R7", load_saved_head("config-list"), GeofeatError, "must be JSON objects"),
 ]
 
 
