@@ -10,7 +10,6 @@ No torch here: the training-free heads and the evaluation workers use this modul
 from __future__ import annotations
 
 import dataclasses
-import math
 
 import numpy as np
 
@@ -18,7 +17,7 @@ from geofeat.checks import is_boolean
 from geofeat.datasets.records import ShapePair
 from geofeat.descriptors.compute import compute
 from geofeat.errors import HeadError, UnusablePair
-from geofeat.mesh import Mesh
+from geofeat.mesh import Mesh, normalize
 
 __all__ = [
     "MESH_NORMALIZATIONS",
@@ -96,10 +95,9 @@ def ground_truth_overlaps(pair: ShapePair) -> tuple[np.ndarray, np.ndarray]:
 def unit_area_verts(mesh: Mesh, frame: Mesh | None = None, required: bool = True) -> np.ndarray:
     """Vertices centred at the mean vertex of ``frame`` and divided by the square root of its area.
 
-    The one unit-area transform of the heads (`normalized_mesh`, the ``"xyz"`` input
-    features, DPFM's sample points). Unlike `geofeat.mesh.normalize` it centres at the mean
-    vertex, as the references' preprocessing does, not at the area-weighted centroid, and
-    it can take the transform from another mesh.
+    The unit-area transform of the heads (`normalized_mesh`, the ``"xyz"`` input features,
+    DPFM's sample points): `geofeat.mesh.normalize` with ``center="mean"``, as the
+    references' preprocessing does, in the frame of another mesh where one is given.
 
     Parameters
     ----------
@@ -116,13 +114,11 @@ def unit_area_verts(mesh: Mesh, frame: Mesh | None = None, required: bool = True
         ``(mesh.verts - mean(frame.verts)) / sqrt(area(frame))``.
     """
     frame = mesh if frame is None else frame
-    area = frame.area() if frame.faces is not None else 0.0
-    verts = mesh.verts - frame.verts.mean(axis=0)
-    if area > 0:
-        return verts / math.sqrt(area)
+    if frame.faces is not None and frame.area() > 0:
+        return normalize(mesh, center="mean", frame=frame).verts
     if required:
         raise HeadError(f"mesh {frame.name!r} has no surface area: mesh_normalization='unit_area' needs a triangle mesh.")
-    return verts
+    return mesh.verts - frame.verts.mean(axis=0)
 
 
 def normalized_mesh(mesh: Mesh, how: str | None, frame: Mesh | None = None) -> Mesh:

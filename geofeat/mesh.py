@@ -281,27 +281,42 @@ def _content_hash(verts: np.ndarray, faces: np.ndarray | None) -> str:
     return digest.hexdigest()
 
 
-def normalize(mesh: Mesh, center: bool = True) -> Mesh:
-    """Scale a mesh to unit surface area, optionally centring it at its area-weighted centroid.
+def normalize(mesh: Mesh, center: bool | str = True, frame: Mesh | None = None) -> Mesh:
+    """Scale a mesh to unit surface area, optionally centring it first.
 
     Parameters
     ----------
     mesh : Mesh
-        Input triangle mesh (a point cloud has no surface area and is refused).
-    center : bool
-        Translate the centroid to the origin.
+        Input triangle mesh.
+    center : bool or {"centroid", "mean"}
+        True or ``"centroid"``: subtract the area-weighted centroid; ``"mean"``: subtract the
+        mean vertex (the preprocessing of the DPFM and ULRSSM references); False: no translation.
+    frame : Mesh, optional
+        The mesh whose surface area and centre define the transform (default: ``mesh``). A
+        partial shape normalised in the frame of the full shape it was cut from keeps its
+        place and scale relative to it.
 
     Returns
     -------
     Mesh
-        A new mesh with the same faces and vertex order.
+        A new mesh with the same faces and vertex order:
+        ``(mesh.verts - centre(frame)) / sqrt(area(frame))``.
+
+    Raises
+    ------
+    MeshError
+        ``frame`` has no surface area (a point cloud, or degenerate triangles only), or
+        ``center`` is not one of the values above.
     """
-    area = mesh.area()
+    frame = mesh if frame is None else frame
+    if center not in (True, False, "centroid", "mean"):
+        raise MeshError(f"center must be True, False, 'centroid' or 'mean'; found {center!r}.")
+    area = frame.area()  # MeshError for a point cloud
     if not area > 0:
-        raise MeshError(f"mesh {mesh.name!r} has zero surface area; it cannot be normalised to unit area.")
+        raise MeshError(f"mesh {frame.name!r} has zero surface area; it cannot be normalised to unit area.")
     verts = mesh.verts
     if center:
-        verts = verts - mesh.centroid()
+        verts = verts - (frame.verts.mean(axis=0) if center == "mean" else frame.centroid())
     return Mesh(verts / np.sqrt(area), mesh.faces, name=mesh.name)
 
 

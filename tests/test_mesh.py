@@ -204,3 +204,15 @@ def test_face_areas_and_centroid_are_computed_once_read_only_and_true():
         flat.centroid()
     with pytest.raises(MeshError, match="point cloud"):
         geofeat.Mesh(np.zeros((3, 3))).centroid()
+
+
+def test_normalize_about_the_mean_vertex_in_the_frame_of_another_mesh():
+    full = Mesh(sphere(2).verts * 3.0 + 7.0, sphere(2).faces)
+    part = Mesh(full.verts[:20] + 0.5, None)  # any vertices: normalised in the full shape's frame
+    moved = geofeat.normalize(part, center="mean", frame=full)
+    np.testing.assert_allclose(moved.verts, (part.verts - full.verts.mean(axis=0)) / np.sqrt(full.area()), rtol=1e-12)
+    unit = geofeat.normalize(full, center="mean")
+    np.testing.assert_allclose(unit.verts.mean(axis=0), 0, atol=1e-12)
+    np.testing.assert_allclose(geofeat.normalize(full, center=False).verts, full.verts / np.sqrt(full.area()), rtol=1e-12)
+    with pytest.raises(MeshError, match="center must be"):
+        geofeat.normalize(full, center="median")
