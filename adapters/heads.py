@@ -40,6 +40,8 @@ import numpy as np
 
 from geofeat.checks import canonical, check_integer, check_number
 from geofeat.datasets.records import Match, ShapePair
+from geofeat.descriptors.base import Descriptor
+from geofeat.descriptors.registry import make_descriptor
 from geofeat.devices import resolve_device
 from geofeat.errors import GeofeatError, HeadError
 from geofeat.jsonconfig import JsonConfig
@@ -197,6 +199,7 @@ class Head:
         self.config = config
         _check_inputs(config)
         self._features: LRUCache[tuple[str, str, str], np.ndarray] = LRUCache(_FEATURES_KEPT)
+        self._descriptor: tuple[tuple[str, str], Descriptor | str] | None = None
 
     # -- inputs
 
@@ -218,11 +221,24 @@ class Head:
         c = self.config
 
         def build() -> np.ndarray:
-            features = input_features(mesh, c.descriptor, c.descriptor_params)
+            features = input_features(mesh, self.input_descriptor(), c.descriptor_params)
             features.flags.writeable = False  # shared by every later call for this mesh
             return features
 
         return self._features.get_or_compute(self._features_key(mesh), build)
+
+    def input_descriptor(self) -> Descriptor | str:
+        """The descriptor of the input features, built once per descriptor setting (``"xyz"`` stays a name).
+
+        A model-backed descriptor (DINOv2, DINOv3, GeoLoRA) loads its backbone on first use
+        and keeps it: building it once here means once per head, not once per mesh.
+        """
+        c = self.config
+        key = (c.descriptor, json.dumps(c.descriptor_params, sort_keys=True, default=repr))
+        if self._descriptor is None or self._descriptor[0] != key:
+            built = c.descriptor if c.descriptor == "xyz" else make_descriptor(c.descriptor, **(c.descriptor_params or {}))
+            self._descriptor = (key, built)
+        return self._descriptor[1]
 
     def _features_key(self, mesh: Mesh) -> tuple[str, str, str]:
         """What the input features of ``mesh`` depend on: its content and the descriptor settings."""

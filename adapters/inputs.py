@@ -15,6 +15,7 @@ import numpy as np
 
 from geofeat.checks import is_boolean
 from geofeat.datasets.records import ShapePair
+from geofeat.descriptors.base import Descriptor
 from geofeat.descriptors.compute import compute
 from geofeat.errors import HeadError, UnusablePair
 from geofeat.mesh import Mesh, normalize
@@ -174,16 +175,17 @@ def normalized_pair(pair: ShapePair, how: str | None) -> ShapePair:
     return dataclasses.replace(pair, x=x, y=y)
 
 
-def input_features(mesh: Mesh, descriptor: str, params: dict | None = None) -> np.ndarray:
+def input_features(mesh: Mesh, descriptor: str | Descriptor, params: dict | None = None) -> np.ndarray:
     """Per-vertex input features of a head: a geofeat descriptor, or ``"xyz"`` coordinates.
 
     Parameters
     ----------
     mesh : Mesh
-    descriptor : str
-        A registered descriptor name, or ``"xyz"``.
+    descriptor : str or Descriptor
+        A registered descriptor name, ``"xyz"``, or a descriptor instance (built once by the
+        head, so that a model-backed descriptor loads its weights once, not once per mesh).
     params : dict, optional
-        The descriptor's parameters. ``"xyz"`` takes one, ``normalize`` (default True):
+        The descriptor's parameters (with a name only). ``"xyz"`` takes one, ``normalize`` (default True):
         centre the vertices on their mean and scale them to unit surface area, shape by
         shape (`unit_area_verts`; a point cloud is only centred); False: the coordinates as
         they are (the reference presets, whose pairs are already normalised with a partial
@@ -201,4 +203,6 @@ def input_features(mesh: Mesh, descriptor: str, params: dict | None = None) -> n
         if not normalize:
             return np.ascontiguousarray(mesh.verts, dtype=np.float32)
         return np.ascontiguousarray(unit_area_verts(mesh, required=False), dtype=np.float32)
+    if isinstance(descriptor, Descriptor):
+        return compute(mesh, descriptor)
     return compute(mesh, descriptor, **(params or {}))

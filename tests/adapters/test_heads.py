@@ -11,6 +11,7 @@ from geofeat.adapters.heads import FunctionalMapHead, HeadConfig, load_head, mak
 from geofeat.adapters.inputs import input_features
 from geofeat.adapters.learned import LearnedHead
 from geofeat.datasets.records import Match, ShapePair
+from geofeat.descriptors import compute, make_descriptor
 from geofeat.errors import HeadError, UnusablePair
 from geofeat.geometry import make_partial
 
@@ -43,6 +44,28 @@ def test_head_keeps_recent_features_read_only_and_keyed_by_descriptor_settings()
     raw = head.features(mesh)  # other settings: not the kept array
     np.testing.assert_array_equal(raw, mesh.verts.astype(np.float32))
     assert not np.array_equal(raw, first)
+
+
+def test_head_builds_its_descriptor_once_for_every_mesh(monkeypatch):
+    """A model-backed descriptor loads its weights when built: a head builds it once, not once per mesh."""
+    import geofeat.adapters.heads as heads_module
+
+    built = []
+
+    def counting_make_descriptor(name, **params):
+        built.append((name, params))
+        return make_descriptor(name, **params)
+
+    monkeypatch.setattr(heads_module, "make_descriptor", counting_make_descriptor)
+    head = make_head("nn", descriptor="wks", descriptor_params={"n_eig": 30, "n_descr": 8})
+    meshes = [bumpy(seed, 2) for seed in range(3)]
+    for mesh in meshes:
+        np.testing.assert_array_equal(head.features(mesh), compute(mesh, "wks", n_eig=30, n_descr=8, cache=False))
+    assert built == [("wks", {"n_eig": 30, "n_descr": 8})]
+    head.config.descriptor_params = {"n_eig": 30, "n_descr": 4}  # other settings: a new descriptor, once
+    assert head.features(meshes[0]).shape == (meshes[0].n_vertices, 4)
+    head.features(meshes[1])
+    assert built == [("wks", {"n_eig": 30, "n_descr": 8}), ("wks", {"n_eig": 30, "n_descr": 4})]
 
 
 def test_fmap_head_settings_and_errors():
