@@ -79,10 +79,21 @@ def package_of(path: str) -> str:
     return dotted
 
 
-def imported_files(path: str, source: str) -> list[tuple[int, str]]:
-    """``[(line, imported file), ...]`` for every geofeat module that ``source`` imports, however deferred."""
+def imported_files(path: str, source: str, runtime_only: bool = False) -> list[tuple[int, str]]:
+    """``[(line, imported file), ...]`` for every geofeat module that ``source`` imports, however deferred.
+
+    ``runtime_only``: leave out what never runs as an import, the lazy registry strings and
+    the imports under ``if TYPE_CHECKING:``.
+    """
+    tree = ast.parse(source)
+    type_only = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.If) and "TYPE_CHECKING" in ast.unparse(node.test):
+            type_only.update(id(sub) for stmt in node.body for sub in ast.walk(stmt))
     found = []
-    for node in ast.walk(ast.parse(source)):
+    for node in ast.walk(tree):
+        if runtime_only and (id(node) in type_only or isinstance(node, ast.Constant)):
+            continue
         modules: list[str] = []
         if isinstance(node, ast.Import):
             modules = [alias.name for alias in node.names]
@@ -122,6 +133,30 @@ def source_files() -> dict[str, str]:
     return {p.relative_to(ROOT).as_posix(): p.read_text() for p in sorted(paths)}
 
 
+def import_cycles(sources: dict[str, str]) -> list[list[str]]:
+    """The cycles of the graph "module imports module" (runtime imports only, deferred ones included)."""
+    graph: dict[str, set[str]] = {}
+    for path, source in sources.items():
+        graph[path] = {target for _, target in imported_files(path, source, runtime_only=True) if target != path}
+    cycles, state = [], {}
+
+    def visit(node: str, stack: list[str]) -> None:
+        state[node] = "open"
+        stack.append(node)
+        for nxt in sorted(graph.get(node, set())):
+            if state.get(nxt) == "open":
+                cycles.append(stack[stack.index(nxt) :] + [nxt])
+            elif nxt not in state:
+                visit(nxt, stack)
+        stack.pop()
+        state[node] = "done"
+
+    for node in sorted(graph):
+        if node not in state:
+            visit(node, [])
+    return cycles
+
+
 @pytest.fixture(scope="module")
 def table():
     return layer_table(ARCHITECTURE.read_text())
@@ -148,3 +183,14 @@ def test_the_check_sees_planted_upward_imports(table):
     assert "geofeat/geometry/partial.py:2 (geometry) imports adapters/heads.py (heads)" in problems
     # the same imports pointing down (or within a layer) are fine
     assert upward_imports(table, {"geofeat/apps/cli.py": "".join(planted.values())}) == []
+
+
+def test_no_module_imports_itself_back_through_others():
+    """No import circle, however deferred (``a`` imports ``b`` which imports ``a``, at import or at call time)."""
+    sources = source_files()
+    assert import_cycles({p: s for p, s in sources.items() if not p.endswith("__init__.py")}) == []
+    planted = {
+        "adapters/heads.py": "from .release import check_state\n",
+        "adapters/release.py": "def f():\n    from .heads import Head\n",
+    }
+    assert import_cycles(planted) == [["adapters/heads.py", "adapters/release.py", "adapters/heads.py"]]
