@@ -71,21 +71,29 @@ class EntryFolder:
         """Whether the entry file ``path`` reads back whole and passes its checksum."""
         raise NotImplementedError
 
+    def _contents(self) -> tuple[list[Path], list[Path], list[Path]]:
+        """`_scan` of the folder (nothing when it does not exist yet); `error` when ``root`` is not a folder."""
+        if self.root.exists() and not self.root.is_dir():
+            raise self.error(
+                f"{self.label} {self.root} is a file, not a folder; give the path of a folder (it is created when missing)."
+            )
+        return self._scan()
+
     def entries(self) -> list[Path]:
         """Paths of every complete entry."""
-        return self._scan()[0]
+        return self._contents()[0]
 
     def temporary_files(self) -> list[Path]:
         """Temporary files of writers still running or killed."""
-        return self._scan()[1]
+        return self._contents()[1]
 
     def other_paths(self) -> list[Path]:
         """What the folder holds that is neither an entry nor a temporary file (skipped by `verify` and `clear`)."""
-        return self._scan()[2]
+        return self._contents()[2]
 
     def info(self) -> StoreInfo:
         """Counts and total size of the folder (entries only; see ``StoreInfo.other_paths``)."""
-        entries, temporary, other = self._scan()
+        entries, temporary, other = self._contents()
         size = 0
         for path in entries:
             try:
@@ -113,7 +121,7 @@ class EntryFolder:
             Entries that did not.
         """
         n_ok, damaged = 0, []
-        entries, temporary, other = self._scan()
+        entries, temporary, other = self._contents()
         if other:
             log.warning("skipped %d path(s) in %s that are not entries: %s", len(other), self.root, [str(p) for p in other[:5]])
         for path in entries:
@@ -145,7 +153,7 @@ class EntryFolder:
             (`error`) A file cannot be deleted (read-only file system, no permission); the
             message says how many entries were removed before.
         """
-        entries, temporary, _ = self._scan()
+        entries, temporary, _ = self._contents()
         for done, path in enumerate(entries + temporary):
             try:
                 path.unlink()

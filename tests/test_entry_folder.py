@@ -61,3 +61,14 @@ def test_array_crc32_covers_dtype_shape_and_bytes():
     a = np.arange(6, dtype=np.float32)
     assert array_crc32(a) == array_crc32(a.copy())
     assert len({array_crc32(a), array_crc32(a.reshape(2, 3)), array_crc32(a.astype(np.float64))}) == 3
+
+
+def test_a_store_path_that_is_a_file_is_refused_not_reported_empty(tmp_path):
+    path = tmp_path / "a-file"
+    path.write_text("not a store")
+    store = FeatureCache(path)
+    for read in (store.info, store.verify, store.clear, store.entries):
+        with pytest.raises(CacheError, match="is a file, not a folder"):
+            read()
+    assert path.read_text() == "not a store"
+    assert FeatureCache(tmp_path / "not-yet").info().entries == 0  # a folder still to be created is an empty store
