@@ -34,7 +34,7 @@ STAGES = {
     "nearest-neighbour matching": [("adapters/matchers.py", "nn_match")],
     "geodesic matrices (compute)": [("geometry/geodesic.py", "geodesic_matrix")],
     "geodesic store (read/write + checksum)": [
-        ("geometry/geodesic.py", "load"),
+        ("geometry/geodesic_store.py", "load"),
         "-",
         ("geometry/geodesic.py", "geodesic_matrix"),
     ],

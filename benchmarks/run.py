@@ -63,7 +63,8 @@ from geofeat.evaluation.protocol import (
 )
 from geofeat.evaluation.report import PairPicture, markdown_table, plot_matches, plot_pairs, plot_pck
 from geofeat.files import atomic_write
-from geofeat.geometry.geodesic import GeodesicStore, evaluation_distances
+from geofeat.geometry.geodesic_memory import evaluation_distances
+from geofeat.geometry.geodesic_store import GeodesicStore
 
 HERE = Path(__file__).resolve().parent
 REPO = HERE.parent

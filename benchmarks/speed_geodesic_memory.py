@@ -4,7 +4,7 @@ A full target with tens of thousands of vertices has an all-pairs geodesic matri
 bytes (6.4 GB at 40,000 vertices, 25.6 GB at 80,000). The evaluation estimates that before
 computing: within the bound (default half the available memory) it forms the matrix; above
 it, it computes only the distances it reads, a few rows at a time
-(`geofeat.geometry.geodesic.GeodesicEntries`). The geodesic store keeps no entry larger than
+(`geofeat.geometry.geodesic_memory.GeodesicEntries`). The geodesic store keeps no entry larger than
 its limit (default 4 GiB).
 
 Targets: the template of `geofeat.datasets.synthetic` meshed at a fine grid spacing (about
@@ -77,7 +77,7 @@ def child(target: Path) -> None:
 
     from geofeat.datasets.records import Match, ShapePair
     from geofeat.evaluation.protocol import evaluate_dataset, summarize
-    from geofeat.geometry.geodesic import GeodesicStore
+    from geofeat.geometry.geodesic_store import GeodesicStore
     from geofeat.geometry.partial import make_partial
     from geofeat.mesh import Mesh
 

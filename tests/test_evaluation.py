@@ -23,7 +23,8 @@ from geofeat.evaluation.protocol import (
     pair_targets,
     summarize,
 )
-from geofeat.geometry.geodesic import GeodesicStore, geodesic_matrix
+from geofeat.geometry.geodesic import geodesic_matrix
+from geofeat.geometry.geodesic_store import GeodesicStore
 
 
 def unit_square() -> geofeat.Mesh:

@@ -46,7 +46,7 @@ from geofeat.checks import canonical, check_boolean, check_integer, check_number
 from geofeat.descriptors import registry
 from geofeat.descriptors.base import Descriptor
 from geofeat.errors import BackboneError, CacheError, DescriptorError, GeofeatError, MeshError, TrainingError
-from geofeat.geometry.geodesic import GeodesicStore
+from geofeat.geometry.geodesic_store import GeodesicStore
 
 TESTS = Path(__file__).resolve().parent
 
@@ -1125,9 +1125,9 @@ def default_geodesic_store(ctx: Ctx, fault: str):
     """Evaluate with the default geodesic store after breaking it as ``fault`` says."""
     import errno
 
-    from geofeat.geometry import geodesic
+    from geofeat.geometry import geodesic_store
 
-    ctx.monkeypatch.setattr(geodesic, "_UNWRITABLE_WARNED", set(), raising=False)  # warned once per process
+    ctx.monkeypatch.setattr(geodesic_store, "_UNWRITABLE_WARNED", set(), raising=False)  # warned once per process
     if fault == "cache-dir-is-a-file":
         (ctx.tmp / "a file").write_text("not a folder")
         ctx.monkeypatch.setenv("GEOFEAT_CACHE_DIR", str(ctx.tmp / "a file"))
@@ -1139,7 +1139,7 @@ def default_geodesic_store(ctx: Ctx, fault: str):
         def full(*args, **kwargs):
             raise OSError(errno.ENOSPC, "No space left on device")
 
-        ctx.monkeypatch.setattr(geodesic.np, "save", full)
+        ctx.monkeypatch.setattr(geodesic_store.np, "save", full)
     result = evaluated(ctx, GeodesicStore())
     assert ctx.caplog.text.count("geodesic matrices are computed in memory and not kept") == 1, ctx.caplog.text
     return result

@@ -51,7 +51,7 @@ def _report_others(store: EntryFolder, others) -> None:
 
 def _cache_stores(args: argparse.Namespace) -> list[tuple[str, EntryFolder]]:
     """The stores ``geofeat cache`` works on, with their headings: both default ones, or only those named."""
-    from geofeat.geometry.geodesic import GeodesicStore
+    from geofeat.geometry.geodesic_store import GeodesicStore
 
     if args.dir is None and args.geodesic_dir is None:
         return [("cache", FeatureCache()), ("geodesic store", GeodesicStore())]

@@ -18,7 +18,7 @@ its re-implementation ``models/partial_base_model.py``):
 
 Where the target is too large for its (V_x, V_x) matrix, ``dist_x`` may instead be a
 `DistanceEntries`: an object that gives only the entries read (``dist_x[rows, cols]``) and the
-worst case of some rows (`geofeat.geometry.geodesic.GeodesicEntries`).
+worst case of some rows (`geofeat.geometry.geodesic_memory.GeodesicEntries`).
 """
 
 from __future__ import annotations

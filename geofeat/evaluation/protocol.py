@@ -33,7 +33,8 @@ import numpy as np
 from geofeat.datasets.records import Match, ShapePair
 from geofeat.errors import DatasetError, MetricError
 from geofeat.evaluation import metrics
-from geofeat.geometry.geodesic import GeodesicEntries, GeodesicStore, evaluation_distances, memory_limit
+from geofeat.geometry.geodesic_memory import GeodesicEntries, evaluation_distances, memory_limit
+from geofeat.geometry.geodesic_store import GeodesicStore
 from geofeat.progress import progress_bar
 
 log = logging.getLogger(__name__)
@@ -175,7 +176,7 @@ def evaluate_pair(
         Evaluated points (see the module notes).
     distances : numpy.ndarray, shape (V_x, V_x), or GeodesicEntries, optional
         Geodesic distances on ``pair.x`` over ``sqrt(area)``
-        (`geofeat.geometry.geodesic.evaluation_distances`); computed
+        (`geofeat.geometry.geodesic_memory.evaluation_distances`); computed
         when not given. A `GeodesicEntries` not computed yet is asked for the entries this
         pair reads and computed.
 
@@ -210,7 +211,7 @@ def _score(pair: ShapePair, match: Match, protocol: str, dist_x: np.ndarray | Ge
     if dist_x.shape != (pair.x.n_vertices, pair.x.n_vertices):
         raise MetricError(
             f"pair {pair.name}: distances must be the (V_x, V_x) = ({pair.x.n_vertices}, {pair.x.n_vertices}) matrix of x; "
-            f"found shape {dist_x.shape}. Pass geofeat.geometry.geodesic.evaluation_distances(pair.x)."
+            f"found shape {dist_x.shape}. Pass geofeat.geometry.geodesic_memory.evaluation_distances(pair.x)."
         )
     predicted = match.map_yx
     if protocol == "template":
@@ -429,7 +430,7 @@ def evaluate_dataset(
         ``$GEOFEAT_GEODESIC_MEMORY``, else half the memory available at the start). The
         workers share it: each gets the bound divided by their number. Above it, only the
         distances the evaluation reads are computed, a few rows at a time, and not stored
-        (`geofeat.geometry.geodesic.GeodesicEntries`, the same values).
+        (`geofeat.geometry.geodesic_memory.GeodesicEntries`, the same values).
 
     Returns
     -------

@@ -5,7 +5,7 @@ Every full shape is loaded once, decimated when it has more than ``max_vertices`
 connected component (geodesics between components are infinite). Its all-pairs geodesic
 matrix (edge Dijkstra, divided by ``sqrt(area)``) is computed once and stored as a float16
 ``.npy`` file keyed by the mesh content hash (`TorchGeodesicStore`, the geometry layer's
-`geofeat.geometry.geodesic.GeodesicStore` in float16 handing out torch tensors,
+`geofeat.geometry.geodesic_store.GeodesicStore` in float16 handing out torch tensors,
 checksum-verified); steps read it back. float16 keeps
 about three significant digits, plenty for the loss weights ``0.5 + d``, and halves the disk
 use (a 5,000-vertex shape takes 50 MB, a 12,000-vertex one 288 MB).
@@ -21,7 +21,7 @@ import numpy as np
 import torch
 
 from geofeat.errors import MeshError, TrainingError
-from geofeat.geometry import geodesic
+from geofeat.geometry import geodesic_store
 from geofeat.geometry.partial import largest_component_submesh
 from geofeat.mesh import MESH_SUFFIXES, Mesh, load_mesh
 from geofeat.progress import progress_bar
@@ -139,8 +139,8 @@ def load_training_shapes(
     return [prepare_full_shape(m, max_vertices) for m in meshes]
 
 
-class TorchGeodesicStore(geodesic.GeodesicStore):
-    """The geometry layer's `geofeat.geometry.geodesic.GeodesicStore` handing out torch tensors, as training uses it.
+class TorchGeodesicStore(geodesic_store.GeodesicStore):
+    """The geometry layer's `geofeat.geometry.geodesic_store.GeodesicStore` handing out torch tensors, as training uses it.
 
     What it adds: matrices handed out as float32 torch tensors on a device, float16 entries
     (the loss weights need about three digits), connected shapes only, and `TrainingError`

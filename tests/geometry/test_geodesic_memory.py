@@ -11,16 +11,11 @@ from shapes import bumpy
 from geofeat import Mesh
 from geofeat.errors import GeodesicMemoryError, GeofeatError
 from geofeat.evaluation import metrics
-from geofeat.geometry import geodesic
-from geofeat.geometry.geodesic import (
-    GeodesicEntries,
-    GeodesicStore,
-    all_pairs_memory,
-    evaluation_distances,
-    geodesic_matrix,
-    memory_limit,
-    parse_size,
-)
+from geofeat.geometry import geodesic, geodesic_memory
+from geofeat.geometry.geodesic import all_pairs_memory, geodesic_matrix
+from geofeat.geometry.geodesic_memory import GeodesicEntries, evaluation_distances, memory_limit
+from geofeat.geometry.geodesic_store import GeodesicStore
+from geofeat.sizes import parse_size
 
 
 def two_pieces() -> Mesh:
@@ -87,19 +82,19 @@ def test_estimates_and_sizes():
 
 
 def test_the_bound_comes_from_the_argument_the_environment_or_the_available_memory(monkeypatch):
-    real = geodesic.available_memory()
+    real = geodesic_memory.available_memory()
     assert real is None or real > 0
-    monkeypatch.delenv(geodesic.MEMORY_ENV, raising=False)
-    monkeypatch.setattr(geodesic, "available_memory", lambda: 8_000_000_000)
+    monkeypatch.delenv(geodesic_memory.MEMORY_ENV, raising=False)
+    monkeypatch.setattr(geodesic_memory, "available_memory", lambda: 8_000_000_000)
     assert memory_limit() == (4_000_000_000, "50% of the 8.0 GB available")
-    monkeypatch.setenv(geodesic.MEMORY_ENV, "2G")
-    assert memory_limit() == (2 << 30, geodesic.MEMORY_ENV)
+    monkeypatch.setenv(geodesic_memory.MEMORY_ENV, "2G")
+    assert memory_limit() == (2 << 30, geodesic_memory.MEMORY_ENV)
     assert memory_limit("1M") == (1 << 20, "memory_limit")
-    monkeypatch.setenv(geodesic.MEMORY_ENV, "much")
+    monkeypatch.setenv(geodesic_memory.MEMORY_ENV, "much")
     with pytest.raises(GeofeatError, match="GEOFEAT_GEODESIC_MEMORY must be a size"):
         memory_limit()
-    monkeypatch.delenv(geodesic.MEMORY_ENV)
-    monkeypatch.setattr(geodesic, "available_memory", lambda: None)
+    monkeypatch.delenv(geodesic_memory.MEMORY_ENV)
+    monkeypatch.setattr(geodesic_memory, "available_memory", lambda: None)
     assert memory_limit()[0] is None
 
 

@@ -11,21 +11,22 @@ from shapes import bumpy
 
 import geofeat
 from geofeat.errors import MeshError
-from geofeat.geometry import geodesic
-from geofeat.geometry.geodesic import GeodesicStore, geodesic_matrix
+from geofeat.geometry import geodesic_store
+from geofeat.geometry.geodesic import geodesic_matrix
+from geofeat.geometry.geodesic_store import GeodesicStore
 
 
 @pytest.fixture
 def computations(monkeypatch):
     """Counts the matrices the store computes."""
     calls = []
-    original = geodesic.geodesic_matrix
+    original = geodesic_store.geodesic_matrix
 
     def counting(mesh, *args, **kwargs):
         calls.append(mesh.name)
         return original(mesh, *args, **kwargs)
 
-    monkeypatch.setattr(geodesic, "geodesic_matrix", counting)
+    monkeypatch.setattr(geodesic_store, "geodesic_matrix", counting)
     return calls
 
 
@@ -36,7 +37,7 @@ def test_miss_computes_and_stores_then_hit_reads_back(tmp_path, computations):
     first = store.load(mesh)
     path = store.path(mesh)
     assert computations == [mesh.name] and path.parent == tmp_path / "g"
-    assert path.name.startswith(f"{mesh.hash}-float32-v{geodesic.STORE_VERSION}-") and path.suffix == ".npy"
+    assert path.name.startswith(f"{mesh.hash}-float32-v{geodesic_store.STORE_VERSION}-") and path.suffix == ".npy"
     again = GeodesicStore(tmp_path / "g").load(mesh)  # a new store (another process) finds the entry
     assert computations == [mesh.name]
     np.testing.assert_array_equal(again, first)
@@ -216,7 +217,7 @@ def test_an_unwritable_default_store_warns_once_and_computes_in_memory(tmp_path,
     blocker = tmp_path / "a file"
     blocker.write_text("not a folder")
     monkeypatch.setenv("GEOFEAT_CACHE_DIR", str(blocker))
-    monkeypatch.setattr(geodesic, "_UNWRITABLE_WARNED", set())
+    monkeypatch.setattr(geodesic_store, "_UNWRITABLE_WARNED", set())
     with caplog.at_level("WARNING", logger="geofeat"):
         first = GeodesicStore().load(bumpy(0, 2))
         GeodesicStore().load(bumpy(1, 2))
@@ -230,12 +231,12 @@ def test_a_full_disk_gives_a_store_error_or_a_warning(tmp_path, monkeypatch, cap
     def full(*args, **kwargs):
         raise OSError(errno.ENOSPC, "No space left on device")
 
-    monkeypatch.setattr(geodesic.np, "save", full)
-    monkeypatch.setattr(geodesic, "_UNWRITABLE_WARNED", set())
+    monkeypatch.setattr(geodesic_store.np, "save", full)
+    monkeypatch.setattr(geodesic_store, "_UNWRITABLE_WARNED", set())
     with pytest.raises(geofeat.errors.StoreError, match="No space left on device"):
         GeodesicStore(tmp_path / "named").load(bumpy(0, 2))
     assert GeodesicStore(tmp_path / "named").temporary_files() == []
-    monkeypatch.setattr(geodesic, "cache_dir", lambda: tmp_path / "default")
+    monkeypatch.setattr(geodesic_store, "cache_dir", lambda: tmp_path / "default")
     with caplog.at_level("WARNING", logger="geofeat"):
         dist = GeodesicStore().load(bumpy(0, 2))
     assert dist.shape == (162, 162) and "No space left on device" in caplog.text
