@@ -276,7 +276,8 @@ def dijkstra_row_blocks(
     points : numpy.ndarray, shape (V, d), optional
         Vertex positions spreading the patch seeds (without them, the seeds are spread along the graph).
     wanted : numpy.ndarray of int, optional
-        The rows to give; None: all of them.
+        Rows that must be given (a patch holding one is given whole, the other separator
+        rows are left out); None: every row.
     cache_bytes : int
         Bytes of separator rows kept for the patches that border them (the oldest leave first).
     progress : bool

@@ -201,3 +201,22 @@ def test_faust_matrices(faust_mesh):
     # edge paths overestimate surface geodesics by a few percent; the heat method sits below them
     ratio = heat[far] / dist[far]
     assert 0.9 < np.median(ratio) < 1.0 and np.abs(ratio - 1).mean() < 0.1
+
+
+def test_streamed_row_blocks_symmetrised_are_the_matrix_exactly():
+    mesh = bumpy(0, 3)  # 642 vertices: a separator and patches
+    n = mesh.n_vertices
+    graph = edge_graph(mesh) * geodesic.area_normalisation(mesh)
+    rows = np.full((n, n), np.nan, dtype=np.float32)
+    for indices, block in geodesic.dijkstra_row_blocks(graph, mesh.verts):
+        assert np.all(np.diff(indices) > 0) and block.shape == (indices.size, n) and block.dtype == np.float32
+        rows[indices] = block
+    assert not np.isnan(rows).any()  # every row given once
+    assert np.array_equal(np.minimum(rows, rows.T), geodesic_matrix(mesh, "dijkstra", normalize=True, cache=False))
+    wanted = np.array([3, 300, 641])
+    given = {}
+    for indices, block in geodesic.dijkstra_row_blocks(graph, mesh.verts, wanted=wanted, cache_bytes=0):
+        given.update(zip(indices.tolist(), block, strict=True))
+    assert set(wanted.tolist()) <= set(given) and len(given) < n  # the wanted rows, not every row
+    for i, row in given.items():
+        assert np.array_equal(row, rows[i])  # with no row cache too
