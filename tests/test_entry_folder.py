@@ -10,7 +10,8 @@ import pytest
 
 from geofeat.descriptors.cache import FeatureCache
 from geofeat.entry_folder import STALE_TMP_SECONDS, array_crc32
-from geofeat.errors import CacheError
+from geofeat.errors import CacheError, StoreError
+from geofeat.geometry.geodesic_store import GeodesicStore
 
 KEY = "ab" + "0" * 62
 
@@ -63,12 +64,13 @@ def test_array_crc32_covers_dtype_shape_and_bytes():
     assert len({array_crc32(a), array_crc32(a.reshape(2, 3)), array_crc32(a.astype(np.float64))}) == 3
 
 
-def test_a_store_path_that_is_a_file_is_refused_not_reported_empty(tmp_path):
+@pytest.mark.parametrize("store_type", [FeatureCache, GeodesicStore])
+def test_a_store_path_that_is_a_file_is_refused_not_reported_empty(tmp_path, store_type):
     path = tmp_path / "a-file"
     path.write_text("not a store")
-    store = FeatureCache(path)
+    store = store_type(path)
     for read in (store.info, store.verify, store.clear, store.entries):
-        with pytest.raises(CacheError, match="is a file, not a folder"):
+        with pytest.raises(StoreError, match="is a file, not a folder"):
             read()
     assert path.read_text() == "not a store"
-    assert FeatureCache(tmp_path / "not-yet").info().entries == 0  # a folder still to be created is an empty store
+    assert store_type(tmp_path / "not-yet").info().entries == 0  # a folder still to be created is an empty store
