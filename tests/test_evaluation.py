@@ -20,6 +20,7 @@ from geofeat.evaluation.protocol import (
     PairEvaluation,
     evaluate_dataset,
     evaluate_pair,
+    map_forked,
     pair_targets,
     summarize,
 )
@@ -158,6 +159,9 @@ def test_pair_targets_group_pairs_without_loading_meshes():
     targets = pair_targets(dataset, 12)
     assert targets == [name.rsplit("->", 1)[1] for name in dataset.pair_names[:12]]
     assert pair_targets([object(), object()], 2) == [0, 1]
+    loaded = [dataset[i] for i in range(4)]  # pairs in memory: their targets' hashes
+    assert pair_targets(loaded, 3) == [pair.x.hash for pair in loaded[:3]]
+    assert pair_targets(loaded, 4)[0] == pair_targets(loaded, 4)[3] != pair_targets(loaded, 4)[1]  # as the names say
 
 
 def test_dataset_evaluation_is_the_same_in_one_process_and_in_workers(tmp_path):
@@ -187,6 +191,76 @@ def test_dataset_evaluation_is_the_same_in_one_process_and_in_workers(tmp_path):
     direct = evaluate_pair(dataset[1], shifted_truth(1, dataset[1]))
     np.testing.assert_array_equal(direct.errors, one[1].errors)
     assert direct.to_dict() == one[1].to_dict()
+
+
+def _shifted_truth(shift: int):
+    """A deterministic, imperfect matcher: the true map (holes at 0) rolled by ``index + shift``."""
+
+    def match(index: int, pair: ShapePair) -> Match:
+        predicted = np.where(pair.map_yx >= 0, pair.map_yx, 0)
+        return Match(np.roll(predicted, index + shift), np.ones(pair.y.n_vertices, dtype=bool))
+
+    return match
+
+
+def _same_records(a: list[PairEvaluation], b: list[PairEvaluation]) -> None:
+    assert [r.to_dict() for r in a] == [r.to_dict() for r in b]
+    for one, two in zip(a, b, strict=True):
+        np.testing.assert_array_equal(one.errors, two.errors)
+
+
+def test_several_matchers_give_the_records_of_each_matcher_alone(tmp_path):
+    dataset = load_dataset("synthetic_cuts")
+    n = 4  # three targets, one of them twice
+    matchers = {"one": _shifted_truth(1), "five": _shifted_truth(5), "truth": _shifted_truth(0)}
+    store = GeodesicStore(tmp_path / "geodesics")
+    alone = {name: evaluate_dataset(dataset, match, n, store=store, progress=False)[0] for name, match in matchers.items()}
+    assert alone["one"][1].to_dict() != alone["five"][1].to_dict()  # the matchers differ
+    for workers in (1, 2):
+        calls = []
+        records, kept = evaluate_dataset(
+            dataset, matchers, n, store=store, workers=workers, keep=[3], on_kept=calls.append, progress=False
+        )
+        assert list(records) == list(matchers)  # in the mapping's order
+        for name in matchers:
+            _same_records(records[name], alone[name])
+        pair, matches = kept[3]
+        assert sorted(kept) == [3] and pair.name == dataset[3].name and list(matches) == list(matchers)
+        for name, match in matchers.items():
+            np.testing.assert_array_equal(matches[name].map_yx, match(3, dataset[3]).map_yx)
+        assert len(calls) == 1 and sorted(calls[0]) == [3]
+    # a list of loaded pairs is grouped by target too, with the same records
+    loaded = [dataset[i] for i in range(n)]
+    records, _ = evaluate_dataset(loaded, matchers, workers=2, progress=False)
+    for name in matchers:
+        _same_records(records[name], alone[name])
+    with pytest.raises(MetricError, match="at least one matcher"):
+        evaluate_dataset(dataset, {}, n, progress=False)
+
+
+#: What the workers of `map_forked` read: set before the call, inherited through fork.
+_OFFSET = 0
+
+
+def _add_offset(task: int) -> int:
+    if task < 0:
+        raise ValueError(f"negative task {task}")
+    return task + _OFFSET
+
+
+def test_map_forked_runs_every_task_here_or_in_forked_workers():
+    global _OFFSET
+    _OFFSET = 100
+    try:
+        assert list(map_forked(_add_offset, [3, 1, 2], workers=1)) == [103, 101, 102]  # here: task order
+        assert list(map_forked(_add_offset, [], workers=2)) == []
+        if "fork" in multiprocessing.get_all_start_methods():
+            assert sorted(map_forked(_add_offset, list(range(6)), workers=2)) == list(range(100, 106))
+        for workers in (1, 2):
+            with pytest.raises(ValueError, match="negative task -1"):
+                list(map_forked(_add_offset, [0, -1, 2], workers=workers))
+    finally:
+        _OFFSET = 0
 
 
 def _thread_counts() -> tuple[list[int], int]:

@@ -7,9 +7,10 @@ trainer's validation):
   errors, chirality accuracy, overlap IoU and overlap ROC AUC;
 * `summarize` pools records into a `BenchmarkSummary`, the metrics that ``results.json``
   holds;
-* `evaluate_dataset` runs a matcher over the first pairs of a dataset and evaluates them,
-  target shape by target shape (each target's geodesic matrix is computed or read once), in
-  one process or in a pool of forked worker processes, with the same records either way.
+* `evaluate_dataset` runs a matcher, or several side by side, over the first pairs of a
+  dataset and evaluates them, target shape by target shape (each target's geodesic matrix is
+  computed or read once), in one process or in a pool of forked worker processes
+  (`map_forked`), with the same records either way.
 
 Protocols (``protocol=``): ``"vertices"`` evaluates every vertex of ``y`` that has a
 counterpart (the default); ``"template"`` evaluates the template points of datasets with a
@@ -24,9 +25,9 @@ import logging
 import multiprocessing
 import os
 import sys
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 
@@ -47,6 +48,7 @@ __all__ = [
     "default_workers",
     "evaluate_dataset",
     "evaluate_pair",
+    "map_forked",
     "pair_targets",
     "summarize",
 ]
@@ -287,15 +289,18 @@ def summarize(records: Sequence[PairEvaluation]) -> BenchmarkSummary:
 
 
 def pair_targets(dataset: Sequence[ShapePair], n_pairs: int) -> list[str | int]:
-    """A key of the target shape ``x`` of each of the first ``n_pairs`` pairs, read from names only.
+    """A key of the target shape ``x`` of each of the first ``n_pairs`` pairs, without loading any mesh.
 
-    Datasets with ``pair_names`` (``"<y>-><x>"``, every loader here) give the target's name
-    without loading any mesh; for other sequences every pair is its own group (its index).
+    Datasets with ``pair_names`` (``"<y>-><x>"``, every loader here) give the target's name;
+    a list or tuple of `ShapePair` (loaded already) gives each target's hash; for other
+    sequences every pair is its own group (its index).
     """
     names = getattr(dataset, "pair_names", None)
-    if names is None:
-        return list(range(n_pairs))
-    return [name.rsplit("->", 1)[1] for name in list(names)[:n_pairs]]
+    if names is not None:
+        return [name.rsplit("->", 1)[1] for name in list(names)[:n_pairs]]
+    if isinstance(dataset, (list, tuple)):
+        return [pair.x.hash if isinstance(pair, ShapePair) else i for i, pair in enumerate(dataset[:n_pairs])]
+    return list(range(n_pairs))
 
 
 def _group_by_target(targets: Sequence[str | int]) -> list[list[int]]:
@@ -308,11 +313,14 @@ def _group_by_target(targets: Sequence[str | int]) -> list[list[int]]:
 
 MatchFunction = Callable[[int, ShapePair], Match]
 
+#: The name `evaluate_dataset` gives a single matcher inside (never shown).
+_ONE = ""
+
 
 @dataclass
 class _Job:
     dataset: Sequence[ShapePair]
-    match: MatchFunction
+    matchers: dict[str, MatchFunction]
     protocol: str
     store: GeodesicStore | None
     keep: frozenset[int]
@@ -322,35 +330,43 @@ class _Job:
 #: The job of the forked workers of `evaluate_dataset` (inherited through fork, never pickled).
 _JOB: _Job | None = None
 
+#: ``(pair index, {matcher name: record}, (pair, {matcher name: match}) when the pair is kept)``.
+_Evaluated = tuple[int, dict[str, PairEvaluation], tuple[ShapePair, dict[str, Match]] | None]
 
-def _evaluate_group(indices: list[int]) -> list[tuple[int, PairEvaluation, tuple[ShapePair, Match] | None]]:
-    """Evaluate the pairs of one target shape; returns ``(index, record, (pair, match) when kept)``."""
+
+def _evaluate_group(indices: list[int]) -> list[_Evaluated]:
+    """Match and evaluate the pairs of one target shape, every matcher on a pair in a row."""
     job = _JOB
     if job is None:
         raise RuntimeError("no evaluation job: _evaluate_group runs inside evaluate_dataset only")
-    out = []
+    out: list[_Evaluated] = []
     target, distances = None, None
-    waiting: list[tuple[int, ShapePair, Match]] = []  # pairs of a target evaluated from streamed entries
+    waiting: list[tuple[int, ShapePair, dict[str, Match]]] = []  # pairs of a target evaluated from streamed entries
+
+    def score(i: int, pair: ShapePair, matches: dict[str, Match]) -> None:
+        records = {name: _score(pair, match, job.protocol, distances) for name, match in matches.items()}
+        out.append((i, records, (pair, matches) if i in job.keep else None))
 
     def evaluate_waiting() -> None:
         if waiting:
             distances.compute()  # every entry the target's pairs read, in one pass
-            for i, pair, match in waiting:
-                out.append((i, _score(pair, match, job.protocol, distances), (pair, match) if i in job.keep else None))
+            for item in waiting:
+                score(*item)
             waiting.clear()
 
     for i in indices:
         pair = job.dataset[i]
-        match = job.match(i, pair)
+        matches = {name: match(i, pair) for name, match in job.matchers.items()}
         if pair.x.hash != target:
             evaluate_waiting()
             bound, source = job.memory
             target, distances = pair.x.hash, evaluation_distances(pair.x, job.store, bound, limit_source=source)
         if isinstance(distances, GeodesicEntries):
-            _score(pair, match, job.protocol, distances)  # asks for the entries it reads
-            waiting.append((i, pair, match))
+            for match in matches.values():
+                _score(pair, match, job.protocol, distances)  # asks for the entries it reads
+            waiting.append((i, pair, matches))
         else:
-            out.append((i, evaluate_pair(pair, match, job.protocol, distances), (pair, match) if i in job.keep else None))
+            score(i, pair, matches)
     evaluate_waiting()
     return out
 
@@ -383,28 +399,83 @@ def default_workers() -> int:
         return max(1, os.cpu_count() or 1)
 
 
+def _usable_workers(workers: int, n_tasks: int) -> int:
+    """``workers`` capped by the number of tasks; 1 where there is no ``fork`` start method."""
+    workers = max(1, min(int(workers), n_tasks))
+    if workers > 1 and "fork" not in multiprocessing.get_all_start_methods():
+        log.info("no fork start method here: working in one process")
+        return 1
+    return workers
+
+
+Task = TypeVar("Task")
+Result = TypeVar("Result")
+
+
+def map_forked(function: Callable[[Task], Result], tasks: Sequence[Task], workers: int) -> Iterator[Result]:
+    """``function(task)`` for every task, in a pool of forked worker processes: the pool of `evaluate_dataset`.
+
+    Parameters
+    ----------
+    function : callable
+        ``function(task) -> result``, a module-level function. The workers are forked, so they
+        inherit what this process holds (module globals set before the call included): only
+        the tasks and the results are pickled.
+    tasks : sequence
+        Submitted in this order (put the longest first, so that the workers finish together).
+    workers : int
+        Processes, at most one per task. Each runs one BLAS and one torch thread. With one,
+        or where ``fork`` does not exist, the tasks run here, one after the other.
+
+    Yields
+    ------
+    result
+        ``function(task)``, in the order the tasks finish (in task order in one process). A
+        task that raises raises here, and the tasks not started yet are dropped.
+    """
+    workers = _usable_workers(workers, len(tasks))
+    if workers == 1:
+        for task in tasks:
+            yield function(task)
+        return
+    from concurrent.futures import ProcessPoolExecutor, as_completed
+
+    context = multiprocessing.get_context("fork")
+    with ProcessPoolExecutor(workers, mp_context=context, initializer=_worker_start) as pool:
+        futures = [pool.submit(function, task) for task in tasks]
+        try:
+            for future in as_completed(futures):
+                yield future.result()
+        finally:  # a failure, or a caller that stops early, starts no further task
+            for future in futures:
+                future.cancel()
+
+
 def evaluate_dataset(
     dataset: Sequence[ShapePair],
-    match: MatchFunction,
+    match: MatchFunction | Mapping[str, MatchFunction],
     n_pairs: int | None = None,
     *,
     protocol: str = "vertices",
     store: GeodesicStore | None = None,
     workers: int = 1,
     keep: Sequence[int] = (),
-    on_kept: Callable[[dict[int, tuple[ShapePair, Match]]], None] | None = None,
+    on_kept: Callable[[dict[int, tuple[ShapePair, Any]]], None] | None = None,
     progress: bool = True,
     desc: str = "evaluating",
     memory: int | str | None = None,
-) -> tuple[list[PairEvaluation], dict[int, tuple[ShapePair, Match]]]:
+) -> tuple[list[PairEvaluation] | dict[str, list[PairEvaluation]], dict[int, tuple[ShapePair, Any]]]:
     """Match and evaluate the first ``n_pairs`` pairs of a dataset, target shape by target shape.
 
     Parameters
     ----------
     dataset : sequence of ShapePair
-        Indexable (a dataset of `geofeat.datasets`).
-    match : callable
-        ``match(index, pair) -> Match``.
+        Indexable (a dataset of `geofeat.datasets`, or a list of pairs).
+    match : callable or mapping
+        ``match(index, pair) -> Match``; or several, ``{name: match}``, evaluated on the same
+        pairs: each pair is loaded once and matched by all of them in a row (they share what
+        the process holds: input features, spectral bases), and each target's geodesic
+        matrix is computed or read once for all.
     n_pairs : int, optional
         Default all pairs.
     protocol : {"vertices", "template"}
@@ -412,9 +483,10 @@ def evaluate_dataset(
         Where the targets' geodesic matrices are kept on disk (None: computed in memory).
     workers : int
         Processes. With more than one (and where ``fork`` exists) the target groups are
-        shared out among forked workers, which inherit ``dataset`` and ``match`` (nothing
-        is pickled but the records); each worker computes with one thread. The records do
-        not depend on the number of workers: every pair is matched and evaluated alone.
+        shared out among forked workers (`map_forked`), which inherit ``dataset`` and
+        ``match`` (nothing is pickled but the records); each worker computes with one
+        thread. The records do not depend on the number of workers, nor on the other
+        matchers: every pair is matched and evaluated alone.
     keep : sequence of int
         Pair indices whose ``(pair, match)`` are returned too (for pictures).
     on_kept : callable, optional
@@ -434,53 +506,54 @@ def evaluate_dataset(
 
     Returns
     -------
-    records : list of PairEvaluation
-        In pair order.
+    records : list of PairEvaluation, or dict
+        In pair order; for a mapping of matchers, ``{name: list of PairEvaluation}`` in the
+        mapping's order.
     kept : dict
-        ``index -> (ShapePair, Match)`` for the indices of ``keep``.
+        ``index -> (ShapePair, Match)`` for the indices of ``keep``; for a mapping of
+        matchers, ``index -> (ShapePair, {name: Match})``.
+
+    Raises
+    ------
+    MetricError
+        For an unknown protocol or an empty mapping of matchers.
     """
     global _JOB
     _check_protocol(protocol)
+    several = isinstance(match, Mapping)
+    matchers = dict(match) if several else {_ONE: match}
+    if not matchers:
+        raise MetricError("evaluate_dataset needs at least one matcher; found an empty mapping. Pass {name: match(index, pair)}.")
     n_pairs = len(dataset) if n_pairs is None else min(int(n_pairs), len(dataset))
     groups = _group_by_target(pair_targets(dataset, n_pairs))
-    workers = max(1, min(int(workers), len(groups)))
-    if workers > 1 and "fork" not in multiprocessing.get_all_start_methods():
-        log.info("no fork start method here: evaluating in one process")
-        workers = 1
+    workers = _usable_workers(workers, len(groups))
     bound, source = memory_limit(memory)
     if bound is not None and workers > 1:
         bound, source = bound // workers, f"{source}, shared by {workers} worker processes"
-    results: dict[int, tuple[PairEvaluation, tuple[ShapePair, Match] | None]] = {}
+    results: dict[int, tuple[dict[str, PairEvaluation], tuple[ShapePair, dict[str, Match]] | None]] = {}
     wanted = sorted(i for i in set(keep) if 0 <= i < n_pairs)
     waiting = set(wanted)
 
-    def collect(i: int, record: PairEvaluation, kept: tuple[ShapePair, Match] | None) -> None:
-        results[i] = (record, kept)
+    def kept(i: int) -> tuple[ShapePair, Any]:
+        pair, matches = results[i][1]
+        return (pair, matches) if several else (pair, matches[_ONE])
+
+    def collect(i: int, records: dict[str, PairEvaluation], pair_matches: tuple[ShapePair, dict[str, Match]] | None) -> None:
+        results[i] = (records, pair_matches)
         bar.update(1)
         if i in waiting:
             waiting.discard(i)
             if not waiting and on_kept is not None:
-                on_kept({j: results[j][1] for j in wanted})
+                on_kept({j: kept(j) for j in wanted})
 
-    _JOB = _Job(dataset, match, protocol, store, frozenset(wanted), (bound, source))
+    order = groups if workers == 1 else sorted(groups, key=len, reverse=True)  # largest first: the workers finish together
+    _JOB = _Job(dataset, matchers, protocol, store, frozenset(wanted), (bound, source))
     try:
         with progress_bar(total=n_pairs, desc=desc, unit="pair", show=progress) as bar:
-            if workers == 1:
-                for group in groups:
-                    for item in _evaluate_group(group):
-                        collect(*item)
-            else:
-                from concurrent.futures import ProcessPoolExecutor, as_completed
-
-                # largest groups first, so that the workers finish together
-                order = sorted(groups, key=len, reverse=True)
-                context = multiprocessing.get_context("fork")
-                with ProcessPoolExecutor(workers, mp_context=context, initializer=_worker_start) as pool:
-                    futures = [pool.submit(_evaluate_group, group) for group in order]
-                    for future in as_completed(futures):
-                        for item in future.result():
-                            collect(*item)
+            for evaluated in map_forked(_evaluate_group, order, workers):
+                for item in evaluated:
+                    collect(*item)
     finally:
         _JOB = None
-    records = [results[i][0] for i in range(n_pairs)]
-    return records, {i: results[i][1] for i in wanted}
+    records = {name: [results[i][0][name] for i in range(n_pairs)] for name in matchers}
+    return (records if several else records[_ONE]), {i: kept(i) for i in wanted}
