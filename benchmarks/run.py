@@ -37,7 +37,6 @@ import dataclasses
 import datetime
 import json
 import logging
-import multiprocessing
 import os
 import sys
 import time
@@ -52,18 +51,9 @@ from geofeat.datasets import dataset_names, load_dataset
 from geofeat.datasets.records import ShapePair
 from geofeat.descriptors.registry import make_descriptor
 from geofeat.evaluation.metrics import pck_curve
-from geofeat.evaluation.protocol import (
-    SUMMARY_COLUMNS,
-    _group_by_target,
-    _worker_start,
-    default_workers,
-    evaluate_dataset,
-    evaluate_pair,
-    summarize,
-)
+from geofeat.evaluation.protocol import SUMMARY_COLUMNS, default_workers, evaluate_dataset, map_forked, summarize
 from geofeat.evaluation.report import PairPicture, markdown_table, plot_matches, plot_pairs, plot_pck
 from geofeat.files import atomic_write
-from geofeat.geometry.geodesic_memory import evaluation_distances
 from geofeat.geometry.geodesic_store import GeodesicStore
 
 HERE = Path(__file__).resolve().parent
@@ -351,92 +341,17 @@ def prepare_inputs(
     todo.sort(key=lambda task: (-task[1], -mesh_list[task[0]].n_vertices))  # the longest first
     _PREPARE = (mesh_list, made, store)
     try:
-        _run_forked(_prepare_one, todo, workers)
+        for _ in map_forked(_prepare_one, todo, workers):
+            pass
     finally:
         _PREPARE = None
     return len(todo), len(meshes)
 
 
-_MAIN: tuple | None = None  # (pairs by kind, matchers, store, pictured labels) of the forked workers
-
-
-def _evaluate_main_group(task: tuple[str, list[int]]) -> tuple[str, list[tuple[int, dict, dict]]]:
-    """In a worker: the pairs of one kind and one target, every matcher on each pair.
-
-    Returns ``(kind, [(pair index, {label: PairEvaluation}, {label: map_yx} for the pictured pair), ...])``.
-    """
-    kinds, matchers, store, pictured = _MAIN
-    kind, indices = task
-    out, target, distances = [], None, None
-    for i in indices:
-        pair = kinds[kind][i]
-        if pair.x.hash != target:
-            target, distances = pair.x.hash, evaluation_distances(pair.x, store)
-        records, maps = {}, {}
-        for label, match in matchers.items():
-            predicted = match(i, pair)
-            records[label] = evaluate_pair(pair, predicted, distances=distances)
-            if i == pictured_pair(len(kinds[kind])) and label in pictured:
-                maps[label] = predicted.map_yx
-        out.append((i, records, maps))
-    return kind, out
-
-
-def evaluate_main(kinds: dict[str, list[ShapePair]], matchers: dict, store, workers: int, pictured: list[str]) -> dict:
-    """Every matcher on every pair, target by target in ``workers`` forked processes.
-
-    Each pair is matched by all the matchers in a row, so that they share what the process
-    keeps in memory (input features, spectral bases, the target's geodesic matrix).
-    Returns ``{kind: {pair index: ({label: PairEvaluation}, {label: map_yx})}}``.
-    """
-    global _MAIN
-    tasks = []
-    for kind, pairs in kinds.items():
-        tasks += [(kind, indices) for indices in _group_by_target([pair.x.hash for pair in pairs])]
-    _MAIN = (kinds, matchers, store, set(pictured))
-    try:
-        done = _run_forked(_evaluate_main_group, sorted(tasks, key=lambda task: -len(task[1])), workers, _import_plotting)
-    finally:
-        _MAIN = None
-    results: dict[str, dict] = {kind: {} for kind in kinds}
-    for kind, items in done:
-        for i, records, maps in items:
-            results[kind][i] = (records, maps)
-    return results
-
-
-def _run_forked(function, tasks: list, workers: int, meanwhile=None) -> list:
-    """``[function(task) for task in tasks]``, in ``workers`` forked processes of one BLAS thread each where fork exists.
-
-    ``meanwhile()``, when given, runs in this process while the workers work.
-    """
-    workers = max(1, min(workers, len(tasks)))
-    if workers == 1 or "fork" not in multiprocessing.get_all_start_methods():
-        results = [function(task) for task in tasks]
-        if meanwhile is not None:
-            meanwhile()
-        return results
-    from concurrent.futures import ProcessPoolExecutor
-
-    context = multiprocessing.get_context("fork")
-    with ProcessPoolExecutor(workers, mp_context=context, initializer=_worker_start) as pool:
-        futures = [pool.submit(function, task) for task in tasks]
-        if meanwhile is not None:
-            meanwhile()
-        return [future.result() for future in futures]
-
-
-def _import_plotting() -> None:
-    """Import what the plots need (about a second), while the workers evaluate."""
+def _import_plotting(kept: dict) -> None:
+    """``on_kept`` of `evaluate_dataset`: import what the plots need (about a second) while the workers evaluate."""
     import matplotlib.figure  # noqa: F401
     import mpl_toolkits.mplot3d  # noqa: F401
-
-
-def folder_bytes(folder: Path) -> int:
-    """Bytes of the files under a folder (0 when it does not exist)."""
-    if not folder.is_dir():
-        return 0
-    return sum(path.stat().st_size for path in folder.rglob("*") if path.is_file() and not path.is_symlink())
 
 
 def _megabytes(n: int) -> str:
@@ -469,17 +384,19 @@ def main_job(args) -> int:
     matchers = {pipeline_label(*key): _HeadMatch(head) for key, head in heads.items()}
     matchers |= {name: _ReferenceMatch(name, args.seed) for name in REFERENCE_PIPELINES}
     pictured = [pipeline_label(*key) for key in MAIN_PICTURED]
-    results = evaluate_main(kinds, matchers, store, workers, pictured)
     rows, pictures = [], []
     plot_thresholds = np.linspace(0.0, MAIN_PCK_MAX, 201)
     for kind, pairs in kinds.items():
-        records = {label: [results[kind][i][0][label] for i in range(len(pairs))] for label in matchers}
         shown = pictured_pair(len(pairs))
-        pair = pairs[shown]
+        # every matcher on a pair in a row: they share the process's input features and spectral bases
+        records, kept = evaluate_dataset(
+            pairs, matchers, store=store, workers=workers, keep=[shown], on_kept=_import_plotting, progress=False
+        )
+        pair, matches = kept[shown]
         pictures.append(
             PairPicture(
                 pair,
-                [(label, results[kind][shown][1][label], records[label][shown].geodesic_error) for label in pictured],
+                [(label, matches[label].map_yx, records[label][shown].geodesic_error) for label in pictured],
                 y_title=(
                     f"source Y: {pair.y.name}\nCUTS partial of {pair.y.name.rsplit('_cuts', 1)[0]}, {pair.y.n_vertices:,} vertices"
                     if kind == "cuts"
@@ -557,11 +474,11 @@ def main_job(args) -> int:
     print()
     print(f"{sum(n_pairs.values())} pairs in {seconds:.1f} s ({caches} caches).")
     print(f"Results: {out}/ (results.md, results.json, pck.png, pairs.png)")
-    feature_folder = FeatureCache().root
+    features = FeatureCache()
     print("Caches, read back by the next run (`geofeat cache info`, `geofeat cache clear`):")
-    print(f"  features   {feature_folder}  {_megabytes(folder_bytes(feature_folder))}")
+    print(f"  features   {features.root}  {_megabytes(features.info().bytes)}")
     if store is not None:
-        print(f"  geodesics  {store.folder}  {_megabytes(folder_bytes(store.folder))}")
+        print(f"  geodesics  {store.folder}  {_megabytes(store.info().bytes)}")
     return 0
 
 

@@ -112,7 +112,14 @@ def child(target: Path) -> None:
 
 
 def folder_bytes(folder: Path) -> int:
-    return sum(p.stat().st_size for p in folder.rglob("*") if p.is_file())
+    """Bytes of the files under a folder, whatever they are (0 when it does not exist; links not followed).
+
+    The whole cache folder of a run, temporary files included; `EntryFolder.info` of the
+    feature cache or the geodesic store counts their entries only.
+    """
+    if not folder.is_dir():
+        return 0
+    return sum(path.stat().st_size for path in folder.rglob("*") if path.is_file() and not path.is_symlink())
 
 
 def measure(target: Path, run: str, work: Path) -> dict:
