@@ -8,12 +8,19 @@ Layout (as released in the gc-ppsm repository)::
         ├── shapes/<shape>.off           e.g. cuts_0_cougar_04.off
         └── maps/<src>_<tgt>.vts         one line per vertex of <src>: its vertex of <tgt>
 
-Map files are 0-based with -1 for "no counterpart" and are released in both directions. Each
-file ``<y>_<x>.vts`` is one pair (y = src, x = tgt, protocol ``"p2p"``); shape names contain
+Map files are 0-based with -1 for "no counterpart": line i of ``<y>_<x>.vts`` is the vertex of
+x matched to vertex i of y (one line per vertex of the first shape of the name). Each file is
+one pair (y = src, x = tgt, protocol ``"p2p"``, ``map_yx`` as stored); shape names contain
 underscores themselves, so a map's name is split where both halves are shape names.
 ``overlap_y`` marks the vertices of y with a counterpart, ``overlap_x`` those of x with one in
-the reverse file ``<x>_<y>.vts`` (None when that file is absent). Meshes are returned as
-stored; GeoLoRA flips SMAL shapes upside down (180 degrees about x) before rendering them.
+the reverse file ``<x>_<y>.vts``.
+
+Both situations are read. The released benchmark holds every map in both directions (train:
+304 files, 152 shape pairs both ways; test: 100 files, 50 shape pairs both ways), so it gives
+two pairs per pair of shapes, each with ``overlap_x`` from the other file. A copy with one
+direction only (such as a sample) gives one pair per file, with ``overlap_x`` None. The
+``shapes/`` folder may hold shapes that no map names; they are not read. Meshes are returned
+as stored; GeoLoRA flips SMAL shapes upside down (180 degrees about x) before rendering them.
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Writers of tiny files in the on-disk benchmark formats (shared by the loader tests)."""
+"""Writers of tiny files in the on-disk benchmark formats (shared by the loader tests), and the shared real samples."""
 
 from __future__ import annotations
 
@@ -6,6 +6,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from shapes import DATA_ENV, data_root
 
 
 def strip_mesh(n_vertices: int) -> tuple[np.ndarray, np.ndarray]:
@@ -42,3 +43,27 @@ def off_writer():
 @pytest.fixture
 def lines_writer():
     return write_lines
+
+
+def shared_sample(folder: str, probe: str) -> Path:
+    """``<shared data>/<folder>``, failing (never skipping) when its file ``probe`` is absent."""
+    root = data_root() / folder
+    if not (root / probe).is_file():
+        pytest.fail(
+            f"shared sample {folder} not found at {root} (no {probe}). Set {DATA_ENV} to the folder that holds "
+            f"{folder}/ (see the README, section 'Test'). Data-dependent tests fail rather than skip.",
+            pytrace=False,
+        )
+    return root
+
+
+@pytest.fixture(scope="session")
+def psmal_sample() -> Path:
+    """The PARTIALSMAL folder of the shared PSMAL sample (three real train pairs, one map direction each)."""
+    return shared_sample("PSMAL_sample", "PARTIALSMAL/train/maps/cuts_0_cow_02_cuts_22_dog_05.vts") / "PARTIALSMAL"
+
+
+@pytest.fixture(scope="session")
+def shrec16_dpfm_sample() -> Path:
+    """The shared SHREC'16 sample in DPFM's layout (one real CUTS pair, test split)."""
+    return shared_sample("SHREC16_dpfm_sample", "shrec_partial_test/maps/cuts-cat1_cuts-cat.map")
