@@ -191,3 +191,141 @@ def test_errors_are_reported_without_traceback(tmp_path, args, problem):
     line = lines[0]
     assert line.startswith("geofeat: error: ") and problem in line, line
     assert result.stdout == "" and not (tmp_path / "store").exists()  # refused before any work
+
+
+# ----------------------------------------------------------------------------- geofeat data check
+
+
+def _shared_sample(folder: str, probe: str) -> Path:
+    """A shared real sample (``$GEOFEAT_DATA``, else ../shared/data); fails, never skips, when it is absent."""
+    from shapes import DATA_ENV, data_root
+
+    root = data_root() / folder
+    if not (root / probe).is_file():
+        pytest.fail(
+            f"shared sample {folder} not found at {root}; set {DATA_ENV} (see the README, section 'Test').", pytrace=False
+        )
+    return root
+
+
+@pytest.fixture(scope="module")
+def psmal_sample() -> Path:
+    return _shared_sample("PSMAL_sample", "PARTIALSMAL/train/maps/cuts_0_cow_02_cuts_22_dog_05.vts")
+
+
+def data_check(capsys, *args: str) -> tuple[int, list[str]]:
+    """``geofeat data check ARGS`` in this process: its exit status and the lines it printed."""
+    status = main(["data", "check", *args, "--no-progress"])
+    return status, capsys.readouterr().out.splitlines()
+
+
+def test_data_check_on_the_psmal_sample(capsys, psmal_sample):
+    status, lines = data_check(capsys, "psmal", "--data-root", str(psmal_sample), "--split", "train")
+    assert status == 0, lines
+    assert lines[0] == "dataset: psmal (PARTIALSMAL, P2P), split train"
+    assert lines[1] == f"folder: {psmal_sample / 'PARTIALSMAL' / 'train'}"
+    assert "pairs: 3 (P2P), 3 read" in lines
+    assert "shapes: 6 distinct, 2,676 to 2,954 vertices as y (source), 2,408 to 2,685 as x (target)" in lines
+    assert any(line.startswith("direction: map_yx gives, for each vertex of y") for line in lines)
+    assert "reverse pairs: 0 of 3 pairs have their reverse (x->y) in the dataset" in lines  # one direction per map
+    assert "no counterpart (-1): 58.1% of the vertices of y overall, per pair 34.8% to 70.6%" in lines
+    assert "files read: 9" in lines and lines[-1] == "result: clean"
+    assert not any(line.startswith(("problems", "note:")) for line in lines)
+
+
+def test_data_check_on_the_shrec16_dpfm_sample_reports_the_dropped_faces(capsys):
+    root = _shared_sample("SHREC16_dpfm_sample", "shrec_partial_test/maps/cuts-cat1_cuts-cat.map")
+    status, lines = data_check(capsys, "shrec16_cuts", "--data-root", str(root))
+    assert status == 0, lines
+    assert f"folder: {root / 'shrec_partial_test'}" in lines
+    assert "pairs: 1 (P2F), 1 read" in lines
+    assert any("vertices of x from 46 to 9,998" in line for line in lines)
+    assert "warning: mesh 'cuts-cat': dropped 12 repeated face(s) (the same three vertices as an earlier face)" in lines
+    assert lines[-1] == "result: clean"
+
+
+def test_data_check_on_faust_r_lists_the_files_the_test_split_does_not_read(capsys, faust_dir):
+    status, lines = data_check(capsys, "faust_r", "--data-root", str(faust_dir.parent))
+    assert status == 0, lines
+    assert "pairs: 380 (F2F), 380 read" in lines
+    assert "reverse pairs: 380 of 380 pairs have their reverse (x->y) in the dataset" in lines
+    assert "also given: overlap_y in 0, overlap_x in 0, map_yx_sym in 380, template points in 380 of 380 pairs" in lines
+    assert any(line.startswith("note: not read: 80 file(s) in off/ (*.off): tr_reg_000.off") for line in lines)
+    assert lines[-1] == "result: clean"
+
+
+def test_data_check_lists_what_is_wrong_and_exits_1(capsys, psmal_sample, tmp_path):
+    import shutil
+
+    folder = tmp_path / "PARTIALSMAL" / "train"
+    shutil.copytree(psmal_sample / "PARTIALSMAL" / "train", folder)
+    maps = folder / "maps"
+    (maps / "cuts_0_cow_02_cuts_22_dog_05.vts").write_text("0\n" * 2806)  # one line short
+    (maps / "cuts_0_cow_04_cuts_14_lion_04.vts").write_text("2685\n" * 2676)  # lion_04 has 2,685 vertices
+    status, lines = data_check(capsys, "psmal", "--data-root", str(tmp_path), "--split", "train")
+    assert status == 1 and "pairs: 3 (P2P), 1 read" in lines and lines[-1] == "result: 2 problem(s); see above"
+    problems = lines[lines.index("problems: 2") + 1 :]
+    assert problems[0].startswith("  - cuts_0_cow_02->cuts_22_dog_05: cannot be read:") and "expected 2807 entries" in problems[0]
+    assert problems[1].startswith("  - cuts_0_cow_04->cuts_14_lion_04: cannot be read:") and "[0, 2684]" in problems[1]
+    for stem in ("cuts_0_cow_02_cuts_9_wolf_01", "cuts_3_fox_01_cuts_22_dog_05"):  # maps whose shapes are missing
+        (maps / f"{stem}.vts").write_text("0\n")
+    status, lines = data_check(capsys, "psmal", "--data-root", str(tmp_path), "--split", "train")
+    assert status == 1 and "problems: 1" in lines
+    text = "\n".join(lines)
+    assert "cannot tell which two shapes 2 of 5 map files pair" in text
+    assert "        cuts_0_cow_02_cuts_9_wolf_01.vts" in lines and "        cuts_3_fox_01_cuts_22_dog_05.vts" in lines
+
+
+def test_data_check_notes_files_no_pair_reads(capsys, psmal_sample, tmp_path):
+    import shutil
+
+    folder = tmp_path / "train"
+    shutil.copytree(psmal_sample / "PARTIALSMAL" / "train", folder)
+    shutil.copy(folder / "shapes" / "cuts_0_cow_02.off", folder / "shapes" / "cuts_5_cow_01.off")  # a shape no map names
+    (folder / "maps" / "notes.txt").write_text("mine\n")
+    status, lines = data_check(capsys, "psmal", "--data-root", str(folder), "--split", "train")
+    assert status == 0, lines  # not wrong, only worth knowing
+    assert "note: not read: 1 file(s) in maps/ (*.txt): notes.txt" in lines
+    assert "note: not read: 1 file(s) in shapes/ (*.off): cuts_5_cow_01.off" in lines
+
+
+def test_data_check_of_a_dataset_built_in_memory(capsys):
+    status, lines = data_check(capsys, "synthetic_p2p", "--split", "test")
+    assert status == 0, lines
+    assert "folder: none (built in memory)" in lines and "pairs: 90 (P2P), 90 read" in lines
+    assert not any(line.startswith("files read") for line in lines)
+
+
+@pytest.mark.parametrize(
+    ("args", "problem"),
+    [
+        (["no_such_dataset", "--data-root", "{data}"], "unknown dataset 'no_such_dataset'"),
+        (["psmal", "--data-root", "{missing}"], "the data folder {missing} does not exist"),
+        (["psmal", "--data-root", "{data}", "--option", "layout=dpfm"], "does not take option(s) layout"),
+        (["psmal", "--data-root", "{data}", "--option", "layout"], "--option expects KEY=VALUE"),
+    ],
+    ids=["unknown-dataset", "missing-folder", "unknown-option", "option-without-value"],
+)
+def test_data_check_bad_input_exits_2_with_one_error_line(capsys, tmp_path, args, problem):
+    missing = tmp_path / "no-such-folder"
+    argv = [a.format(data=tmp_path, missing=missing) for a in args]
+    assert main(["data", "check", *argv]) == 2
+    captured = capsys.readouterr()
+    lines = captured.err.splitlines()
+    assert len(lines) == 1 and lines[0].startswith("geofeat: error: ") and problem.format(missing=missing) in lines[0], lines
+    assert captured.out == ""
+
+
+def test_data_check_of_a_folder_in_no_known_layout_shows_the_layout_and_exits_1(capsys, tmp_path):
+    status, lines = data_check(capsys, "cp2p24", "--data-root", str(tmp_path))
+    assert status == 1
+    assert f"data folder given: {tmp_path}" in lines
+    assert any(line.startswith("  - geofeat cannot open it: CP2P24: cannot use") for line in lines)
+    assert "    Expected layout:" in lines and any("<y>_<x>.map" in line for line in lines)
+
+
+def test_data_check_is_a_documented_command():
+    parsers = dict(_parsers(build_parser()))
+    assert {"geofeat data", "geofeat data check"} <= set(parsers)
+    text = parsers["geofeat data check"].format_help()
+    assert "DATASET" in text and "--data-root PATH" in text and "--split SPLIT" in text and "Exit status 0" in text

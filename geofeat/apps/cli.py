@@ -1,4 +1,4 @@
-"""The ``geofeat`` command line: ``cache info|verify|clear``, ``descriptors``, ``demo``, ``train-geolora``, ``extract``.
+"""The ``geofeat`` command line: ``cache info|verify|clear``, ``descriptors``, ``demo``, ``train-geolora``, ``extract``, ``data check``.
 
 Help texts are plain text (no markup): `build_parser` holds them, and the settings of
 ``train-geolora`` take theirs from the `geofeat.train.config.TrainConfig` docstring.
@@ -400,6 +400,19 @@ def _extract_command(args: argparse.Namespace) -> int:
     return 1 if incomplete else 0
 
 
+def _data_check_command(args: argparse.Namespace) -> int:
+    from geofeat.apps.data import check_dataset
+    from geofeat.checks import parse_key_values
+    from geofeat.errors import DatasetError
+
+    options = parse_key_values(args.option or [], "--option", error=DatasetError)
+    with _quiet_if(args.no_progress):
+        report = check_dataset(args.dataset, args.data_root, args.split, progress=not args.no_progress, **options)
+    for line in report.lines():
+        _out(line)
+    return 0 if report.ok else 1
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of the ``geofeat`` command (every option has a plain-text help)."""
     parser = argparse.ArgumentParser(prog="geofeat", description=DESCRIPTION, epilog=EPILOG)
@@ -475,6 +488,29 @@ def build_parser() -> argparse.ArgumentParser:
     ext.add_argument("--device", default="auto", help="auto (the rank's local GPU, else cpu), cpu, cuda, cuda:N")
     ext.add_argument("--no-progress", action="store_true", help="hide progress bars (they show only on a terminal anyway)")
     ext.set_defaults(func=_extract_command)
+    data = sub.add_parser(
+        "data",
+        help="check what geofeat reads from a copy of a benchmark",
+        description="Commands about benchmark data on disk.",
+    )
+    data_sub = data.add_subparsers(dest="data_command", required=True, metavar="ACTION", title="actions")
+    check = data_sub.add_parser(
+        "check",
+        help="read every pair of a dataset and report counts, ranges and anything unexpected",
+        description="Open a dataset as every geofeat run does, read every pair of the split, and print what was read: "
+        "the folder used, pair and shape counts, vertex counts, the range of the ground-truth indices and the share "
+        "of vertices without a counterpart, which way the maps go, and anything unexpected (pairs that cannot be "
+        "read, indices out of range, maps whose shapes are missing, files that no pair reads). Exit status 0: clean; "
+        "1: something is wrong (listed under 'problems'); 2: bad input (unknown dataset, missing folder).",
+    )
+    check.add_argument("dataset", metavar="DATASET", help="a geofeat dataset name (psmal, shrec16_cuts, pfaust_m, cp2p24, ...)")
+    check.add_argument("--data-root", metavar="PATH", help="the data folder, as for the loaders (default $GEOFEAT_DATA)")
+    check.add_argument("--split", default="test", help="which split to read (default test)")
+    check.add_argument(
+        "--option", action="append", metavar="KEY=VALUE", help="a loader option (layout=dpfm, difficulty=hard); repeat it"
+    )
+    check.add_argument("--no-progress", action="store_true", help="hide the progress bar (it shows only on a terminal anyway)")
+    check.set_defaults(func=_data_check_command)
     return parser
 
 

@@ -124,6 +124,15 @@ class PairDataset(Sequence):
             self[position]
         return dict(self._mesh_files)
 
+    def files_read(self) -> list[Path]:
+        """Every file this instance has read so far (meshes and ground-truth files), sorted.
+
+        After every pair has been loaded, this is exactly what the dataset uses; the other files
+        of its folder are not read (``geofeat data check`` lists them).
+        """
+        arrays = [path for path in self._arrays if Path(path).is_file()]
+        return sorted({*self._mesh_files.values(), *arrays})
+
     def _mesh(self, path: Path, name: str | None = None) -> Mesh:
         """The mesh at ``path`` (named ``name``, else the file stem), read once per instance."""
         key = (Path(path), name or Path(path).stem)
@@ -298,6 +307,51 @@ def split_pair_stem(stem: str, names: set[str], source: Path) -> tuple[str, str]
             "check that both meshes exist."
         )
     raise DatasetError(f"{source}: the name is ambiguous, it splits into known shape pairs in several ways: {found}.")
+
+
+def split_pair_stems(paths: Sequence[Path], names: set[str], title: str) -> list[tuple[str, str]]:
+    """`split_pair_stem` of every file of ``paths``, with one error that names every file that fails.
+
+    Parameters
+    ----------
+    paths : sequence of Path
+        Files named ``<first>_<second>.<suffix>`` (maps of a dataset).
+    names : set of str
+        The shape names of the dataset.
+    title : str
+        Dataset name used in the message.
+
+    Returns
+    -------
+    list of (str, str)
+        ``(first, second)`` for each file, in the order of ``paths``.
+
+    Raises
+    ------
+    DatasetError
+        When any file does not split into two known shape names (a missing mesh, usually) or
+        splits in several ways; the message lists up to 10 of them and how many there are.
+    """
+    pairs, failed = [], []
+    for path in paths:
+        try:
+            pairs.append(split_pair_stem(path.stem, names, path))
+        except DatasetError as err:
+            failed.append((path, str(err)))
+    if not failed:
+        return pairs
+    if len(failed) == 1:
+        raise DatasetError(failed[0][1])
+    example = sorted(names, key=natural_key)[:2]
+    lines = [
+        f"{title}: cannot tell which two shapes {len(failed)} of {len(paths)} map files pair. Each must be named "
+        f"'<first shape>_<second shape>' after two mesh files of the dataset (for example {example}); check that both "
+        "meshes exist, or remove the map:"
+    ]
+    lines += [f"    {path.name}" + (" (ambiguous)" if "ambiguous" in message else "") for path, message in failed[:10]]
+    if len(failed) > 10:
+        lines.append(f"    ... and {len(failed) - 10} more")
+    raise DatasetError("\n".join(lines))
 
 
 # ----------------------------------------------------------------------------- index files

@@ -34,7 +34,7 @@ from geofeat.datasets.base import (
     locate_split,
     natural_key,
     read_indices,
-    split_pair_stem,
+    split_pair_stems,
 )
 from geofeat.datasets.records import ShapePair
 from geofeat.errors import DatasetError
@@ -83,7 +83,7 @@ class CP2P24(PairDataset):
         super().__init__(folder, split, "p2p", mesh_cache_size=mesh_cache_size)
         names = {p.stem for p in (self.root / "off").glob("*.off")}
         maps = sorted((self.root / "maps").glob("*.map"), key=lambda p: natural_key(p.stem))
-        self._entries = [_Pair(*split_pair_stem(path.stem, names, path)) for path in maps]
+        self._entries = [_Pair(*pair) for pair in split_pair_stems(maps, names, self.title)]
 
     def _load_pair(self, entry: _Pair) -> ShapePair:
         y = self._mesh(self.root / "off" / f"{entry.y}.off")

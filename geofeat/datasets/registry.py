@@ -67,6 +67,20 @@ def dataset_description(name: str) -> str:
     return _REGISTRY.entry(name).summary
 
 
+def dataset_options(name: str) -> set[str] | None:
+    """The options ``load_dataset(name, ...)`` takes besides ``root`` and ``split``.
+
+    Returns
+    -------
+    set of str or None
+        The loader's keyword options without those the name fixes; None when the loader
+        takes any keyword (``**kwargs``). Opening the name imports its loader module.
+    """
+    entry = _REGISTRY.entry(name)
+    accepted = _accepted_options(entry.load("dataset"))
+    return None if accepted is None else accepted - set(entry.options)
+
+
 def load_dataset(name: str, root: str | os.PathLike | None = None, split: str = "test", **options) -> PairDataset:
     """Open a benchmark dataset by name.
 

@@ -74,7 +74,7 @@ from geofeat.datasets.base import (
     natural_key,
     read_indices,
     read_table,
-    split_pair_stem,
+    split_pair_stems,
 )
 from geofeat.datasets.records import ShapePair
 from geofeat.errors import DatasetError, MeshError
@@ -265,10 +265,7 @@ class Shrec16Partial(PairDataset):
         """One pair per ``maps/<partiality>*.map`` file: (first shape of its name, second shape)."""
         names = {path.stem for path in (self.root / "shapes").glob("*.off")}
         maps = sorted((self.root / "maps").glob(f"{self.partiality}*.map"), key=lambda p: natural_key(p.stem))
-        pairs = []
-        for path in maps:
-            y, x = split_pair_stem(path.stem, names, path)
-            pairs.append(_Pair(y=y, x=x, gt=path))
+        pairs = [_Pair(y=y, x=x, gt=path) for path, (y, x) in zip(maps, split_pair_stems(maps, names, self.title), strict=True)]
         if shapes is not None:
             wanted = set(self._wanted(shapes))
             unknown = sorted(wanted - {p.y for p in pairs})
