@@ -1,9 +1,11 @@
 """BeCoS loader on tiny pair folders written in the generator's output format."""
 
+import pickle
+
 import numpy as np
 import pytest
 
-from geofeat.datasets.becos import BeCoS
+from geofeat.datasets.becos import BeCoS, read_becos_info, read_shape_info
 from geofeat.datasets.registry import load_dataset
 from geofeat.errors import DatasetError
 
@@ -92,3 +94,111 @@ def test_wrong_folder_errors(becos, tmp_path):
         load_dataset("becos_p2p", empty)
     message = str(err.value)
     assert "Expected layout" in message and "corres_10.npy" in message and "github.com/NafieAmrani/becos-code" in message
+
+
+# ----------------------------------------------------------------------------- _info.pkl records
+
+
+def write_info(path, name, *, partial=False, n_vertices=4, protocol=pickle.DEFAULT_PROTOCOL, sqrt_area=2.0):
+    """A record with the keys the generator writes (numpy scalars and arrays, as it pickles them)."""
+    record = {
+        "name": np.str_(name),
+        "org_dataset": "tosca",
+        "scale_per_dataset": 0.0095,
+        "surface_area": np.float64(sqrt_area),
+        "random_rotation": np.eye(3),
+        "align_rotation": None,
+        "align_translation": None,
+    }
+    if partial:
+        record["partial2full"] = np.arange(n_vertices)
+        record["cam_pos"] = np.array([0.0, 0.0, 1.0])
+    path.write_bytes(pickle.dumps(record, protocol=protocol))
+    return record
+
+
+@pytest.mark.parametrize("protocol", [2, 4, 5])
+def test_records_are_read_without_running_code(tmp_path, protocol):
+    path = tmp_path / "0_cat0_info.pkl"
+    write_info(path, "cat0", partial=True, protocol=protocol)
+    record = read_becos_info(path)
+    assert record["name"] == "cat0" and float(record["surface_area"]) == 2.0
+    np.testing.assert_array_equal(record["partial2full"], np.arange(4))
+    info = read_shape_info(path)
+    assert info.partial and info.sqrt_area == 2.0 and info.rotation.shape == (3, 3)
+
+
+class Planted:
+    """Any object that is not a builtin or a numpy array: unpickling it imports this module."""
+
+    def __reduce__(self):
+        return (print, ("unpickled",))
+
+
+def test_records_naming_other_objects_are_refused(tmp_path, capsys):
+    path = tmp_path / "0_cat0_info.pkl"
+    path.write_bytes(pickle.dumps({"name": "cat0", "surface_area": 1.0, "hook": Planted()}))
+    with pytest.raises(DatasetError, match=r"refused for safety.*builtins\.print"):
+        read_becos_info(path)
+    assert "unpickled" not in capsys.readouterr().out
+    path.write_bytes(pickle.dumps({"name": "cat0", "surface_area": 1.0})[:-5])  # truncated
+    with pytest.raises(DatasetError, match="truncated"):
+        read_becos_info(path)
+    path.write_bytes(pickle.dumps([1, 2]))
+    with pytest.raises(DatasetError, match="expected a dictionary"):
+        read_becos_info(path)
+    path.write_bytes(pickle.dumps({"name": "cat0"}))
+    with pytest.raises(DatasetError, match="no surface_area_after_scaling or surface_area"):
+        read_shape_info(path)
+
+
+def test_released_key_surface_area_after_scaling_is_preferred(tmp_path):
+    path = tmp_path / "0_cat0_info.pkl"
+    record = write_info(path, "cat0", sqrt_area=2.0)
+    path.write_bytes(pickle.dumps({**record, "surface_area_after_scaling": 3.0}))
+    assert read_shape_info(path).sqrt_area == 3.0
+
+
+def test_records_give_partial_full_overlap_and_areas(becos):
+    folder = becos / "partial_full" / "test" / "0"
+    write_info(folder / "0_tr_reg_000_info.pkl", "tr_reg_000", n_vertices=6, sqrt_area=5.0)
+    mask = np.array([True, False, True, False, False, True])
+    record = read_becos_info(folder / "0_tr_reg_000_info.pkl")
+    (folder / "0_tr_reg_000_info.pkl").write_bytes(pickle.dumps({**record, "overlap_mask": mask}))
+    write_info(folder / "1_cat0_info.pkl", "cat0", partial=True, sqrt_area=7.0)
+    dataset = load_dataset("becos_p2f", becos)
+    np.testing.assert_array_equal(dataset[0].overlap_x, mask)  # shape 0's record, no corres_01 in partial_full
+    info = dataset.info(0)
+    assert info.sqrt_area_x == 5.0 and info.y.sqrt_area == 7.0 and info.y.partial and not info.x.partial
+    assert folder / "1_cat0_info.pkl" in dataset.files_read()
+
+
+def test_records_that_contradict_the_files_are_errors(becos):
+    folder = becos / "partial_full" / "test" / "0"
+    write_info(folder / "0_tr_reg_000_info.pkl", "tr_reg_000", partial=True, n_vertices=6)  # shape 0 partial?
+    write_info(folder / "1_cat0_info.pkl", "cat0", partial=True)
+    with pytest.raises(DatasetError, match="recorded as a partial shape, but in partial_full shape 0 is full"):
+        load_dataset("becos_p2f", becos)[0]
+    write_info(folder / "0_tr_reg_000_info.pkl", "tr_reg_001")
+    with pytest.raises(DatasetError, match="records shape 'tr_reg_001'"):
+        load_dataset("becos_p2f", becos)[0]
+    write_info(folder / "0_tr_reg_000_info.pkl", "tr_reg_000")
+    write_info(folder / "1_cat0_info.pkl", "cat0", partial=True, n_vertices=3)
+    with pytest.raises(DatasetError, match="partial2full has 3 entries"):
+        load_dataset("becos_p2f", becos)[0]
+
+
+def test_half_written_pair_folders_are_named(becos):
+    split = becos / "partial_partial" / "test"
+    for k in (0, 2):
+        write_info(split / str(k) / "0_tr_reg_000_info.pkl", "tr_reg_000", partial=True, n_vertices=6)
+        write_info(split / str(k) / "1_cat0_info.pkl", "cat0", partial=True)
+    # folder 10 has no records: the generator was stopped before it wrote them
+    with pytest.raises(
+        DatasetError, match=r"1 pair folder\(s\) .* incomplete(.|\n)*10/: lacks 0_tr_reg_000_info.pkl, 1_cat0_info.pkl"
+    ):
+        load_dataset("becos_p2p", becos)
+    (split / "10" / "corres_01.npy").unlink()
+    write_info(split / "10" / "0_tr_reg_000_info.pkl", "tr_reg_000", partial=True, n_vertices=6)
+    with pytest.raises(DatasetError, match="10/: lacks 1_cat0_info.pkl, corres_01.npy"):
+        load_dataset("becos_p2p", becos)
