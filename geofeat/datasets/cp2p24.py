@@ -14,6 +14,9 @@ else 0. Each map file is one pair (protocol ``"p2p"``). ``overlap_x`` is that fl
 ``overlap_y`` is the flag block of the reverse file ``<x>_<y>.map`` when it exists, else the
 vertices of y with a counterpart. Older CP2P / DPFM files with only the |V_y| map entries are
 read too (``overlap_x`` is then None).
+
+This is the layout EchoMatch's reader takes; geofeat has not read real CP2P24 files (they are
+not in a repository). ``geofeat data check cp2p24`` reports what a copy gives.
 """
 
 from __future__ import annotations

@@ -22,6 +22,11 @@ Pairs: every full shape of the split against every partial shape of the split (G
 test = 2 full x 20 partial = 40 pairs). A shape's split comes from the number its name ends
 with: train 0-79, test 80-99 (the first 8 and last 2 full shapes, the first 80 and last 20
 partial shapes).
+
+geofeat has not read a complete real copy: the public ``ABracha/PFAUST`` repository holds the
+partial shapes, their ``corres/`` files (1-based, written as floats) and ``full_shape_corres/``
+(the same files as FAUST_r's ``corres/``), but not the masks. ``geofeat data check pfaust_m``
+reports what a copy gives.
 """
 
 from __future__ import annotations
