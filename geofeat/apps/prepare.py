@@ -1,0 +1,828 @@
+"""Building BeCoS with its authors' generator, and checking what a generator run wrote.
+
+BeCoS is not downloaded but generated: ``main.py`` of ``NafieAmrani/becos-code`` draws the
+pairs of every split, then writes them one folder at a time (see `geofeat.datasets.becos`
+for the layout). `prepare_becos` runs the user's copy of the generator in its own Python (a
+separate environment with the generator's requirements) and moves what it wrote to a folder
+of the user's choice; `check_becos` reads a generator output folder and says whether it is
+complete and consistent:
+
+* pair folders per split against the pairs the generator drew (its ``pairings.pkl``), with the
+  folders that are missing or half-written (a file absent or unreadable) named;
+* correspondence files: lengths and index ranges against the two meshes, share of ``-1``;
+* the ``_info.pkl`` records against the files: names, which shape is partial, the square root
+  of the full shapes' areas (equal to the mesh's own for a full shape, larger for a partial
+  one), and the random rotations (equal to those of the pairings, and undoing them brings the
+  two shapes of a pair into the same orientation).
+
+>>> from geofeat.apps.prepare import check_becos, prepare_becos
+>>> report = check_becos("becos-code/output/partial_full")
+>>> print("\\n".join(report.lines()))
+>>> report = prepare_becos("becos-code", "data/BeCoS", setting="partial_full",
+...                        overrides={"template_file": "templates_tosca_demo.csv"})
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import re
+import shutil
+import subprocess
+import sys
+import time
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from geofeat.datasets.base import SPLITS
+from geofeat.datasets.becos import (
+    SETTINGS,
+    BeCoS,
+    BecosShapeInfo,
+    check_roles,
+    info_path,
+    pair_folder_missing,
+    read_becos_map,
+    read_becos_pairings,
+    read_shape_info,
+)
+from geofeat.errors import DatasetError, GeofeatError
+from geofeat.mesh import load_mesh
+from geofeat.progress import progress_bar
+
+log = logging.getLogger(__name__)
+
+__all__ = ["BecosCheck", "BecosPrepare", "SplitCheck", "check_becos", "prepare_becos"]
+
+#: Relative difference allowed between a full shape's sqrt(area) and the recorded value.
+AREA_TOLERANCE = 1e-3
+#: Largest median, over a split, of the rotation (degrees) between the two shapes of a pair
+#: once their recorded random rotations are undone. A single pair can leave a large rotation
+#: in a best rigid fit (different bodies and poses, a small partial view); rotations that were
+#: not recorded leave about 90 degrees on average.
+ROTATION_LIMIT_DEG = 60.0
+#: Fewest checked pairs of a split before its median rotation is judged.
+ROTATION_MIN_PAIRS = 8
+#: Vertices compared between copies of one full shape in different pairs.
+UNROTATED_VERTICES = 500
+#: Largest difference (fraction of sqrt(area)) between copies of one full shape with their rotations undone.
+UNROTATED_TOLERANCE = 1e-6
+#: Problems listed one by one before "... and N more".
+MAX_LISTED = 20
+#: Import names of the generator's requirements whose distribution name differs (requirements.txt).
+IMPORT_NAMES = {"pyyaml": "yaml", "libigl": "igl", "robust-laplacian": "robust_laplacian", "opencv-python": "cv2"}
+
+
+# ----------------------------------------------------------------------------- the check
+
+
+@dataclass
+class SplitCheck:
+    """What `check_becos` found in one split folder of one setting.
+
+    Attributes
+    ----------
+    setting, split : str
+    folder : Path
+    expected : int or None
+        Pairs the generator drew for the split (its ``pairings.pkl``); None without that file.
+    complete : int
+        Pair folders with every file present and readable, and consistent.
+    incomplete : dict of str to str
+        Folder name -> what is missing or unreadable (half-written pairs).
+    missing : list of int
+        Pair numbers of ``pairings.pkl`` with no folder at all.
+    unexpected : list of str
+        Numbered folders beyond the drawn pairs.
+    problems : list of str
+        Inconsistencies in complete folders: indices out of range, areas or rotations that
+        disagree with the records, names that disagree with the pairings.
+    unmatched : tuple of (float, float) or None
+        Smallest and largest share of shape 1's vertices without a counterpart (``corres_10 == -1``).
+    index_max_share : float or None
+        Largest ``corres_10`` index over shape 0's vertex count (close to 1 when the whole shape is used).
+    partial_area : tuple of (float, float) or None
+        Smallest and largest ``sqrt(area(partial mesh)) / recorded sqrt area`` of the partial shapes.
+    full_area_error : float or None
+        Largest relative difference between a full shape's ``sqrt(area)`` and its record.
+    rotation_deg : tuple of (float, float) or None
+        Median and largest rotation between the pair's shapes after undoing the recorded rotations.
+    """
+
+    setting: str
+    split: str
+    folder: Path
+    expected: int | None = None
+    complete: int = 0
+    incomplete: dict[str, str] = field(default_factory=dict)
+    missing: list[int] = field(default_factory=list)
+    unexpected: list[str] = field(default_factory=list)
+    problems: list[str] = field(default_factory=list)
+    unmatched: tuple[float, float] | None = None
+    index_max_share: float | None = None
+    partial_area: tuple[float, float] | None = None
+    full_area_error: float | None = None
+    rotation_deg: tuple[float, float] | None = None
+
+    @property
+    def ok(self) -> bool:
+        """Every drawn pair present, complete and consistent."""
+        return not (self.incomplete or self.missing or self.problems)
+
+    def lines(self) -> list[str]:
+        """This split's part of the report."""
+        expected = "" if self.expected is None else f" of {self.expected:,} drawn"
+        out = [f"{self.setting}/{self.split}: {self.complete:,} complete pair folder(s){expected} ({self.folder})"]
+        if self.unmatched is not None:
+            out.append(
+                f"  corres_10: indices in range; no counterpart (-1) for {self.unmatched[0]:.1%} to "
+                f"{self.unmatched[1]:.1%} of shape 1's vertices; largest index {self.index_max_share:.1%} of shape 0's vertices"
+            )
+        if self.full_area_error is not None:
+            out.append(f"  areas: full shapes match their recorded sqrt(area) within {self.full_area_error:.1e} (relative)")
+        if self.partial_area is not None:
+            out.append(
+                f"  areas: partial shapes have {self.partial_area[0]:.2f} to {self.partial_area[1]:.2f} of their full "
+                "shape's recorded sqrt(area) (BeCoS divides geodesic errors by the full shape's)"
+            )
+        if self.rotation_deg is not None:
+            out.append(
+                f"  orientation: with the recorded random rotations undone, the best rigid fit of shape 1 onto shape 0 "
+                f"rotates by {self.rotation_deg[0]:.0f} degrees (median), {self.rotation_deg[1]:.0f} at most"
+            )
+        if self.missing:
+            shown = ", ".join(map(str, self.missing[:MAX_LISTED])) + (" ..." if len(self.missing) > MAX_LISTED else "")
+            out.append(f"  missing: {len(self.missing):,} pair folder(s) never written: {shown}")
+        if self.incomplete:
+            out.append(f"  incomplete: {len(self.incomplete):,} pair folder(s) half-written or damaged:")
+            out += [f"    {name}/: {what}" for name, what in list(self.incomplete.items())[:MAX_LISTED]]
+            if len(self.incomplete) > MAX_LISTED:
+                out.append(f"    ... and {len(self.incomplete) - MAX_LISTED} more")
+        if self.unexpected:
+            out.append(
+                f"  unexpected: {len(self.unexpected):,} folder(s) beyond the drawn pairs: {', '.join(self.unexpected[:10])}"
+            )
+        for problem in self.problems[:MAX_LISTED]:
+            out.append(f"  problem: {problem}")
+        if len(self.problems) > MAX_LISTED:
+            out.append(f"  ... and {len(self.problems) - MAX_LISTED} more problems")
+        return out
+
+
+@dataclass
+class BecosCheck:
+    """What `check_becos` found; `lines` is the text ``geofeat data check`` prints for BeCoS.
+
+    Attributes
+    ----------
+    folder : Path
+        The folder checked.
+    splits : list of SplitCheck
+        One per setting and split found.
+    problems : list of str
+        What makes the folder unusable as a whole (no setting folder, unreadable pairings).
+    notes : list of str
+        What is worth knowing but not wrong.
+    """
+
+    folder: Path
+    splits: list[SplitCheck] = field(default_factory=list)
+    problems: list[str] = field(default_factory=list)
+    notes: list[str] = field(default_factory=list)
+
+    @property
+    def ok(self) -> bool:
+        """True when every split is complete and consistent and nothing else is wrong."""
+        return not self.problems and bool(self.splits) and all(split.ok for split in self.splits)
+
+    def pair_counts(self) -> dict[str, dict[str, int]]:
+        """Complete pair folders by setting and split."""
+        counts: dict[str, dict[str, int]] = {}
+        for split in self.splits:
+            counts.setdefault(split.setting, {})[split.split] = split.complete
+        return counts
+
+    def lines(self) -> list[str]:
+        """The report as lines of text (no trailing newlines)."""
+        out = [f"BeCoS generator output: {self.folder}"]
+        for split in self.splits:
+            out += split.lines()
+        out += [f"note: {note}" for note in self.notes]
+        out += [f"problem: {problem}" for problem in self.problems]
+        n_bad = len(self.problems) + sum(len(s.problems) + len(s.incomplete) + (1 if s.missing else 0) for s in self.splits)
+        if self.ok:
+            out.append("result: complete; every pair folder is whole and agrees with its records")
+        else:
+            out.append(f"result: {n_bad} problem(s); see above")
+        return out
+
+
+def _setting_folders(folder: Path) -> list[tuple[str, Path]]:
+    """``(setting, path)`` of the setting folders at ``folder``: the folder itself or its children."""
+    if folder.name in SETTINGS or folder.name.split("_archived_")[0] in SETTINGS:
+        return [(folder.name.split("_archived_")[0], folder)]
+    return [(name, folder / name) for name in SETTINGS if (folder / name).is_dir()]
+
+
+def check_becos(
+    folder: str | os.PathLike,
+    *,
+    pairings: str | os.PathLike | None = None,
+    splits: Sequence[str] = SPLITS,
+    progress: bool = False,
+) -> BecosCheck:
+    """Check a BeCoS generator output folder: complete pairs, index ranges, areas and orientation.
+
+    Parameters
+    ----------
+    folder : path-like
+        A setting folder (``.../output/partial_full``, holding ``train/``, ``val/``, ``test/``)
+        or a folder that holds setting folders (the generator's ``output/``, a ``BeCoS/``).
+    pairings : path-like, optional
+        The pairs the generator drew; default ``<setting folder>/pairings.pkl`` where it exists
+        (``main.py`` writes it there before the first pair). Without it, the pair count is what
+        was found and names are not compared.
+    splits : sequence of str
+        Which splits to check; a split folder that does not exist is reported as such when
+        the pairings list pairs for it, and skipped otherwise.
+    progress : bool
+        Draw a progress bar over the pair folders (on a terminal only).
+
+    Returns
+    -------
+    BecosCheck
+        ``ok`` is True when every drawn pair has a whole folder that agrees with its records.
+
+    Raises
+    ------
+    DatasetError
+        When ``folder`` is not a folder.
+    """
+    root = Path(folder).expanduser()
+    if not root.is_dir():
+        raise DatasetError(f"cannot check BeCoS output: {root} is not a folder.")
+    report = BecosCheck(folder=root)
+    found = _setting_folders(root)
+    if not found:
+        report.problems.append(
+            f"no setting folder: expected {root} to be one of {', '.join(SETTINGS)} (the generator writes "
+            f"output/<setting>/) or to hold one."
+        )
+        return report
+    for setting, setting_folder in found:
+        drawn = _read_pairings(setting_folder, pairings if len(found) == 1 else None, report)
+        for split in splits:
+            split_folder = setting_folder / split
+            if not split_folder.is_dir():
+                if drawn is not None and drawn.get(split):
+                    check = SplitCheck(setting=setting, split=split, folder=split_folder, expected=len(drawn[split]))
+                    check.missing = list(range(len(drawn[split])))
+                    report.splits.append(check)
+                continue
+            report.splits.append(
+                _check_split(setting, split, split_folder, None if drawn is None else drawn.get(split, []), progress)
+            )
+    if not report.splits:
+        report.problems.append(f"no split folder ({', '.join(splits)}) in {', '.join(str(p) for _, p in found)}.")
+    return report
+
+
+def _read_pairings(setting_folder: Path, given: str | os.PathLike | None, report: BecosCheck) -> dict | None:
+    path = Path(given) if given is not None else setting_folder / "pairings.pkl"
+    if not path.is_file():
+        if given is not None:
+            report.problems.append(f"pairings file {path} does not exist.")
+        else:
+            report.notes.append(
+                f"{setting_folder.name}: no pairings.pkl (the generator writes it unless original_settings is on); "
+                "pair counts are what was found, names are not compared with the drawn pairs."
+            )
+        return None
+    try:
+        return read_becos_pairings(path)
+    except DatasetError as err:
+        report.problems.append(str(err))
+        return None
+
+
+@dataclass
+class _PairStats:
+    unmatched: float
+    index_share: float
+    partial_area: list[float]
+    full_area_error: list[float]
+    rotation_deg: float | None
+    unrotated: dict[str, np.ndarray] = field(default_factory=dict)
+    n_vertices: dict[str, int] = field(default_factory=dict)
+
+
+def _check_split(setting: str, split: str, folder: Path, drawn: list | None, progress: bool) -> SplitCheck:
+    check = SplitCheck(setting=setting, split=split, folder=folder, expected=None if drawn is None else len(drawn))
+    folders = {p.name: p for p in folder.iterdir() if p.is_dir() and p.name.isdigit()}
+    names = sorted(folders, key=int)
+    if drawn is not None:
+        check.missing = [k for k in range(len(drawn)) if str(k) not in folders]
+        check.unexpected = [name for name in names if int(name) >= len(drawn)]
+    with_info = any(next(p.glob("*_info.pkl"), None) is not None for p in folders.values())
+    maps = ["corres_10.npy"] if setting == "partial_full" else ["corres_10.npy", "corres_01.npy"]
+    stats: list[_PairStats] = []
+    copies: dict[str, tuple[np.ndarray, int, str]] = {}
+    for name in progress_bar(names, show=progress, desc=f"checking {setting}/{split}", unit="pair"):
+        pair_folder = folders[name]
+        missing = pair_folder_missing(pair_folder, maps, with_info or drawn is not None)
+        if missing:
+            check.incomplete[name] = "lacks " + ", ".join(missing)
+            continue
+        expected = drawn[int(name)] if drawn is not None and int(name) < len(drawn) else None
+        try:
+            result = _check_pair(setting, pair_folder, expected, with_info or drawn is not None)
+        except (GeofeatError, OSError) as err:
+            check.incomplete[name] = "unreadable: " + " ".join(str(err).split())
+            continue
+        if isinstance(result, list):
+            check.problems += [f"{name}/: {problem}" for problem in result]
+            continue
+        check.complete += 1
+        _check_copies(check, name, result, copies)
+        stats.append(result)
+    if stats:
+        unmatched = [s.unmatched for s in stats]
+        check.unmatched = (min(unmatched), max(unmatched))
+        check.index_max_share = max(s.index_share for s in stats)
+        partial = [a for s in stats for a in s.partial_area]
+        full = [a for s in stats for a in s.full_area_error]
+        check.partial_area = (min(partial), max(partial)) if partial else None
+        check.full_area_error = max(full) if full else None
+        angles = [s.rotation_deg for s in stats if s.rotation_deg is not None]
+        check.rotation_deg = (float(np.median(angles)), max(angles)) if angles else None
+        if len(angles) >= ROTATION_MIN_PAIRS and check.rotation_deg[0] > ROTATION_LIMIT_DEG:
+            check.problems.append(
+                f"orientation: with the recorded random rotations undone, the shapes of a pair still differ by "
+                f"{check.rotation_deg[0]:.0f} degrees on the median (more than {ROTATION_LIMIT_DEG:.0f}); the meshes "
+                "were rotated after generation, or the records belong to other files."
+            )
+    if check.ok and check.complete:
+        try:
+            BeCoS(folder, split=split, setting=setting)  # what a geofeat run opens
+        except GeofeatError as err:
+            check.problems.append(f"geofeat cannot open the split: {err}")
+    return check
+
+
+def _check_copies(check: SplitCheck, name: str, pair: _PairStats, first: dict[str, tuple[np.ndarray, int, str]]) -> None:
+    """A full shape used by several pairs is one mesh: with the recorded rotations undone, its copies coincide."""
+    for shape, unrotated in pair.unrotated.items():
+        n = pair.n_vertices[shape]
+        if shape not in first:
+            first[shape] = (unrotated, n, name)
+            continue
+        reference, n_reference, where = first[shape]
+        if n == n_reference and np.abs(unrotated - reference).max() > UNROTATED_TOLERANCE:
+            check.problems.append(
+                f"{name}/: orientation: {shape} does not coincide with its copy in {where}/ once their recorded "
+                "random_rotation is undone; a mesh was rotated after generation, or its record belongs to another file."
+            )
+    pair.unrotated.clear()
+
+
+def _check_pair(setting: str, folder: Path, drawn: tuple[dict, dict] | None, with_info: bool) -> _PairStats | list[str]:
+    """Read one whole pair folder; its statistics, or the list of what disagrees."""
+    files = [next(folder.glob(f"{side}_*.off")) for side in "01"]
+    meshes = [load_mesh(path) for path in files]
+    n0, n1 = meshes[0].n_vertices, meshes[1].n_vertices
+    map_10 = read_becos_map(folder / "corres_10.npy", n1, n0)
+    map_01 = read_becos_map(folder / "corres_01.npy", n0, n1) if setting != "partial_full" else None
+    problems: list[str] = []
+    if not np.any(map_10 >= 0):
+        problems.append("corres_10.npy is -1 everywhere: no vertex of shape 1 has a counterpart.")
+    if map_01 is not None and not np.any(map_01 >= 0):
+        problems.append("corres_01.npy is -1 everywhere: no vertex of shape 0 has a counterpart.")
+    stats = _PairStats(
+        unmatched=float(np.mean(map_10 < 0)),
+        index_share=float(map_10.max() + 1) / n0,
+        partial_area=[],
+        full_area_error=[],
+        rotation_deg=None,
+    )
+    if not with_info:
+        return problems or stats
+    infos = (read_shape_info(info_path(files[0])), read_shape_info(info_path(files[1])))
+    try:
+        check_roles(setting, infos, (n0, n1), folder)
+    except DatasetError as err:
+        problems.append(str(err))
+        return problems
+    problems += _check_records(setting, infos, map_10, map_01)
+    for info, mesh in zip(infos, meshes, strict=True):
+        ratio = float(np.sqrt(mesh.area())) / info.sqrt_area
+        if info.partial:
+            stats.partial_area.append(ratio)
+            if ratio > 1 + AREA_TOLERANCE:
+                problems.append(
+                    f"{mesh.name}.off (partial) has sqrt(area) {ratio:.3f} times the recorded full shape's; a partial "
+                    "shape cannot be larger. The mesh and its record do not belong together."
+                )
+        else:
+            stats.full_area_error.append(abs(ratio - 1))
+            if abs(ratio - 1) > AREA_TOLERANCE:
+                problems.append(
+                    f"{mesh.name}.off has sqrt(area) {np.sqrt(mesh.area()):.6g}; its record says {info.sqrt_area:.6g} "
+                    f"(relative difference {abs(ratio - 1):.1e}). The mesh was rescaled after generation, or the record "
+                    "belongs to another mesh."
+                )
+    for side, info in enumerate(infos):
+        rotation = info.rotation
+        if not (np.allclose(rotation @ rotation.T, np.eye(3), atol=1e-6) and np.linalg.det(rotation) > 0):
+            problems.append(f"{info.path.name}: random_rotation is not a rotation matrix.")
+        if drawn is not None:
+            expected = drawn[side]
+            if str(expected["name"]).replace("/", "_") != info.file_stem:
+                problems.append(
+                    f"shape {side} is {info.name!r}; the generator drew {expected['name']!r} for this pair. The folder "
+                    "belongs to another run (mixed outputs)."
+                )
+            elif "random_rot" in expected and not np.allclose(np.asarray(expected["random_rot"], float), rotation):
+                problems.append(f"{info.path.name}: random_rotation differs from the one the generator drew for the pair.")
+    if not problems:
+        stats.rotation_deg = _relative_rotation_deg(meshes, infos, map_10)
+        for info, mesh in zip(infos, meshes, strict=True):
+            if not info.partial:
+                stats.unrotated[info.name] = np.asarray(mesh.verts)[:UNROTATED_VERTICES] @ info.rotation.T / info.sqrt_area
+                stats.n_vertices[info.name] = mesh.n_vertices
+    return problems or stats
+
+
+def _check_records(
+    setting: str, infos: tuple[BecosShapeInfo, BecosShapeInfo], map_10: np.ndarray, map_01: np.ndarray | None
+) -> list[str]:
+    """The records' overlap masks against the maps (the generator derives both from one computation)."""
+    problems = []
+    if setting == "partial_partial" and map_01 is not None:
+        # each record holds the other shape's mask
+        for side, (info, other_map) in enumerate(((infos[0], map_10), (infos[1], map_01))):
+            mask = info.overlap_mask
+            if mask is not None and (mask.shape != other_map.shape or np.any(mask != (other_map >= 0))):
+                problems.append(
+                    f"{info.path.name}: overlap_mask does not equal corres_{1 - side}{side}.npy >= 0 (the generator "
+                    "stores there the other shape's vertices that have a counterpart)."
+                )
+    return problems
+
+
+def _relative_rotation_deg(meshes, infos, map_10: np.ndarray) -> float | None:
+    """Angle of the best rigid rotation of shape 1 onto its counterparts on shape 0, both un-rotated."""
+    matched = np.flatnonzero(map_10 >= 0)
+    if matched.size < 3:
+        return None
+    source = np.asarray(meshes[1].verts)[matched] @ infos[1].rotation.T
+    target = np.asarray(meshes[0].verts)[map_10[matched]] @ infos[0].rotation.T
+    source = source - source.mean(axis=0)
+    target = target - target.mean(axis=0)
+    u, _, vt = np.linalg.svd(source.T @ target)
+    d = np.sign(np.linalg.det(u @ vt))
+    rotation = u @ np.diag([1.0, 1.0, d]) @ vt
+    cosine = (np.trace(rotation) - 1) / 2
+    return float(np.degrees(np.arccos(np.clip(cosine, -1.0, 1.0))))
+
+
+# ----------------------------------------------------------------------------- running the generator
+
+
+@dataclass
+class BecosPrepare:
+    """What `prepare_becos` did.
+
+    Attributes
+    ----------
+    command : list of str
+        The command run (in ``generator``).
+    generator : Path
+    config : str
+        The configuration the generator ran (a name under ``<generator>/config/``).
+    setting : str
+    returncode : int
+        The generator's exit status (0: it finished).
+    seconds : float
+        How long it ran.
+    log : Path
+        Everything it printed.
+    output : Path or None
+        Where its output now is (``<out>/<setting>``); None when it wrote none.
+    check : BecosCheck or None
+        `check_becos` of the output.
+    notes : list of str
+    """
+
+    command: list[str]
+    generator: Path
+    config: str
+    setting: str
+    returncode: int
+    seconds: float
+    log: Path
+    output: Path | None = None
+    check: BecosCheck | None = None
+    notes: list[str] = field(default_factory=list)
+    last_lines: list[str] = field(default_factory=list)
+
+    @property
+    def ok(self) -> bool:
+        """The generator finished and its output passed the check."""
+        return self.returncode == 0 and self.check is not None and self.check.ok
+
+    def lines(self) -> list[str]:
+        """The report as lines of text (no trailing newlines)."""
+        out = [
+            f"generator: {self.generator} (config {self.config}, setting {self.setting})",
+            f"command: {' '.join(self.command)}",
+            f"exit status: {self.returncode} after {self.seconds / 60:.1f} min; its output is in {self.log}",
+        ]
+        if self.returncode != 0 and self.last_lines:
+            out.append("last lines it printed:")
+            out += [f"  {line}" for line in self.last_lines]
+        out.append(f"output: {self.output if self.output is not None else '(none written)'}")
+        out += [f"note: {note}" for note in self.notes]
+        if self.check is not None:
+            out += self.check.lines()
+        return out
+
+
+def _config_setting(text: str, path: Path) -> str:
+    match = re.search(r"^setting:\s*['\"]?([A-Za-z_]+)", text, flags=re.MULTILINE)
+    if match is None or match.group(1) not in SETTINGS:
+        raise DatasetError(f"{path}: no 'setting: {'|'.join(SETTINGS)}' line; is it a BeCoS generator configuration?")
+    return match.group(1)
+
+
+def _yaml_scalar(value: Any) -> str:
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if value is None:
+        return "null"
+    if isinstance(value, (int, float)):
+        return repr(value)
+    text = str(value)
+    return (
+        text
+        if re.fullmatch(r"[A-Za-z0-9_./-]+", text) and text.lower() not in {"true", "false", "null", "yes", "no"}
+        else json.dumps(text)
+    )
+
+
+def override_config(text: str, overrides: Mapping[str, Any]) -> str:
+    """The text of a generator configuration with some keys set (comments and order kept).
+
+    Parameters
+    ----------
+    text : str
+        A YAML configuration of the generator (``config/demo_config.yaml``).
+    overrides : mapping of str to scalar
+        ``key: value`` of top-level keys, or ``parent.key`` for a key one level down
+        (``datasets.faust``). A key not present is added.
+
+    Returns
+    -------
+    str
+    """
+    lines = text.splitlines()
+    for key, value in overrides.items():
+        scalar = _yaml_scalar(value)
+        parent, _, child = key.rpartition(".")
+        if "." in parent:
+            raise DatasetError(f"configuration key {key!r}: only 'key' or 'parent.key' can be set.")
+        if not parent:
+            pattern = re.compile(rf"^{re.escape(child)}:(\s.*)?$")
+            at = next((i for i, line in enumerate(lines) if pattern.match(line)), None)
+            if at is None:
+                lines.append(f"{child}: {scalar}")
+            else:
+                lines[at] = f"{child}: {scalar}"
+            continue
+        start = next((i for i, line in enumerate(lines) if re.match(rf"^{re.escape(parent)}:\s*(#.*)?$", line)), None)
+        if start is None:
+            lines += [f"{parent}:", f"  {child}: {scalar}"]
+            continue
+        end = next(
+            (i for i in range(start + 1, len(lines)) if lines[i].strip() and not lines[i].startswith((" ", "\t"))), len(lines)
+        )
+        pattern = re.compile(rf"^(\s+){re.escape(child)}:(\s.*)?$")
+        at = next((i for i in range(start + 1, end) if pattern.match(lines[i])), None)
+        if at is None:
+            last = max((i for i in range(start, end) if lines[i].strip()), default=start)
+            lines.insert(last + 1, f"  {child}: {scalar}")
+        else:
+            lines[at] = f"{pattern.match(lines[at]).group(1)}{child}: {scalar}"
+    return "\n".join(lines) + "\n"
+
+
+def _identity(folder: Path) -> tuple[int, int] | None:
+    """Device and inode of a folder (the generator renames an older output folder and makes a new one)."""
+    try:
+        stat = folder.stat()
+    except OSError:
+        return None
+    return stat.st_dev, stat.st_ino
+
+
+def _default_python(generator: Path) -> str:
+    for venv in (".venv", "venv", "env"):
+        candidate = generator / venv / "bin" / "python"
+        if candidate.is_file():
+            return str(candidate)
+    return shutil.which("python3") or shutil.which("python") or sys.executable
+
+
+def requirement_modules(requirements: Path) -> list[str]:
+    """The modules to import for each distribution of a ``requirements.txt`` (``PyYAML==6.0.2`` -> ``yaml``).
+
+    Returns
+    -------
+    list of str
+        Empty when the file does not exist.
+    """
+    if not requirements.is_file():
+        return []
+    modules = []
+    for line in requirements.read_text().splitlines():
+        line = line.split("#")[0].strip()
+        if not line or line.startswith("-"):
+            continue
+        name = re.split(r"[\s\[<>=!~;@]", line, maxsplit=1)[0].lower()
+        modules.append(IMPORT_NAMES.get(name, name.replace("-", "_")))
+    return modules
+
+
+def _check_python(python: str, generator: Path) -> None:
+    """Refuse a Python that cannot import the generator's requirements (before hours of running)."""
+    requirements = generator / "requirements.txt"
+    modules = requirement_modules(requirements)
+    if not modules:
+        log.info("%s lists no requirements; running the generator without checking its Python first.", requirements)
+        return
+    code = "import " + ", ".join(modules)
+    try:
+        result = subprocess.run([python, "-c", code], capture_output=True, text=True, timeout=300, cwd=generator)
+    except (OSError, subprocess.TimeoutExpired) as err:
+        raise DatasetError(f"cannot run {python!r} for the BeCoS generator: {err}. Pass the Python of its environment.") from None
+    if result.returncode != 0:
+        reason = (result.stderr.strip().splitlines() or ["(no message)"])[-1]
+        raise DatasetError(
+            f"{python} cannot import what the BeCoS generator needs ({reason}). Make an environment for it, e.g. "
+            f"`python3 -m venv becos-venv && becos-venv/bin/pip install -r {requirements}`, and pass its Python "
+            "(python='becos-venv/bin/python', or --python on the command line)."
+        )
+
+
+def prepare_becos(
+    generator: str | os.PathLike,
+    out: str | os.PathLike,
+    config: str = "demo_config",
+    python: str | None = None,
+    *,
+    setting: str | None = None,
+    overrides: Mapping[str, Any] | None = None,
+    echo: Callable[[str], None] | None = None,
+    check: bool = True,
+    progress: bool = False,
+) -> BecosPrepare:
+    """Run the user's copy of the BeCoS generator and check what it wrote.
+
+    Runs ``<python> main.py --config <config>`` in ``generator``. The generator writes into
+    ``<generator>/output/<setting>/`` (renaming an older folder of that name to
+    ``<setting>_archived_<time>``); what it wrote is then moved to ``<out>/<setting>/`` and
+    checked with `check_becos`.
+
+    Parameters
+    ----------
+    generator : path-like
+        A copy of https://github.com/NafieAmrani/becos-code (``main.py``, ``config/``, ``data/``).
+    out : path-like
+        Where the output goes: ``<out>/<setting>/`` must not exist yet (or be empty). May be
+        ``<generator>/output``, to leave it in place.
+    config : str
+        A configuration name of ``<generator>/config/`` (without ``.yaml``). ``demo_config``
+        builds the TOSCA subset (full_full unless ``setting`` says otherwise).
+    python : str, optional
+        The Python to run the generator with: one with its requirements installed (its own
+        environment). Default: ``<generator>/.venv/bin/python`` (or ``venv/``, ``env/``) if it
+        exists, else ``python3`` on the PATH.
+    setting : {"full_full", "partial_full", "partial_partial"}, optional
+        Run that setting instead of the configuration's.
+    overrides : mapping, optional
+        Other configuration keys to set, ``{"template_file": "templates_tosca_demo.csv"}``
+        (which ``partial_full`` needs with ``demo_config``), ``{"n_jobs": 4}``,
+        ``{"datasets.faust": True}``. With ``setting`` or ``overrides`` the configuration is
+        written to ``<generator>/config/<config>_geofeat_<setting>.yaml`` and that is run.
+    echo : callable, optional
+        Called with every line the generator prints (the command line shows them).
+    check : bool
+        Check the output (`check_becos`) afterwards.
+    progress : bool
+        Progress bar while checking.
+
+    Returns
+    -------
+    BecosPrepare
+        ``ok`` is True when the generator finished and its output passed the check; ``lines()``
+        is the report. A generator that fails is reported (exit status, last lines, what it
+        wrote), not raised.
+
+    Raises
+    ------
+    DatasetError
+        Before anything runs: ``generator`` is not a generator copy, the configuration does not
+        exist, ``python`` cannot import the generator's requirements, or ``<out>/<setting>``
+        is taken.
+    """
+    generator = Path(generator).expanduser().resolve()
+    out = Path(out).expanduser()
+    if not (generator / "main.py").is_file() or not (generator / "config").is_dir():
+        raise DatasetError(
+            f"{generator} is not a copy of the BeCoS generator (no main.py and config/). Clone "
+            "https://github.com/NafieAmrani/becos-code and pass its folder."
+        )
+    config_path = generator / "config" / f"{config}.yaml"
+    if not config_path.is_file():
+        available = sorted(p.stem for p in (generator / "config").glob("*.yaml"))
+        raise DatasetError(f"no configuration {config!r} in {generator / 'config'}; found: {', '.join(available)}.")
+    text = config_path.read_text()
+    if setting is not None and setting not in SETTINGS:
+        raise DatasetError(f"setting must be one of {', '.join(SETTINGS)}; found {setting!r}.")
+    run_config = config
+    if setting is not None or overrides:
+        changes = dict(overrides or {})
+        if setting is not None:
+            changes["setting"] = setting
+        text = override_config(text, changes)
+        run_config = f"{config}_geofeat_{_config_setting(text, config_path)}"
+        (generator / "config" / f"{run_config}.yaml").write_text(text)
+    run_setting = _config_setting(text, config_path)
+    target = out / run_setting
+    produced = generator / "output" / run_setting
+    in_place = target.resolve() == produced.resolve()
+    if not in_place and target.exists() and any(target.iterdir()):
+        raise DatasetError(f"{target} already exists and is not empty; pass another output folder or remove it.")
+    python = python or _default_python(generator)
+    _check_python(python, generator)
+
+    command = [python, "main.py", "--config", run_config]
+    out.mkdir(parents=True, exist_ok=True)
+    log_path = out / f"becos_{run_setting}_generator.log"
+    earlier = _identity(produced)
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    log.info("running the BeCoS generator: %s (in %s)", " ".join(command), generator)
+    started = time.monotonic()
+    tail: list[str] = []
+    with (
+        open(log_path, "w") as log_file,
+        subprocess.Popen(command, cwd=generator, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env) as process,
+    ):
+        try:
+            assert process.stdout is not None
+            for line in process.stdout:
+                log_file.write(line)
+                log_file.flush()
+                line = line.rstrip("\n")
+                tail = (tail + [line])[-15:]
+                if echo is not None:
+                    echo(line)
+                log.debug("generator: %s", line)
+            returncode = process.wait()
+        except BaseException:
+            process.terminate()
+            try:
+                process.wait(timeout=20)
+            except subprocess.TimeoutExpired:
+                process.kill()
+            raise
+    seconds = time.monotonic() - started
+    report = BecosPrepare(
+        command=command,
+        generator=generator,
+        config=run_config,
+        setting=run_setting,
+        returncode=returncode,
+        seconds=seconds,
+        log=log_path,
+        last_lines=tail,
+    )
+    if produced.is_dir() and _identity(produced) != earlier:
+        if in_place:
+            report.output = produced
+        else:
+            if target.exists():
+                target.rmdir()  # empty, checked above
+            shutil.move(str(produced), str(target))
+            report.output = target
+    elif produced.is_dir() and returncode != 0:
+        report.notes.append(f"the generator failed before writing a new {produced}; the folder there is an older run's.")
+    if returncode != 0:
+        report.notes.append("the generator failed; the check below shows what it had written.")
+    if check and report.output is not None:
+        report.check = check_becos(report.output, progress=progress)
+    return report
