@@ -329,3 +329,21 @@ def test_data_check_is_a_documented_command():
     assert {"geofeat data", "geofeat data check"} <= set(parsers)
     text = parsers["geofeat data check"].format_help()
     assert "DATASET" in text and "--data-root PATH" in text and "--split SPLIT" in text and "Exit status 0" in text
+
+
+def test_data_prepare_becos_refuses_a_folder_that_is_no_generator(capsys, tmp_path):
+    """Bad input to ``geofeat data prepare becos`` is refused before anything runs: one error line, exit 2."""
+    status = main(["data", "prepare", "becos", "--generator", str(tmp_path / "nothing"), "--out", str(tmp_path / "out")])
+    captured = capsys.readouterr()
+    assert status == 2 and captured.out == ""
+    lines = captured.err.splitlines()
+    assert len(lines) >= 1 and lines[0].startswith("geofeat: error: ") and "nothing" in captured.err
+    assert not (tmp_path / "out").exists()
+    parsers = dict(_parsers(build_parser()))
+    assert "--generator PATH" in parsers["geofeat data prepare"].format_help()
+
+
+def test_data_check_becos_needs_a_folder(capsys, monkeypatch):
+    monkeypatch.delenv("GEOFEAT_DATA", raising=False)
+    assert main(["data", "check", "becos"]) == 2
+    assert "needs --data-root" in capsys.readouterr().err

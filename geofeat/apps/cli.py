@@ -1,4 +1,4 @@
-"""The ``geofeat`` command line: ``cache info|verify|clear``, ``descriptors``, ``demo``, ``train-geolora``, ``extract``, ``data check``.
+"""The ``geofeat`` command line: ``cache info|verify|clear``, ``descriptors``, ``demo``, ``train-geolora``, ``extract``, ``data check|prepare``.
 
 Help texts are plain text (no markup): `build_parser` holds them, and the settings of
 ``train-geolora`` take theirs from the `geofeat.train.config.TrainConfig` docstring.
@@ -400,6 +400,10 @@ def _extract_command(args: argparse.Namespace) -> int:
     return 1 if incomplete else 0
 
 
+#: The name ``geofeat data check`` and ``prepare`` take for a whole BeCoS generator output (every setting and split).
+BECOS = "becos"
+
+
 def _data_check_command(args: argparse.Namespace) -> int:
     from geofeat.apps.data import check_dataset
     from geofeat.checks import parse_key_values
@@ -407,7 +411,46 @@ def _data_check_command(args: argparse.Namespace) -> int:
 
     options = parse_key_values(args.option or [], "--option", error=DatasetError)
     with _quiet_if(args.no_progress):
-        report = check_dataset(args.dataset, args.data_root, args.split, progress=not args.no_progress, **options)
+        if args.dataset.strip().lower() == BECOS:
+            report = _check_becos_output(args, options)
+        else:
+            split = "test" if args.split is None else args.split
+            report = check_dataset(args.dataset, args.data_root, split, progress=not args.no_progress, **options)
+    for line in report.lines():
+        _out(line)
+    return 0 if report.ok else 1
+
+
+def _check_becos_output(args: argparse.Namespace, options: dict):
+    """``geofeat data check becos``: a whole generator output folder, through `geofeat.apps.prepare.check_becos`."""
+    from geofeat.apps.prepare import check_becos
+    from geofeat.datasets.base import DATA_ENV
+    from geofeat.errors import DatasetError
+
+    folder = args.data_root or os.environ.get(DATA_ENV)
+    if not folder:
+        raise DatasetError(
+            f"geofeat data check {BECOS} needs --data-root: the generator's output folder, a setting folder "
+            f"(.../partial_full) or a BeCoS folder (or set ${DATA_ENV})."
+        )
+    unknown = sorted(set(options) - {"pairings"})
+    if unknown:
+        raise DatasetError(f"{BECOS} does not take option(s) {', '.join(unknown)}; it takes: pairings.")
+    splits = ("train", "val", "test") if args.split is None else (args.split,)
+    return check_becos(folder, pairings=options.get("pairings"), splits=splits, progress=not args.no_progress)
+
+
+def _data_prepare_command(args: argparse.Namespace) -> int:
+    from geofeat.apps.prepare import prepare_becos
+    from geofeat.checks import parse_key_values
+    from geofeat.errors import DatasetError
+
+    overrides = parse_key_values(args.set or [], "--set", error=DatasetError)
+    with _quiet_if(args.no_progress):
+        report = prepare_becos(
+            args.generator, args.out, args.config, args.python, setting=args.setting, overrides=overrides or None,
+            echo=_out, check=not args.no_check, progress=not args.no_progress,
+        )  # fmt: skip
     for line in report.lines():
         _out(line)
     return 0 if report.ok else 1
@@ -500,17 +543,50 @@ def build_parser() -> argparse.ArgumentParser:
         description="Open a dataset as every geofeat run does, read every pair of the split, and print what was read: "
         "the folder used, pair and shape counts, vertex counts, the range of the ground-truth indices and the share "
         "of vertices without a counterpart, which way the maps go, and anything unexpected (pairs that cannot be "
-        "read, indices out of range, maps whose shapes are missing, files that no pair reads). Exit status 0: clean; "
-        "1: something is wrong (listed under 'problems'); 2: bad input (unknown dataset, missing folder).",
+        "read, indices out of range, maps whose shapes are missing, files that no pair reads). DATASET 'becos' checks "
+        "a whole BeCoS generator output instead: every setting and split against the pairs the generator drew, "
+        "half-written pair folders, and the recorded areas and rotations. Exit status 0: clean; 1: something is "
+        "wrong (listed under 'problems'); 2: bad input (unknown dataset, missing folder).",
     )
-    check.add_argument("dataset", metavar="DATASET", help="a geofeat dataset name (psmal, shrec16_cuts, pfaust_m, cp2p24, ...)")
+    check.add_argument(
+        "dataset", metavar="DATASET", help="a geofeat dataset name (psmal, shrec16_cuts, pfaust_m, cp2p24, ...) or becos"
+    )
     check.add_argument("--data-root", metavar="PATH", help="the data folder, as for the loaders (default $GEOFEAT_DATA)")
-    check.add_argument("--split", default="test", help="which split to read (default test)")
+    check.add_argument("--split", help="which split to read (default test; for becos: train, val and test)")
     check.add_argument(
         "--option", action="append", metavar="KEY=VALUE", help="a loader option (layout=dpfm, difficulty=hard); repeat it"
     )
     check.add_argument("--no-progress", action="store_true", help="hide the progress bar (it shows only on a terminal anyway)")
     check.set_defaults(func=_data_check_command)
+    prepare = data_sub.add_parser(
+        "prepare",
+        help="build a benchmark with its authors' generator (becos) and check what it wrote",
+        description="Run your copy of a benchmark's generator in its own Python environment, move what it wrote to "
+        "--out/<setting>/, and check it as 'geofeat data check becos' does. Only BeCoS is built this way (its "
+        "generator: NafieAmrani/becos-code). Exit status 0: the generator succeeded and its output is complete; 1: "
+        "it failed or its output is not (listed under 'problems'); 2: bad input (no generator there, its Python "
+        "lacks its requirements, --out/<setting> not empty).",
+    )
+    prepare.add_argument("benchmark", choices=[BECOS], help="the benchmark to build (becos)")
+    prepare.add_argument("--generator", required=True, metavar="PATH", help="your clone of the generator (main.py, config/)")
+    prepare.add_argument("--out", required=True, metavar="PATH", help="where the output goes, as <out>/<setting>/")
+    prepare.add_argument(
+        "--config", default="demo_config", help="a config name under <generator>/config/, no .yaml (default demo_config)"
+    )
+    prepare.add_argument(
+        "--python",
+        metavar="PY",
+        help="the generator's Python (default <generator>/.venv, venv or env, else python3 on PATH)",
+    )
+    prepare.add_argument(
+        "--setting", choices=["full_full", "partial_full", "partial_partial"], help="override the config's setting"
+    )
+    prepare.add_argument(
+        "--set", action="append", metavar="KEY=VALUE", help="override another config key (template_file=...); repeat it"
+    )
+    prepare.add_argument("--no-check", action="store_true", help="do not check the output afterwards")
+    prepare.add_argument("--no-progress", action="store_true", help="hide the progress bar of the check (terminal only anyway)")
+    prepare.set_defaults(func=_data_prepare_command)
     return parser
 
 

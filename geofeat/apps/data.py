@@ -30,8 +30,6 @@ from geofeat.errors import DatasetError, GeofeatError
 from geofeat.progress import progress_bar
 from geofeat.registry import canonical_name
 
-log = logging.getLogger(__name__)
-
 #: Meshes kept in memory while checking (loaders that take ``mesh_cache_size``).
 MESH_CACHE_SIZE = 64
 #: Problems listed one by one before "... and N more".
