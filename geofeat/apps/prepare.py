@@ -112,6 +112,8 @@ class SplitCheck:
         Largest relative difference between a full shape's ``sqrt(area)`` and its record.
     rotation_deg : tuple of (float, float) or None
         Median and largest rotation between the pair's shapes after undoing the recorded rotations.
+    copies : int
+        Full shapes found again in a later pair and compared with their first copy, rotations undone.
     """
 
     setting: str
@@ -128,6 +130,7 @@ class SplitCheck:
     partial_area: tuple[float, float] | None = None
     full_area_error: float | None = None
     rotation_deg: tuple[float, float] | None = None
+    copies: int = 0
 
     @property
     def ok(self) -> bool:
@@ -155,6 +158,15 @@ class SplitCheck:
                 f"  orientation: with the recorded random rotations undone, the best rigid fit of shape 1 onto shape 0 "
                 f"rotates by {self.rotation_deg[0]:.0f} degrees (median), {self.rotation_deg[1]:.0f} at most"
             )
+        if self.copies:
+            out.append(
+                f"  orientation: {self.copies:,} later copies of full shapes coincide with their first copy once the "
+                "recorded random rotations are undone"
+                if not any("coincide" in problem for problem in self.problems)
+                else f"  orientation: {self.copies:,} later copies of full shapes compared with their first copy"
+            )
+        if self.setting == "partial_partial" and self.complete:
+            out.append("  overlap masks: in every complete pair, each record's overlap_mask equals the other shape's map >= 0")
         if self.missing:
             shown = ", ".join(map(str, self.missing[:MAX_LISTED])) + (" ..." if len(self.missing) > MAX_LISTED else "")
             out.append(f"  missing: {len(self.missing):,} pair folder(s) never written: {shown}")
@@ -382,6 +394,7 @@ def _check_copies(check: SplitCheck, name: str, pair: _PairStats, first: dict[st
             first[shape] = (unrotated, n, name)
             continue
         reference, n_reference, where = first[shape]
+        check.copies += n == n_reference
         if n == n_reference and np.abs(unrotated - reference).max() > UNROTATED_TOLERANCE:
             check.problems.append(
                 f"{name}/: orientation: {shape} does not coincide with its copy in {where}/ once their recorded "
