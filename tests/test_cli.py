@@ -347,3 +347,31 @@ def test_data_check_becos_needs_a_folder(capsys, monkeypatch):
     monkeypatch.delenv("GEOFEAT_DATA", raising=False)
     assert main(["data", "check", "becos"]) == 2
     assert "needs --data-root" in capsys.readouterr().err
+
+
+@pytest.fixture(scope="module")
+def becos_sample(tmp_path_factory) -> Path:
+    """The generator-written BeCoS sample of tests/data, unpacked (partial_full, partial_partial, full_full test pairs)."""
+    import tarfile
+
+    archive = Path(__file__).parent / "data" / "becos_sample" / "becos_sample.tar.xz"
+    folder = tmp_path_factory.mktemp("becos")
+    with tarfile.open(archive) as tar:
+        if hasattr(tarfile, "data_filter"):  # Python 3.10.12+: refuse links and paths out of the folder
+            tar.extractall(folder, filter="data")
+        else:
+            tar.extractall(folder)
+    return folder
+
+
+def test_data_check_on_the_generated_becos_sample(capsys, becos_sample):
+    status, lines = data_check(capsys, "becos_p2p", "--data-root", str(becos_sample))
+    assert status == 0, lines
+    assert f"folder: {becos_sample / 'partial_partial' / 'test'}" in lines and "pairs: 2 (P2P), 2 read" in lines
+    assert "also given: overlap_y in 2, overlap_x in 2, map_yx_sym in 0, template points in 0 of 2 pairs" in lines
+    assert lines[-1] == "result: clean"
+    status, lines = data_check(capsys, "becos", "--data-root", str(becos_sample), "--split", "test")
+    assert status == 0, lines
+    assert lines[0] == f"BeCoS generator output: {becos_sample}"
+    assert any(line.startswith("partial_full/test: 2 complete pair folder(s)") for line in lines)
+    assert lines[-1].startswith("result: complete")
