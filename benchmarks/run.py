@@ -38,6 +38,7 @@ import datetime
 import json
 import logging
 import os
+import shlex
 import sys
 import time
 from pathlib import Path
@@ -570,6 +571,15 @@ def descriptor_params(pairs: list[str], what: str = "--param") -> dict:
     return parse_key_values(pairs, what, error=geofeat.DescriptorError)
 
 
+def _machine() -> str:
+    """`common.machine` (benchmarks/common.py), importable when this file runs as a script or is loaded from a test."""
+    if str(HERE) not in sys.path:
+        sys.path.insert(0, str(HERE))
+    from common import machine
+
+    return machine()
+
+
 def main(argv=None) -> int:
     args = parse_args(argv)
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
@@ -642,6 +652,8 @@ def main(argv=None) -> int:
         "protocol": args.protocol,
         "seed": args.seed,
         "date": datetime.date.today().isoformat(),
+        "machine": _machine(),
+        "command": shlex.join(["python", "benchmarks/run.py", *(sys.argv[1:] if argv is None else argv)]),
         "seconds": seconds,
         "head": None if head is None else {"name": head.name, "config": head.config.to_dict()},
         **training,

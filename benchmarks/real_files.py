@@ -1,0 +1,344 @@
+"""Benchmarks on the published files: PSMAL, BeCoS-TOSCA and SHREC'16, beside the published figures.
+
+Runs `run.py` once per pipeline and benchmark on data folders that you pass, then writes one
+table per benchmark. Nothing here is downloaded; give only the folders you have, the other
+benchmarks are left out::
+
+    python benchmarks/real_files.py \\
+        --psmal PATH/gc-ppsm/PARTIALSMAL \\                         # the full PSMAL (train + test)
+        --psmal-sample ../shared/data/PSMAL_sample/PARTIALSMAL \\    # its 3-pair sample
+        --becos PATH/becos-code/output \\                            # what the BeCoS generator wrote
+        --shrec16 ../shared/data/SHREC16_dpfm_sample \\              # SHREC'16 in DPFM's layout
+        --ulrssm-checkpoint PATH/shrec16_cuts.pth \\                 # ULRSSM's release checkpoint
+        --out benchmarks/results/real_files
+
+The runs (each a folder ``<out>/<benchmark>/<run>/`` with run.py's ``results.json``, whose
+``command`` is the exact run.py call):
+
+- ``psmal`` (full PSMAL, test split, 100 pairs): ``nn`` and ``fmap`` on WKS and HKS, ``random``,
+  and the DPFM and EchoMatch heads trained here on the train split for ``--train-minutes``;
+- ``psmal_sample`` (the sample's 3 train pairs): the same pipelines; the heads are those trained
+  on the full PSMAL when ``--psmal`` is given, else trained on the 3 sample pairs themselves;
+- ``becos_p2f``, ``becos_p2p`` (test split of the generator's ``partial_full`` and
+  ``partial_partial``): ``nn`` and ``fmap`` on WKS and HKS, ``random``, and ULRSSM with the
+  release checkpoint (no test-time adaptation; with ``--tta-pairs N`` > 0 also 15 steps on
+  the first N P2F pairs, the authors' SHREC'16 test setting);
+- ``shrec16_sample`` (SHREC'16 CUTS in DPFM's layout): ULRSSM with the checkpoint, with and
+  without 15 steps of test-time adaptation, beside ``random``.
+
+``mirrored_truth`` needs a left-right map of the shapes; neither PSMAL nor the BeCoS output
+nor SHREC'16 in DPFM's layout ships one, so that row is listed as not available.
+
+A run whose ``results.json`` exists is not repeated (``--force`` repeats it), so an
+interrupted call continues where it stopped; ``--tables-only`` rewrites the tables from what
+is there. The published figures are typed in by hand, each with its source, in
+``<out>/published_figures.json``.
+
+BeCoS divides geodesic distances on a shape by the square root of the area of the full shape
+it was cut from; geofeat divides by that of the target shape itself. For P2F the target is
+full and both agree; for P2P the tables give both, the BeCoS one computed from the areas the
+generator recorded (``BeCoS.info(i).sqrt_area_x``, kept in ``<out>/<benchmark>/area_factors.json``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import logging
+import shlex
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from geofeat.evaluation.report import markdown_table, plot_pck
+
+HERE = Path(__file__).resolve().parent
+REPO = HERE.parent
+log = logging.getLogger("benchmarks.real_files")
+
+TRAINING_FREE = (("nn", "wks"), ("nn", "hks"), ("fmap", "wks"), ("fmap", "hks"))
+#: Head settings of the heads trained here (the settings of benchmarks/results/heads/ on FAUST_r P2P).
+HEAD_PARAMS = {"dpfm": ["fmap_features=extracted"], "echomatch": ["width=64"]}
+#: ULRSSM's SHREC'16 test setting (options/test/shrec16_cuts.yaml of its repository: ``refine: 15``).
+ULRSSM_TTA = 15
+TITLES = {
+    "psmal": "PSMAL (PARTIALSMAL), test split: partial-to-partial",
+    "psmal_sample": "PSMAL sample (3 pairs of the train split): partial-to-partial",
+    "becos_p2f": "BeCoS-TOSCA, partial_full, test split: partial-to-full",
+    "becos_p2p": "BeCoS-TOSCA, partial_partial, test split: partial-to-partial",
+    "shrec16_sample": "SHREC'16 CUTS, the real pair of DPFM's layout (cuts-cat1 to cuts-cat)",
+}
+NOT_AVAILABLE = {
+    "psmal": "PSMAL ships no left-right (symmetry) map of its animals",
+    "psmal_sample": "PSMAL ships no left-right (symmetry) map of its animals",
+    "becos_p2f": "the BeCoS generator writes no left-right map for its pairs",
+    "becos_p2p": "the BeCoS generator writes no left-right map for its pairs",
+    "shrec16_sample": "DPFM's layout has no .sym / .baryc_gt_sym files",
+}
+
+
+@dataclasses.dataclass(frozen=True)
+class Run:
+    """One call of run.py: ``<out>/<benchmark>/<name>/``."""
+
+    benchmark: str
+    name: str
+    argv: tuple[str, ...]
+    after: str | None = None  # a run of the same call whose head folder this one loads
+
+
+def plan(args: argparse.Namespace) -> list[Run]:
+    """The runs that the given folders allow, in the order they are made."""
+    runs: list[Run] = []
+    common = ("--no-progress", "--seed", str(args.seed), "--workers", str(args.workers))
+    heads = ("dpfm", "echomatch")
+
+    def training(pipeline: str) -> tuple[str, ...]:
+        params = [item for param in HEAD_PARAMS[pipeline] for item in ("--head-param", param)]
+        return ("--descriptor", "wks", "--train-split", "train", "--epochs", "100",
+                "--max-minutes", str(args.train_minutes), *params)  # fmt: skip
+
+    if args.psmal:
+        base = ("--dataset", "psmal", "--data-root", str(args.psmal), "--split", "test", *common)
+        runs += [Run("psmal", f"{p}_{d}", ("--pipeline", p, "--descriptor", d, *base)) for p, d in TRAINING_FREE]
+        runs.append(Run("psmal", "random", ("--pipeline", "random", *base)))
+        runs += [Run("psmal", p, ("--pipeline", p, *training(p), *base)) for p in heads]
+    if args.psmal_sample:
+        base = ("--dataset", "psmal", "--data-root", str(args.psmal_sample), "--split", "train", *common)
+        runs += [Run("psmal_sample", f"{p}_{d}", ("--pipeline", p, "--descriptor", d, *base)) for p, d in TRAINING_FREE]
+        runs.append(Run("psmal_sample", "random", ("--pipeline", "random", *base)))
+        for p in heads:
+            if args.psmal:
+                head = args.out / "psmal" / p / "head"
+                runs.append(Run("psmal_sample", p, ("--pipeline", p, "--load", str(head), *base), after=f"psmal/{p}"))
+            else:
+                runs.append(Run("psmal_sample", f"{p}_trained_on_sample", ("--pipeline", p, *training(p), *base)))
+    if args.becos:
+        for kind in ("p2f", "p2p"):
+            bench = f"becos_{kind}"
+            base = ("--dataset", bench, "--data-root", str(args.becos), "--split", "test", *common)
+            runs += [Run(bench, f"{p}_{d}", ("--pipeline", p, "--descriptor", d, *base)) for p, d in TRAINING_FREE]
+            runs.append(Run(bench, "random", ("--pipeline", "random", *base)))
+            if args.ulrssm_checkpoint:
+                ckpt = ("--pipeline", "ulrssm", "--checkpoint", str(args.ulrssm_checkpoint))
+                runs.append(Run(bench, "ulrssm_release", (*ckpt, *base)))
+                if kind == "p2f" and args.tta_pairs:
+                    tta = ("--head-param", f"tta_steps={ULRSSM_TTA}", "--limit", str(args.tta_pairs))
+                    runs.append(Run(bench, f"ulrssm_release_tta{ULRSSM_TTA}", (*ckpt, *tta, *base)))
+    if args.shrec16:
+        base = ("--dataset", "shrec16_cuts", "--data-root", str(args.shrec16), "--split", "test", *common)
+        runs.append(Run("shrec16_sample", "random", ("--pipeline", "random", *base)))
+        if args.ulrssm_checkpoint:
+            ckpt = ("--pipeline", "ulrssm", "--checkpoint", str(args.ulrssm_checkpoint))
+            runs.append(Run("shrec16_sample", "ulrssm_release", (*ckpt, *base)))
+            runs.append(Run("shrec16_sample", f"ulrssm_release_tta{ULRSSM_TTA}",
+                            (*ckpt, "--head-param", f"tta_steps={ULRSSM_TTA}", *base)))  # fmt: skip
+    if args.only:
+        runs = [r for r in runs if r.benchmark in args.only]
+    return runs
+
+
+def execute(run: Run, out: Path, force: bool) -> bool:
+    """Run one call of run.py into ``out/<benchmark>/<name>``; False when it failed."""
+    folder = out / run.benchmark / run.name
+    if (folder / "results.json").is_file() and not force:
+        log.info("%s/%s: results.json exists, kept (--force repeats it)", run.benchmark, run.name)
+        return True
+    if run.after and not (out / run.after / "head").is_dir():
+        log.error("%s/%s needs the head of %s, which is missing", run.benchmark, run.name, run.after)
+        return False
+    command = [sys.executable, str(HERE / "run.py"), *run.argv, "--out", str(folder)]
+    log.info("running %s", shlex.join(command))
+    start = time.perf_counter()
+    done = subprocess.run(command, cwd=REPO, check=False)
+    log.info("%s/%s: exit %d after %.0f s", run.benchmark, run.name, done.returncode, time.perf_counter() - start)
+    return done.returncode == 0
+
+
+def becos_area_factors(name: str, root: Path, split: str = "test") -> dict[str, float]:
+    """``{pair: sqrt(area(x)) / recorded sqrt(area of x's full shape)}``: geofeat's error times this is BeCoS's."""
+    from geofeat.datasets import load_dataset
+
+    dataset = load_dataset(name, root=root, split=split)
+    factors = {}
+    for i in range(len(dataset)):
+        pair = dataset[i]
+        factors[f"{pair.y.name}->{pair.x.name}"] = float(np.sqrt(pair.x.area()) / dataset.info(i).sqrt_area_x)
+    return factors
+
+
+# ----------------------------------------------------------------------------- tables
+
+COLUMNS = [
+    ("label", "pipeline", "s"),
+    ("input", "input", "s"),
+    ("n_pairs", "pairs", "d"),
+    ("geodesic_error", "geodesic error x100", ".2f"),
+    ("becos_error", "BeCoS-normalised error x100", ".2f"),
+    ("pck_auc", "PCK AUC", ".3f"),
+    ("miou", "mIoU", ".3f"),
+    ("overlap_auc", "overlap AUC", ".3f"),
+    ("training", "training", "s"),
+    ("seconds", "evaluation (s)", ".0f"),
+]
+ORDER = ("nn", "fmap", "dpfm", "echomatch", "ulrssm", "random")
+
+
+def _label(record: dict) -> str:
+    pipeline = record["pipeline"]
+    if pipeline == "ulrssm" and record.get("release_checkpoint"):
+        steps = record["head"]["config"].get("tta_steps", 0)
+        label = f"ULRSSM `{Path(record['release_checkpoint']).name}`"
+        return label + (f", {steps} TTA steps" if steps else ", no TTA")
+    return {"dpfm": "DPFM", "echomatch": "EchoMatch"}.get(pipeline, pipeline)
+
+
+def _training(record: dict) -> str:
+    if record.get("release_checkpoint"):
+        return "authors' release weights"
+    if "train_steps" in record:
+        text = (
+            f"{record['train_steps']} steps ({record['train_steps'] / max(record['train_pairs'], 1):.1f} passes) "
+            f"on {record['train_pairs']} pairs of {record.get('train_split', 'train')}, "
+            f"{record['train_seconds'] / 60:.1f} min"
+        )
+        return text + (" (loaded)" if record.get("loaded_from") else "")
+    return "-"
+
+
+def _pooled(pairs: list[dict], factors: dict[str, float]) -> float | None:
+    """Mean error x100 over all evaluated points, each pair's errors scaled by its factor."""
+    if any(p["pair"] not in factors for p in pairs):
+        return None
+    weights = np.array([p["n_evaluated"] for p in pairs], dtype=np.float64)
+    errors = np.array([p["geodesic_error"] * factors[p["pair"]] for p in pairs])
+    return float((errors * weights).sum() / weights.sum())
+
+
+def table_rows(folder: Path) -> list[dict]:
+    """The table rows of one benchmark folder, from its runs' results.json."""
+    factors_path = folder / "area_factors.json"
+    factors = json.loads(factors_path.read_text()) if factors_path.is_file() else None
+    rows = []
+    for path in sorted(folder.glob("*/results.json")):
+        record = json.loads(path.read_text())
+        row = dict(record)
+        row["label"] = _label(record)
+        descriptor = record.get("descriptor") or "none"
+        row["input"] = "-" if descriptor == "none" else descriptor.upper() if descriptor != "xyz" else "xyz"
+        row["training"] = _training(record)
+        if factors is not None:
+            row["becos_error"] = _pooled(record["pairs"], factors)
+        row["_run"] = path.parent.name
+        rows.append(row)
+    rows.sort(key=lambda r: (ORDER.index(r["pipeline"]) if r["pipeline"] in ORDER else 99, r["input"], r["label"]))
+    return rows
+
+
+def _when_where(rows: list[dict]) -> str:
+    machines = sorted({r.get("machine") or "machine not recorded" for r in rows})
+    dates = sorted({r["date"] for r in rows})
+    return f"{', '.join(dates)}; {'; '.join(machines)}"
+
+
+def write_table(out: Path, benchmark: str, published: list[dict], invocation: str) -> str | None:
+    """``<out>/<benchmark>.md`` and ``<out>/<benchmark>_pck.png``; returns the Markdown (None: no runs)."""
+    folder = out / benchmark
+    rows = table_rows(folder) if folder.is_dir() else []
+    if not rows:
+        return None
+    columns = [c for c in COLUMNS if any(r.get(c[0]) is not None for r in rows)]
+    lines = [f"### {TITLES[benchmark]}", "", markdown_table(rows, columns), ""]
+    lines.append(
+        f"`mirrored_truth`: not available ({NOT_AVAILABLE[benchmark]}). "
+        "Geodesic error: mean over every evaluated vertex of all pairs, in hundredths of the square root "
+        "of the target shape's area (geofeat's protocol, `docs/heads.md`)."
+    )
+    if any(r.get("becos_error") is not None for r in rows):
+        lines.append(
+            "BeCoS-normalised: the same distances divided by the square root of the area of the full shape "
+            "the target was cut from (as BeCoS and GeoLoRA's evaluation do), from the areas the generator recorded."
+        )
+    splits = sorted({r["split"] for r in rows})
+    lines.append(
+        f"Split evaluated: {', '.join(splits)}. Each run's exact `run.py` command and settings are in "
+        f"`{benchmark}/<run>/results.json`. Written by `{invocation}`; runs of {_when_where(rows)}."
+    )
+    mine = [p for p in published if benchmark in p["benchmarks"]]
+    if mine:
+        lines += [
+            "",
+            "Published figures (typed in by hand from `published_figures.json`; not the same setting, see the last column):",
+            "",
+        ]
+        pub_columns = [("method", "method", "s"), ("benchmark", "published on", "s"), ("metric", "metric", "s"),
+                       ("published", "figure", "s"), ("source", "source", "s"), ("differs", "how our setting differs", "s")]  # fmt: skip
+        lines.append(markdown_table(mine, pub_columns))
+    text = "\n".join(lines) + "\n"
+    (out / f"{benchmark}.md").write_text(text)
+    curves = {
+        f"{r['label']}{'' if r['input'] == '-' else ' + ' + r['input']}": (np.array(r["pck_thresholds"]), np.array(r["pck"]))
+        for r in rows
+    }
+    plot_pck(curves, out / f"{benchmark}_pck.png", TITLES[benchmark])
+    return text
+
+
+def main(argv=None) -> int:
+    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(message)s")
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--psmal", type=Path, help="the full PARTIALSMAL folder (train/ and test/), from vikiehm/gc-ppsm")
+    parser.add_argument("--psmal-sample", type=Path, help="the PSMAL sample (PARTIALSMAL/ with train/ only)")
+    parser.add_argument("--becos", type=Path, help="the BeCoS generator's output folder (partial_full/, partial_partial/)")
+    parser.add_argument("--shrec16", type=Path, help="SHREC'16 in DPFM's layout (shrec_partial_test/)")
+    parser.add_argument("--ulrssm-checkpoint", type=Path, help="ULRSSM's shrec16_cuts.pth (never committed)")
+    parser.add_argument("--train-minutes", type=float, default=8.0, help="training budget of each PSMAL head (default 8)")
+    parser.add_argument(
+        "--tta-pairs", type=int, default=0, help="BeCoS P2F pairs also run with ULRSSM's 15 TTA steps (default 0)"
+    )
+    parser.add_argument("--workers", type=int, default=1, help="run.py --workers (default 1)")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--only", nargs="+", choices=sorted(TITLES), help="run only these benchmarks")
+    parser.add_argument("--force", action="store_true", help="repeat runs whose results.json exists")
+    parser.add_argument("--tables-only", action="store_true", help="run nothing; rewrite the tables from the results")
+    parser.add_argument("--out", type=Path, default=HERE / "results" / "real_files")
+    args = parser.parse_args(argv)
+    for name in ("psmal", "psmal_sample", "becos", "shrec16", "ulrssm_checkpoint"):
+        path = getattr(args, name)
+        if path is not None and not path.exists():
+            parser.error(f"--{name.replace('_', '-')} {path}: no such file or folder")
+    args.out.mkdir(parents=True, exist_ok=True)
+
+    failed = []
+    if not args.tables_only:
+        runs = plan(args)
+        if not runs:
+            parser.error("no data given: pass at least one of --psmal, --psmal-sample, --becos, --shrec16")
+        for run in runs:
+            if not execute(run, args.out, args.force):
+                failed.append(f"{run.benchmark}/{run.name}")
+        if args.becos and (args.only is None or "becos_p2p" in args.only or "becos_p2f" in args.only):
+            for kind in ("p2f", "p2p"):
+                target = args.out / f"becos_{kind}" / "area_factors.json"
+                if target.parent.is_dir() and (args.force or not target.is_file()):
+                    factors = becos_area_factors(f"becos_{kind}", args.becos)
+                    target.write_text(json.dumps(factors, indent=1, sort_keys=True) + "\n")
+
+    published_path = args.out / "published_figures.json"
+    published = json.loads(published_path.read_text()) if published_path.is_file() else []
+    for benchmark in TITLES:
+        text = write_table(args.out, benchmark, published, "python benchmarks/real_files.py (the call is in README.md)")
+        if text is not None:
+            print(text)
+    if failed:
+        log.error("runs that failed: %s", ", ".join(failed))
+        return 1
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
