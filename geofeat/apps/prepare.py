@@ -159,12 +159,12 @@ class SplitCheck:
                 f"rotates by {self.rotation_deg[0]:.0f} degrees (median), {self.rotation_deg[1]:.0f} at most"
             )
         if self.copies:
-            out.append(
-                f"  orientation: {self.copies:,} later copies of full shapes coincide with their first copy once the "
-                "recorded random rotations are undone"
-                if not any("coincide" in problem for problem in self.problems)
-                else f"  orientation: {self.copies:,} later copies of full shapes compared with their first copy"
-            )
+            copies = "1 later copy of a full shape" if self.copies == 1 else f"{self.copies:,} later copies of full shapes"
+            if any("coincide" in problem for problem in self.problems):
+                out.append(f"  orientation: {copies} compared with the first copy, recorded random rotations undone")
+            else:
+                agree = "coincides" if self.copies == 1 else "coincide"
+                out.append(f"  orientation: {copies} {agree} with the first copy once the recorded random rotations are undone")
         if self.setting == "partial_partial" and self.complete:
             out.append("  overlap masks: in every complete pair, each record's overlap_mask equals the other shape's map >= 0")
         if self.missing:
