@@ -104,7 +104,7 @@ class _Pair:
     reverse: bool  # True: x = shape 1, y = shape 0
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class BecosShapeInfo:
     """One shape's ``_info.pkl`` record, as the generator wrote it.
 
@@ -148,7 +148,7 @@ class BecosShapeInfo:
         return self.name.replace("/", "_")
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class BecosPairInfo:
     """The records of a pair's two shapes, in the pair's orientation (``x`` is the target).
 
@@ -165,6 +165,7 @@ class BecosPairInfo:
 
     @property
     def sqrt_area_x(self) -> float:
+        """What BeCoS divides geodesic distances on the pair's target x by."""
         return self.x.sqrt_area
 
 
@@ -334,8 +335,7 @@ class BeCoS(PairDataset):
 
     def files_read(self) -> list[Path]:
         """Every file this instance has read so far: meshes, maps and ``_info.pkl`` records."""
-        read = super().files_read() if hasattr(super(), "files_read") else []
-        return sorted({*read, *self._infos})
+        return sorted({*super().files_read(), *self._infos})
 
 
 def _pair_folders(folder: Path) -> list[Path]:
@@ -400,7 +400,25 @@ def _incomplete_message(title: str, root: Path, incomplete: dict[Path, list[str]
 
 
 def check_roles(setting: str, infos: tuple[BecosShapeInfo, BecosShapeInfo], n_vertices: tuple[int, int], folder: Path) -> None:
-    """Refuse records that contradict the files: names, which shape is partial, array lengths."""
+    """Refuse records that contradict the files of a pair folder.
+
+    Parameters
+    ----------
+    setting : {"full_full", "partial_full", "partial_partial"}
+    infos : (BecosShapeInfo, BecosShapeInfo)
+        The records of shape 0 and shape 1.
+    n_vertices : (int, int)
+        Vertex counts of ``0_<name>.off`` and ``1_<name>.off``.
+    folder : Path
+        The pair folder.
+
+    Raises
+    ------
+    DatasetError
+        When a record names another shape than its file, calls a shape partial (it has
+        ``partial2full``) that the setting says is full or the reverse, or holds
+        ``partial2full`` / (partial_full) shape 0's ``overlap_mask`` of the wrong length.
+    """
     files = (_shape_file(folder, "0"), _shape_file(folder, "1"))
     for side, (info, file, n) in enumerate(zip(infos, files, n_vertices, strict=True)):
         if f"{side}_{info.file_stem}" != file.stem:
