@@ -390,6 +390,38 @@ def load_mesh(path: str | os.PathLike) -> Mesh:
     -------
     Mesh
         ``verts`` (V, 3) float64 and ``faces`` (F, 3) int64 or None, named after the file stem.
+        `Mesh` drops repeated and collapsed faces (with a warning); `read_mesh_arrays` gives
+        the faces as the file lists them.
+    """
+    path = Path(path)
+    verts, faces = read_mesh_arrays(path)
+    try:
+        return Mesh(verts, faces, name=path.stem)
+    except MeshError as err:
+        raise MeshError(f"{path}: {err}") from None
+
+
+def read_mesh_arrays(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray | None]:
+    """The vertex and face arrays of a mesh file exactly as the file lists them, unchecked.
+
+    For ground truth that indexes the file's own faces (SHREC'16's ``.baryc_gt`` names
+    triangles by their row): `load_mesh` builds a `Mesh`, which drops repeated faces.
+
+    Parameters
+    ----------
+    path : str or PathLike
+        A ``.off``, ``.obj`` or ``.ply`` file.
+
+    Returns
+    -------
+    verts : numpy.ndarray, shape (V, 3)
+    faces : numpy.ndarray, shape (F, 3), int64, or None
+        None for a file without faces.
+
+    Raises
+    ------
+    MeshError
+        An unsupported suffix, a missing file, or a file that is not in the format its suffix names.
     """
     path = Path(path)
     suffix = path.suffix.lower()
@@ -399,8 +431,7 @@ def load_mesh(path: str | os.PathLike) -> Mesh:
         raise MeshError(f"cannot read {path}: no such file.")
     reader = {".off": _read_off, ".obj": _read_obj, ".ply": _read_ply}[suffix]
     try:
-        verts, faces = reader(path)
-        return Mesh(verts, faces, name=path.stem)
+        return reader(path)
     except MeshError as err:
         raise MeshError(f"{path}: {err}") from None
     except (ValueError, IndexError, UnicodeDecodeError) as err:

@@ -78,7 +78,7 @@ from geofeat.datasets.base import (
 )
 from geofeat.datasets.records import ShapePair
 from geofeat.errors import DatasetError, MeshError
-from geofeat.mesh import _read_off
+from geofeat.mesh import read_mesh_arrays
 
 log = logging.getLogger(__name__)
 
@@ -343,9 +343,9 @@ def file_triangles(path: Path) -> np.ndarray:
         F = the face count of the file.
     """
     try:
-        _, faces = _read_off(Path(path))
-    except (MeshError, ValueError, IndexError, UnicodeDecodeError) as err:
-        raise DatasetError(f"{path}: cannot read its triangles ({err}).") from None
+        _, faces = read_mesh_arrays(path)
+    except MeshError as err:
+        raise DatasetError(f"cannot read the triangles of the null shape: {err}") from None
     if faces is None:
         raise DatasetError(f"{path}: the null shape has no triangles; its .baryc_gt ground truth names triangles.")
     return faces
