@@ -743,7 +743,9 @@ def prepare_becos(
     BecosPrepare
         ``ok`` is True when the generator finished and its output passed the check; ``lines()``
         is the report. A generator that fails is reported (exit status, last lines, what it
-        wrote), not raised.
+        wrote), not raised. Interrupted (Ctrl-C, or ``echo`` raising), the generator is
+        stopped and what it wrote stays in ``<generator>/output/<setting>/``, where
+        `check_becos` tells what is missing.
 
     Raises
     ------
