@@ -57,7 +57,7 @@ from geofeat.progress import progress_bar
 
 log = logging.getLogger(__name__)
 
-__all__ = ["BecosCheck", "BecosPrepare", "SplitCheck", "check_becos", "prepare_becos"]
+__all__ = ["BecosCheck", "BecosPrepare", "SplitCheck", "check_becos", "override_config", "prepare_becos", "requirement_modules"]
 
 #: Relative difference allowed between a full shape's sqrt(area) and the recorded value.
 AREA_TOLERANCE = 1e-3
