@@ -67,6 +67,19 @@ def test_hand_computed_square_vertices_protocol():
     assert list(record.to_dict()) == ["pair", "n_evaluated", "chirality_accuracy", "iou", "overlap_auc", "geodesic_error"]
 
 
+def test_a_pair_error_scale_replaces_the_target_area():
+    """BeCoS divides errors on a partial x by its full shape's sqrt(area): a pair's error_scale says so."""
+    match = Match(SWAPPED, np.ones(4, dtype=bool), None, None, None)
+    plain = evaluate_pair(square_pair(), match)  # over sqrt(area(x)) = 2 for the unit square of side 2
+    area_side = math.sqrt(square_pair().x.area())
+    scaled = evaluate_pair(dataclasses.replace(square_pair(), error_scale=2 * area_side), match)
+    np.testing.assert_allclose(scaled.errors, plain.errors / 2, rtol=1e-12)
+    assert scaled.chirality_accuracy == plain.chirality_accuracy
+    for bad in (0.0, -1.0, float("nan"), "2"):
+        with pytest.raises(MetricError, match="error_scale must be a positive finite length"):
+            evaluate_pair(dataclasses.replace(square_pair(), error_scale=bad), match)
+
+
 def test_hand_computed_square_template_protocol():
     pair = square_pair(corr_x=np.array([0, 1, 2]), corr_y=np.array([0, 1, 2]), corr_x_sym=np.array([1, 0, 3]))
     record = evaluate_pair(pair, Match(SWAPPED, np.ones(4, dtype=bool)), protocol="template")

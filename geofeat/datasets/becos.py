@@ -275,8 +275,10 @@ class BeCoS(PairDataset):
         if infos is not None:
             check_roles(self.setting, infos, (mesh0.n_vertices, mesh1.n_vertices), folder)
         x, y, map_yx, map_xy = (mesh1, mesh0, map_01, map_10) if entry.reverse else (mesh0, mesh1, map_10, map_01)
+        # BeCoS divides geodesic errors on x by the recorded sqrt(area) of x's full shape
+        error_scale = None if infos is None else (infos[1] if entry.reverse else infos[0]).sqrt_area
         if self.protocol == "f2f":
-            return ShapePair(x=x, y=y, map_yx=map_yx.copy(), protocol="f2f")
+            return ShapePair(x=x, y=y, map_yx=map_yx.copy(), protocol="f2f", error_scale=error_scale)
         if map_xy is not None:
             overlap_x = has_counterpart(map_xy)
         elif infos is not None and infos[0].overlap_mask is not None:
@@ -284,7 +286,13 @@ class BeCoS(PairDataset):
         else:
             overlap_x = None
         return ShapePair(
-            x=x, y=y, map_yx=map_yx.copy(), overlap_x=overlap_x, overlap_y=has_counterpart(map_yx), protocol=self.protocol
+            x=x,
+            y=y,
+            map_yx=map_yx.copy(),
+            overlap_x=overlap_x,
+            overlap_y=has_counterpart(map_yx),
+            protocol=self.protocol,
+            error_scale=error_scale,
         )
 
     def _map(self, path: Path, n_source: int, n_target: int) -> np.ndarray:

@@ -39,6 +39,11 @@ class ShapePair:
         ``map_yx`` is derived from them.
     corr_x_sym : numpy.ndarray, shape (T,), int64, or None
         The vertex of ``x`` at each point of the left-right mirrored template.
+    error_scale : float or None
+        The length, in the units of ``x``, that geodesic errors on ``x`` are divided by, where
+        the benchmark fixes one other than ``sqrt(area(x))`` (BeCoS: the square root of the
+        area of the full shape ``x`` was cut from, also when ``x`` is partial). None:
+        ``sqrt(area(x))``.
     """
 
     x: Mesh
@@ -51,6 +56,7 @@ class ShapePair:
     corr_x: np.ndarray | None = None
     corr_y: np.ndarray | None = None
     corr_x_sym: np.ndarray | None = None
+    error_scale: float | None = None
 
     @property
     def name(self) -> str:

@@ -16,7 +16,8 @@ Protocols (``protocol=``): ``"vertices"`` evaluates every vertex of ``y`` that h
 counterpart (the default); ``"template"`` evaluates the template points of datasets with a
 common template (FAUST_r, SCAPE_r), as the ULRSSM and DPFM references do
 (`geofeat.evaluation.metrics.template_geodesic_errors`). Distances are edge-Dijkstra geodesics on the
-target ``x`` divided by ``sqrt(area(x))``.
+target ``x`` divided by ``sqrt(area(x))``, or by the pair's ``error_scale`` where the
+benchmark fixes another length (BeCoS: the full shape's ``sqrt(area)``, also for a partial ``x``).
 """
 
 from __future__ import annotations
@@ -34,6 +35,7 @@ import numpy as np
 from geofeat.datasets.records import Match, ShapePair
 from geofeat.errors import DatasetError, MetricError
 from geofeat.evaluation import metrics
+from geofeat.geometry.geodesic import area_normalisation
 from geofeat.geometry.geodesic_memory import GeodesicEntries, evaluation_distances, memory_limit
 from geofeat.geometry.geodesic_store import GeodesicStore
 from geofeat.progress import progress_bar
@@ -203,6 +205,9 @@ def evaluate_pair(
 
 def _check_pair(pair: ShapePair, protocol: str) -> None:
     _check_protocol(protocol)
+    scale = pair.error_scale
+    if scale is not None and not (isinstance(scale, (int, float, np.floating)) and np.isfinite(scale) and scale > 0):
+        raise MetricError(f"pair {pair.name}: error_scale must be a positive finite length or None; found {scale!r}.")
     if protocol == "template" and (pair.corr_x is None or pair.corr_y is None):
         raise DatasetError(f"pair {pair.name}: --protocol template needs a dataset with template points (faust_r, scape_r)")
 
@@ -225,6 +230,8 @@ def _score(pair: ShapePair, match: Match, protocol: str, dist_x: np.ndarray | Ge
         errors = metrics.geodesic_errors(predicted, pair.map_yx, dist_x)
         sym = None if pair.map_yx_sym is None else (predicted, pair.map_yx, pair.map_yx_sym)
     chirality = None if sym is None else metrics.chirality_accuracy(*sym, dist_x)
+    if pair.error_scale is not None:  # the distances are over sqrt(area(x)); the benchmark fixes another length
+        errors = errors / (area_normalisation(pair.x) * pair.error_scale)
     ious = [
         metrics.overlap_iou(np.ones(truth.shape, dtype=bool) if guess is None else guess, truth)
         for guess, truth in ((match.overlap_y, pair.overlap_y), (match.overlap_x, pair.overlap_x))

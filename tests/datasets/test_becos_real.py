@@ -86,6 +86,7 @@ def test_partial_partial_pairs_and_their_records(sample):
     assert float(info.x.record["overlap_percentage"]) == pytest.approx(pair.overlap_y.mean())
     # the partial target's own sqrt(area) is well below the full shape's, by which BeCoS normalises
     assert 0.3 < np.sqrt(pair.x.area()) / info.sqrt_area_x < 0.5
+    assert pair.error_scale == info.sqrt_area_x  # so geodesic errors on x are divided as BeCoS divides them
     both = BeCoS(sample, split="test", setting="partial_partial", both_directions=True)
     reverse = both[1]
     assert reverse.x is both[0].y and reverse.map_yx.shape == (942,)
