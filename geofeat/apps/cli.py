@@ -422,8 +422,8 @@ def _data_check_command(args: argparse.Namespace) -> int:
 
 
 def _check_becos_output(args: argparse.Namespace, options: dict):
-    """``geofeat data check becos``: a whole generator output folder, through `geofeat.apps.prepare.check_becos`."""
-    from geofeat.apps.prepare import check_becos
+    """``geofeat data check becos``: a whole generator output folder, through `geofeat.apps.becos_check.check_becos`."""
+    from geofeat.apps.becos_check import check_becos
     from geofeat.datasets.base import DATA_ENV
     from geofeat.errors import DatasetError
 

@@ -14,7 +14,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from geofeat.apps.prepare import _relative_rotation_deg, check_becos, prepare_becos
+from geofeat.apps.becos_check import _relative_rotation_deg, check_becos
+from geofeat.apps.prepare import prepare_becos
 from geofeat.datasets.becos import BeCoS, read_becos_info
 from geofeat.datasets.registry import load_dataset
 from geofeat.mesh import load_mesh
