@@ -32,7 +32,8 @@ nor SHREC'16 in DPFM's layout ships one, so that row is listed as not available.
 A run whose ``results.json`` exists is not repeated (``--force`` repeats it), so an
 interrupted call continues where it stopped; ``--tables-only`` rewrites the tables from what
 is there. The published figures are typed in by hand, each with its source, in
-``<out>/published_figures.json``.
+``<out>/published_figures.json`` (``benchmarks``: for each benchmark table the entry is shown
+in, how our setting differs from the published one).
 
 BeCoS divides geodesic distances on a shape by the square root of the area of the full shape
 it was cut from; geofeat divides by that of the target shape itself. For P2F the target is
@@ -183,7 +184,6 @@ COLUMNS = [
     ("miou", "mIoU", ".3f"),
     ("overlap_auc", "overlap AUC", ".3f"),
     ("training", "training", "s"),
-    ("seconds", "evaluation (s)", ".0f"),
 ]
 ORDER = ("nn", "fmap", "dpfm", "echomatch", "ulrssm", "random")
 
@@ -268,7 +268,7 @@ def write_table(out: Path, benchmark: str, published: list[dict], invocation: st
         f"Split evaluated: {', '.join(splits)}. Each run's exact `run.py` command and settings are in "
         f"`{benchmark}/<run>/results.json`. Written by `{invocation}`; runs of {_when_where(rows)}."
     )
-    mine = [p for p in published if benchmark in p["benchmarks"]]
+    mine = [p | {"differs": p["benchmarks"][benchmark]} for p in published if benchmark in p["benchmarks"]]
     if mine:
         lines += [
             "",
