@@ -179,6 +179,7 @@ COLUMNS = [
     ("input", "input", "s"),
     ("n_pairs", "pairs", "d"),
     ("geodesic_error", "geodesic error x100", ".2f"),
+    ("same_pairs_no_tta", "same pairs, no TTA", ".2f"),
     ("becos_error", "BeCoS-normalised error x100", ".2f"),
     ("pck_auc", "PCK AUC", ".3f"),
     ("miou", "mIoU", ".3f"),
@@ -235,6 +236,21 @@ def table_rows(folder: Path) -> list[dict]:
             row["becos_error"] = _pooled(record["pairs"], factors)
         row["_run"] = path.parent.name
         rows.append(row)
+    most = max(r["n_pairs"] for r in rows)
+    for row in rows:
+        if row["n_pairs"] < most:
+            row["label"] += f" (first {row['n_pairs']} of {most} pairs)"
+        if row["pipeline"] == "ulrssm" and row["head"]["config"].get("tta_steps"):
+            base = [
+                r for r in rows
+                if r is not row and r.get("release_checkpoint") == row.get("release_checkpoint")
+                and not r["head"]["config"].get("tta_steps")
+            ]  # fmt: skip
+            if base:
+                names = {p["pair"] for p in row["pairs"]}
+                chosen = [p for p in base[0]["pairs"] if p["pair"] in names]
+                if len(chosen) == len(names):
+                    row["same_pairs_no_tta"] = _pooled(chosen, dict.fromkeys(names, 1.0))
     rows.sort(key=lambda r: (ORDER.index(r["pipeline"]) if r["pipeline"] in ORDER else 99, r["input"], r["label"]))
     return rows
 
