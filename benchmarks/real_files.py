@@ -36,9 +36,10 @@ is there. The published figures are typed in by hand, each with its source, in
 in, how our setting differs from the published one).
 
 BeCoS divides geodesic distances on a shape by the square root of the area of the full shape
-it was cut from; geofeat divides by that of the target shape itself. For P2F the target is
-full and both agree; for P2P the tables give both, the BeCoS one computed from the areas the
-generator recorded (``BeCoS.info(i).sqrt_area_x``, kept in ``<out>/<benchmark>/area_factors.json``).
+it was cut from, also when the target is partial (P2P). The BeCoS loader records that length
+on every pair (``ShapePair.error_scale``) and geofeat's evaluation divides by it, so the
+BeCoS tables are in BeCoS's normalisation; the other benchmarks divide by the square root of
+the target's own area.
 """
 
 from __future__ import annotations
@@ -79,6 +80,11 @@ NOT_AVAILABLE = {
     "becos_p2f": "the BeCoS generator writes no left-right map for its pairs",
     "becos_p2p": "the BeCoS generator writes no left-right map for its pairs",
     "shrec16_sample": "DPFM's layout has no .sym / .baryc_gt_sym files",
+}
+#: What the geodesic errors are divided by, where it is not the target shape's own area.
+AREA_OF = {
+    "becos_p2f": "the area of the full shape the target was cut from, as BeCoS records it",
+    "becos_p2p": "the area of the full shape the target was cut from, as BeCoS records it",
 }
 
 
@@ -160,18 +166,6 @@ def execute(run: Run, out: Path, force: bool) -> bool:
     return done.returncode == 0
 
 
-def becos_area_factors(name: str, root: Path, split: str = "test") -> dict[str, float]:
-    """``{pair: sqrt(area(x)) / recorded sqrt(area of x's full shape)}``: geofeat's error times this is BeCoS's."""
-    from geofeat.datasets import load_dataset
-
-    dataset = load_dataset(name, root=root, split=split)
-    factors = {}
-    for i in range(len(dataset)):
-        pair = dataset[i]
-        factors[f"{pair.y.name}->{pair.x.name}"] = float(np.sqrt(pair.x.area()) / dataset.info(i).sqrt_area_x)
-    return factors
-
-
 # ----------------------------------------------------------------------------- tables
 
 COLUMNS = [
@@ -180,7 +174,6 @@ COLUMNS = [
     ("n_pairs", "pairs", "d"),
     ("geodesic_error", "geodesic error x100", ".2f"),
     ("same_pairs_no_tta", "same pairs, no TTA", ".2f"),
-    ("becos_error", "BeCoS-normalised error x100", ".2f"),
     ("pck_auc", "PCK AUC", ".3f"),
     ("miou", "mIoU", ".3f"),
     ("overlap_auc", "overlap AUC", ".3f"),
@@ -211,19 +204,15 @@ def _training(record: dict) -> str:
     return "-"
 
 
-def _pooled(pairs: list[dict], factors: dict[str, float]) -> float | None:
-    """Mean error x100 over all evaluated points, each pair's errors scaled by its factor."""
-    if any(p["pair"] not in factors for p in pairs):
-        return None
+def _pooled(pairs: list[dict]) -> float:
+    """Mean error x100 over all evaluated points of ``pairs`` (each pair's mean weighted by its points)."""
     weights = np.array([p["n_evaluated"] for p in pairs], dtype=np.float64)
-    errors = np.array([p["geodesic_error"] * factors[p["pair"]] for p in pairs])
+    errors = np.array([p["geodesic_error"] for p in pairs])
     return float((errors * weights).sum() / weights.sum())
 
 
 def table_rows(folder: Path) -> list[dict]:
     """The table rows of one benchmark folder, from its runs' results.json."""
-    factors_path = folder / "area_factors.json"
-    factors = json.loads(factors_path.read_text()) if factors_path.is_file() else None
     rows = []
     for path in sorted(folder.glob("*/results.json")):
         record = json.loads(path.read_text())
@@ -232,8 +221,6 @@ def table_rows(folder: Path) -> list[dict]:
         descriptor = record.get("descriptor") or "none"
         row["input"] = "-" if descriptor == "none" else descriptor.upper() if descriptor != "xyz" else "xyz"
         row["training"] = _training(record)
-        if factors is not None:
-            row["becos_error"] = _pooled(record["pairs"], factors)
         row["_run"] = path.parent.name
         rows.append(row)
     most = max(r["n_pairs"] for r in rows)
@@ -250,7 +237,7 @@ def table_rows(folder: Path) -> list[dict]:
                 names = {p["pair"] for p in row["pairs"]}
                 chosen = [p for p in base[0]["pairs"] if p["pair"] in names]
                 if len(chosen) == len(names):
-                    row["same_pairs_no_tta"] = _pooled(chosen, dict.fromkeys(names, 1.0))
+                    row["same_pairs_no_tta"] = _pooled(chosen)
     rows.sort(key=lambda r: (ORDER.index(r["pipeline"]) if r["pipeline"] in ORDER else 99, r["input"], r["label"]))
     return rows
 
@@ -269,16 +256,12 @@ def write_table(out: Path, benchmark: str, published: list[dict], invocation: st
         return None
     columns = [c for c in COLUMNS if any(r.get(c[0]) is not None for r in rows)]
     lines = [f"### {TITLES[benchmark]}", "", markdown_table(rows, columns), ""]
+    divided_by = AREA_OF.get(benchmark, "the target shape's area")
     lines.append(
         f"`mirrored_truth`: not available ({NOT_AVAILABLE[benchmark]}). "
         "Geodesic error: mean over every evaluated vertex of all pairs, in hundredths of the square root "
-        "of the target shape's area (geofeat's protocol, `docs/heads.md`)."
+        f"of {divided_by} (geofeat's protocol, `docs/heads.md`)."
     )
-    if any(r.get("becos_error") is not None for r in rows):
-        lines.append(
-            "BeCoS-normalised: the same distances divided by the square root of the area of the full shape "
-            "the target was cut from (as BeCoS and GeoLoRA's evaluation do), from the areas the generator recorded."
-        )
     splits = sorted({r["split"] for r in rows})
     lines.append(
         f"Split evaluated: {', '.join(splits)}. Each run's exact `run.py` command and settings are in "
@@ -337,12 +320,6 @@ def main(argv=None) -> int:
         for run in runs:
             if not execute(run, args.out, args.force):
                 failed.append(f"{run.benchmark}/{run.name}")
-        if args.becos and (args.only is None or "becos_p2p" in args.only or "becos_p2f" in args.only):
-            for kind in ("p2f", "p2p"):
-                target = args.out / f"becos_{kind}" / "area_factors.json"
-                if target.parent.is_dir() and (args.force or not target.is_file()):
-                    factors = becos_area_factors(f"becos_{kind}", args.becos)
-                    target.write_text(json.dumps(factors, indent=1, sort_keys=True) + "\n")
 
     published_path = args.out / "published_figures.json"
     published = json.loads(published_path.read_text()) if published_path.is_file() else []
