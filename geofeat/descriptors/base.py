@@ -67,6 +67,15 @@ class Descriptor:
         """Return features of shape (V, dim); subclasses implement this."""
         raise NotImplementedError
 
+    def prepare(self, mesh: Mesh) -> object | None:
+        """Work for `mesh` that may run ahead, on a background thread, while another shape is computed
+        (DINO descriptors: cameras and renders, on the descriptor's device). Default: None (nothing)."""
+        return None
+
+    def compute_prepared(self, mesh: Mesh, prepared: object | None) -> np.ndarray:
+        """`compute` given what `prepare(mesh)` returned. Default: self.compute(mesh)."""
+        return self.compute(mesh)
+
     def __call__(self, mesh: Mesh) -> np.ndarray:
         """Compute features, shape (V, dim), C-contiguous float32, every value finite.
 
