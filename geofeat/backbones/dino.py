@@ -471,6 +471,12 @@ class DinoBackbone:
 # ----------------------------------------------------------------------------- loading
 
 
+#: The transformers attention implementation the loaders ask for: PyTorch's fused
+#: ``scaled_dot_product_attention``, which runs FlashAttention kernels on CUDA in bfloat16
+#: (``"flash_attention_2"`` would need the separate flash-attn package and is no faster here).
+ATTENTION = "sdpa"
+
+
 def _model_class(kind: str, model_type: str) -> type:
     transformers = require_transformers()
     classes = _MODEL_CLASSES[kind]
@@ -512,7 +518,9 @@ def _from_pretrained(kind: str, name_or_path: str, source: str) -> PreTrainedMod
         ) from exc
     cls = _model_class(kind, config.model_type)
     try:
-        model, info = cls.from_pretrained(name_or_path, config=config, dtype=torch.float32, output_loading_info=True)
+        model, info = cls.from_pretrained(
+            name_or_path, config=config, dtype=torch.float32, attn_implementation=ATTENTION, output_loading_info=True
+        )
     except (OSError, ValueError, RuntimeError) as exc:
         raise BackboneError(f"could not load the {kind} weights from {source}: {exc}") from exc
     except Exception as exc:  # safetensors' SafetensorError and pickle's UnpicklingError derive from Exception only
@@ -541,7 +549,9 @@ def _from_official(kind: str, path: Path, overrides: Mapping[str, Any] | None) -
     raw = load_torch_file(path, BackboneError, what="an official DINO checkpoint")
     config, state_dict = convert_official(unwrap_official_checkpoint(raw), kind, overrides)
     cls = _model_class(kind, config.model_type)
-    model, info = cls.from_pretrained(None, config=config, state_dict=state_dict, dtype=torch.float32, output_loading_info=True)
+    model, info = cls.from_pretrained(
+        None, config=config, state_dict=state_dict, dtype=torch.float32, attn_implementation=ATTENTION, output_loading_info=True
+    )
     _check_loading_info(info, str(path), strict=True)
     return model
 

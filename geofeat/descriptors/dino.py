@@ -9,7 +9,8 @@ one the GeoLoRA trainer uses too.
 from __future__ import annotations
 
 import os
-from typing import ClassVar
+from dataclasses import replace
+from typing import ClassVar, NamedTuple
 
 import numpy as np
 import torch
@@ -20,13 +21,22 @@ from geofeat.errors import DescriptorError
 from geofeat.mesh import Mesh
 from geofeat.render import make_cameras, multiview_features
 from geofeat.render.backproject import BACKPROJECT_MODES
-from geofeat.render.cameras import CAMERA_LAYOUTS
-from geofeat.render.multiview import FILL_MODES, RECIPES
+from geofeat.render.cameras import CAMERA_LAYOUTS, Cameras
+from geofeat.render.multiview import (
+    FILL_MODES,
+    RECIPES,
+    FeatureRecipe,
+    RenderedBatch,
+    auto_batch_size,
+    render_batches,
+)
 
 #: Views and render size of each preset when ``views`` / ``image_size`` are not given
 #: (``image_size`` None under "default": the kind's own, 448 for DINOv2 and 512 for DINOv3).
 PRESET_VIEWS = {"default": 49, "reference": 49, "dsmk": 100}
 PRESET_IMAGE_SIZE = {"default": None, "reference": 512, "dsmk": 512}
+#: ``amp``: bfloat16 autocast of the backbone on, off, or on where it is safe and fast (CUDA, "default" preset).
+AMP_MODES = ("auto", "on", "off")
 
 
 class DinoFeatures(Descriptor):
@@ -58,8 +68,15 @@ class DinoFeatures(Descriptor):
         Transformer layer whose patch tokens are used (-1: the last, after the final norm).
     device : str
         ``"auto"``: CUDA when present, else CPU.
-    batch_size : int
-        Views rendered and encoded together.
+    batch_size : int or None
+        Views rendered and encoded together; None: as many as the GPU's free memory allows
+        (all 49 views at 512 x 512 of a ViT-B on a large GPU), 4 on the CPU
+        (`geofeat.render.multiview.auto_batch_size`). It does not change the features.
+    amp : {"auto", "on", "off"}
+        Run the backbone under bfloat16 autocast (``"on"``) or in float32 (``"off"``);
+        ``"auto"``: bfloat16 on CUDA under the ``"default"`` preset, float32 on the CPU and
+        under the presets that reproduce another code. bfloat16 features differ from float32
+        ones by about 1e-2 (relative), so the cache keys them apart.
     fill : {"nearest", "zero"}
         Features of vertices seen in no view.
     random_rotation : bool
@@ -74,7 +91,8 @@ class DinoFeatures(Descriptor):
     # 2: patch features sampled at the foreground pixels (geofeat.render.multiview) instead of
     # read from upsampled whole images; equal up to float32 rounding (see README).
     # 3: presets (the "reference" recipe of the official GeoLoRA code).
-    version = "3"
+    # 4: amp (bfloat16 backbone) in the key; batch_size out of it (it does not change the features).
+    version = "4"
 
     def __init__(
         self,
@@ -87,14 +105,15 @@ class DinoFeatures(Descriptor):
         backproject: str | None = None,
         layer: int = -1,
         device: str = "auto",
-        batch_size: int = 4,
+        batch_size: int | None = None,
+        amp: str = "auto",
         fill: str = "nearest",
         random_rotation: bool = False,
         seed: int = 0,
     ):
         self._store(
             preset=preset, weights=weights, views=views, image_size=image_size, camera_layout=camera_layout,
-            backproject=backproject, layer=layer, device=device, batch_size=batch_size, fill=fill,
+            backproject=backproject, layer=layer, device=device, batch_size=batch_size, amp=amp, fill=fill,
             random_rotation=random_rotation, seed=seed,
         )  # fmt: skip
 
@@ -122,7 +141,9 @@ class DinoFeatures(Descriptor):
                 f"{owner}: device must be a string such as 'auto', 'cpu' or 'cuda'; found {params['device']!r}."
             )
         checked["device"] = str(params["device"])
-        checked["batch_size"] = check_integer(params["batch_size"], "batch_size", owner=owner, low=1)
+        if params["batch_size"] is not None:
+            checked["batch_size"] = check_integer(params["batch_size"], "batch_size", owner=owner, low=1)
+        checked["amp"] = check_choice(params["amp"], "amp", AMP_MODES, owner=owner)
         checked["fill"] = check_choice(params["fill"], "fill", FILL_MODES, owner=owner)
         checked["random_rotation"] = check_boolean(params["random_rotation"], "random_rotation", owner=owner)
         checked["seed"] = check_integer(params["seed"], "seed", owner=owner, low=0)
@@ -131,10 +152,24 @@ class DinoFeatures(Descriptor):
         self._backbone = None
 
     def get_params(self) -> dict:
-        """Parameters as given, except ``device`` (it does not change the features)."""
+        """Parameters as given, except ``device`` and ``batch_size`` (they do not change the features), and ``amp`` resolved.
+
+        ``amp="auto"`` is keyed as what it means on this descriptor's device (``"on"`` or
+        ``"off"``), so bfloat16 and float32 features never share a cache entry.
+        """
         params = super().get_params()
         params.pop("device")
+        params.pop("batch_size")
+        params["amp"] = "on" if self.autocast() else "off"
         return params
+
+    def autocast(self) -> bool:
+        """Whether the backbone runs under bfloat16 autocast (see ``amp``)."""
+        if self.amp != "auto":
+            return self.amp == "on"
+        from geofeat.devices import resolve_device
+
+        return self.preset == "default" and resolve_device(self.device).type == "cuda"
 
     def backbone(self):
         """The loaded backbone (loaded once, on first use)."""
@@ -148,8 +183,8 @@ class DinoFeatures(Descriptor):
         """SHA-256 of the backbone's weights (part of the cache key)."""
         return self.backbone().weights_digest
 
-    def compute(self, mesh: Mesh) -> np.ndarray:
-        """Vertex features of shape (V, embed_dim)."""
+    def _views(self, mesh: Mesh) -> tuple[Cameras, int]:
+        """The cameras of ``mesh`` and the views per batch."""
         backbone = self.backbone()
         views = self.views or PRESET_VIEWS[self.preset]
         image_size = self.image_size or PRESET_IMAGE_SIZE[self.preset] or self.default_image_size
@@ -157,11 +192,44 @@ class DinoFeatures(Descriptor):
             mesh, views, layout=self.camera_layout, image_size=image_size,
             random_rotation=self.random_rotation, seed=self.seed, device=backbone.device,
         )  # fmt: skip
+        batch_size = self.batch_size or auto_batch_size(len(cameras), cameras.height, cameras.width, backbone)
+        return cameras, batch_size
+
+    def prepare(self, mesh: Mesh) -> PreparedViews:
+        """The cameras of ``mesh`` and all its views rendered, on the backbone's device (may run on another thread)."""
+        cameras, batch_size = self._views(mesh)
+        recipe = self._recipe()
+        rendered = list(render_batches([mesh], [cameras], self.backbone().patch_size, recipe=recipe, batch_size=batch_size))
+        return PreparedViews(cameras, batch_size, rendered)
+
+    def compute_prepared(self, mesh: Mesh, prepared: PreparedViews | None) -> np.ndarray:
+        """Vertex features of shape (V, embed_dim), from the views `prepare` rendered (None: rendered here, batch by batch)."""
+        if prepared is None:
+            cameras, batch_size = self._views(mesh)
+            rendered = None
+        else:
+            cameras, batch_size, rendered = prepared
         features, _ = multiview_features(
-            mesh, cameras, backbone, recipe=RECIPES[self.preset], backproject=self.backproject, fill=self.fill,
-            batch_size=self.batch_size, progress=True,
+            mesh, cameras, self.backbone(), recipe=self._recipe(), fill=self.fill, batch_size=batch_size,
+            autocast=self.autocast(), progress=True, rendered=rendered,
         )  # fmt: skip
         return features.cpu().numpy().astype(np.float32, copy=False)
+
+    def compute(self, mesh: Mesh) -> np.ndarray:
+        """Vertex features of shape (V, embed_dim)."""
+        return self.compute_prepared(mesh, None)
+
+    def _recipe(self) -> FeatureRecipe:
+        recipe = RECIPES[self.preset]
+        return replace(recipe, backproject=self.backproject) if self.backproject is not None else recipe
+
+
+class PreparedViews(NamedTuple):
+    """What `DinoFeatures.prepare` makes ahead of the backbone: cameras, views per batch, rendered batches."""
+
+    cameras: Cameras
+    batch_size: int
+    rendered: list[RenderedBatch]
 
 
 class DINOv2(DinoFeatures):
@@ -192,7 +260,7 @@ class GeoLoRA(DinoFeatures):
         ``<run>/checkpoints/step_NNNNNNN``, is one) or a GeoLoRA release
         checkpoint ``.pth`` (``saved_models/*.pth`` of the authors' repository, for DINOv3
         ViT-B/16).
-    preset, weights, views, image_size, camera_layout, backproject, layer, device, batch_size, fill, random_rotation, seed
+    preset, weights, views, image_size, camera_layout, backproject, layer, device, batch_size, amp, fill, random_rotation, seed
         As for ``dinov3`` (`DinoFeatures`): 49 views of the official grid at 512 x 512 by
         default; ``preset="reference"`` reproduces the official GeoLoRA code.
     """
@@ -213,14 +281,15 @@ class GeoLoRA(DinoFeatures):
         backproject: str | None = None,
         layer: int = -1,
         device: str = "auto",
-        batch_size: int = 4,
+        batch_size: int | None = None,
+        amp: str = "auto",
         fill: str = "nearest",
         random_rotation: bool = False,
         seed: int = 0,
     ):
         self._store(
             checkpoint=checkpoint, preset=preset, weights=weights, views=views, image_size=image_size, camera_layout=camera_layout,
-            backproject=backproject, layer=layer, device=device, batch_size=batch_size, fill=fill,
+            backproject=backproject, layer=layer, device=device, batch_size=batch_size, amp=amp, fill=fill,
             random_rotation=random_rotation, seed=seed,
         )  # fmt: skip
 

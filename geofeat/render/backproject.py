@@ -25,7 +25,16 @@ Three modes:
 
 ``"ball"`` and ``"face"`` are sparse products ``(V x M) @ (M x C)`` per batch of views, so
 memory grows with one batch of pixels, never with the number of views, and no ``V x V``
-or ``V x M`` dense matrix is ever formed (neighbours come from a KD-tree).
+or ``V x M`` dense matrix is ever formed.
+
+The ball's neighbour search runs where the features are (the GPU when there is one), with
+no search structure built per view: a pixel's point lies on (or, for points lifted from
+depth, near) the face the rasterizer gave it, so every vertex within the radius of it is
+within ``radius + R_f + slack`` of that face's centroid, ``R_f`` being the largest distance
+from the centroid to a corner. These candidate vertices of each face are listed once per
+mesh (`FaceCandidates`); a batch of pixels gathers its faces' candidates and keeps those
+closer than the radius, in float64. The result is exactly the set of (vertex, pixel) pairs
+within the radius, as a KD-tree query would give it.
 """
 
 from __future__ import annotations
@@ -87,6 +96,8 @@ class VertexFeatureAccumulator:
     dtype: torch.dtype = torch.float32
     sums: torch.Tensor = field(init=False)
     weights: torch.Tensor = field(init=False)
+    _faces_tensor: torch.Tensor | None = field(init=False, default=None, repr=False)
+    _face_candidates: FaceCandidates | None = field(init=False, default=None, repr=False)
 
     def __post_init__(self) -> None:
         if self.mode not in BACKPROJECT_MODES:
@@ -142,68 +153,82 @@ class VertexFeatureAccumulator:
             Ball modes: the 3D point of each foreground pixel. Default: the surface point that
             the face index and barycentrics give.
         """
-        pixels = torch.nonzero((pix_to_face >= 0).reshape(-1)).squeeze(1).cpu().numpy()
-        if features.ndim != 2 or features.shape != (pixels.size, self.n_channels):
+        device = self.sums.device
+        pixels = torch.nonzero((pix_to_face >= 0).reshape(-1)).squeeze(1).to(device)
+        if features.ndim != 2 or features.shape != (pixels.numel(), self.n_channels):
             raise RenderError(
-                f"foreground features must have shape ({pixels.size}, {self.n_channels}) (one row per foreground pixel); "
+                f"foreground features must have shape ({pixels.numel()}, {self.n_channels}) (one row per foreground pixel); "
                 f"found {tuple(features.shape)}."
             )
-        if points is not None and tuple(points.shape) != (pixels.size, 3):
+        if points is not None and tuple(points.shape) != (pixels.numel(), 3):
             raise RenderError(
-                f"points must have shape ({pixels.size}, 3), one per foreground pixel; found {tuple(points.shape)}."
+                f"points must have shape ({pixels.numel()}, 3), one per foreground pixel; found {tuple(points.shape)}."
             )
+        face_ids = pix_to_face.reshape(-1).to(device)[pixels]
+        if self.mode == "face":
+            weights_bary = bary.reshape(-1, 3).to(device)[pixels].float()  # (M, 3)
+            rows = self._faces_on(device)[face_ids].reshape(-1)
+            cols = torch.arange(pixels.numel(), device=device).repeat_interleave(3)
+            self._scatter(rows, cols, weights_bary.reshape(-1), features.to(device, torch.float32))
+            return
+        on_faces = points is None
+        if on_faces:
+            points = self._surface_points(face_ids, bary.reshape(-1, 3).to(device)[pixels])
+        rows, cols = self._candidates(device).pairs_within(
+            face_ids, points.to(device, torch.float64), self.radius, on_faces=on_faces
+        )
         if self.mode == "ball_last":
             views = pixels // (pix_to_face.shape[1] * pix_to_face.shape[2])
-            self._add_last(features.to(self.device, self.dtype), views, self._points(pixels, pix_to_face, bary, points))
+            self._add_last(features.to(device, self.dtype), views, rows, cols)
             return
-        rows, local, values = self._entries(pixels, pix_to_face, bary, points)
-        self._scatter(rows, local, values, features.to(self.device, torch.float32))
+        self._scatter(rows, cols, torch.ones(rows.numel(), device=device), features.to(device, torch.float32))
 
-    def _points(
-        self, pixels: np.ndarray, pix_to_face: torch.Tensor, bary: torch.Tensor, points: torch.Tensor | None
-    ) -> np.ndarray:
-        """The 3D point of each foreground pixel, (M, 3) float64: as given, or the surface point of its face."""
-        if points is not None:
-            return points.detach().to("cpu", torch.float64).numpy()
-        face_ids = pix_to_face.reshape(-1)[pixels].cpu().numpy()
-        weights_bary = bary.reshape(-1, 3)[pixels].cpu().numpy().astype(np.float64)  # (M, 3)
-        return np.einsum("mk,mkd->md", weights_bary, self.verts[self.faces[face_ids]])
+    def _faces_on(self, device: torch.device) -> torch.Tensor:
+        """The faces as an int64 tensor on ``device``, (F, 3)."""
+        if self._faces_tensor is None or self._faces_tensor.device != device:
+            self._faces_tensor = torch.tensor(self.faces, device=device)
+        return self._faces_tensor
 
-    def _entries(
-        self, pixels: np.ndarray, pix_to_face: torch.Tensor, bary: torch.Tensor, points: torch.Tensor | None = None
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """The sparse (V, M) back-projection matrix of M foreground pixels: (vertex, pixel position in ``pixels``, weight)."""
-        if pixels.size == 0:
-            return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0)
-        if self.mode == "face":
-            face_ids = pix_to_face.reshape(-1)[pixels].cpu().numpy()
-            weights_bary = bary.reshape(-1, 3)[pixels].cpu().numpy().astype(np.float64)  # (M, 3)
-            return self.faces[face_ids].ravel(), np.repeat(np.arange(pixels.size), 3), weights_bary.ravel()
-        rows, local = _pairs_within(self.verts, self._points(pixels, pix_to_face, bary, points), self.radius)
-        return rows, local, np.ones(rows.size)
+    def _candidates(self, device: torch.device) -> FaceCandidates:
+        """Each face's candidate vertices for the ball, on ``device`` (listed once, on first use)."""
+        if self._face_candidates is None or self._face_candidates.device != device:
+            self._face_candidates = FaceCandidates(self.verts, self.faces, self.radius, device)
+        return self._face_candidates
 
-    def _add_last(self, features: torch.Tensor, views: np.ndarray, points: np.ndarray) -> None:
+    def _surface_points(self, face_ids: torch.Tensor, bary: torch.Tensor) -> torch.Tensor:
+        """The surface point of each pixel, (M, 3) float64: its barycentrics in its face."""
+        verts, corners = self._candidates(face_ids.device).verts, self._faces_on(face_ids.device)[face_ids]  # (M, 3)
+        bary = bary.double()
+        points = bary[:, 0:1] * verts.index_select(0, corners[:, 0])
+        points += bary[:, 1:2] * verts.index_select(0, corners[:, 1])
+        points += bary[:, 2:3] * verts.index_select(0, corners[:, 2])
+        return points
+
+    def _add_last(self, features: torch.Tensor, views: torch.Tensor, rows: torch.Tensor, cols: torch.Tensor) -> None:
         """``"ball_last"``: one view after the other, each vertex in reach takes the last candidate pixel's feature."""
-        rows, local = _pairs_within(self.verts, points, self.radius)
         if self.max_neighbours is not None:
-            rows, local = _first_per_point(rows, local, self.max_neighbours)
-        for view in np.unique(views[local]) if local.size else ():
-            in_view = views[local] == view
-            self.sums = _LastWriteAdd.apply(self.sums, features, *_last_write_plan(rows[in_view], local[in_view], self.device))
-            touched = torch.as_tensor(np.unique(rows[in_view]), device=self.device)
-            self.weights.index_add_(0, touched, torch.ones(touched.numel(), device=self.device))
-
-    def _scatter(self, rows: np.ndarray, cols: np.ndarray, values: np.ndarray, features: torch.Tensor) -> None:
-        """``sums += S @ features`` and ``weights += S @ 1`` for the sparse (V, P) matrix S given by its entries."""
-        if rows.size == 0:
+            rows, cols = _first_per_point(rows, cols, self.max_neighbours, len(self.verts))
+        if rows.numel() == 0:
             return
-        index = torch.as_tensor(np.stack([rows, cols]), dtype=torch.int64, device=self.device)
-        values = torch.as_tensor(values, dtype=torch.float32, device=self.device)
+        pair_views = views[cols]
+        for view in torch.unique(pair_views).tolist():
+            in_view = pair_views == view
+            plan = _last_write_plan(rows[in_view], cols[in_view], features.shape[0])
+            self.sums = _LastWriteAdd.apply(self.sums, features, *plan)
+            touched = plan[4]  # the vertices reached in this view
+            self.weights.index_add_(0, touched, torch.ones(touched.numel(), device=touched.device))
+
+    def _scatter(self, rows: torch.Tensor, cols: torch.Tensor, values: torch.Tensor, features: torch.Tensor) -> None:
+        """``sums += S @ features`` and ``weights += S @ 1`` for the sparse (V, P) matrix S given by its entries."""
+        if rows.numel() == 0:
+            return
+        index = torch.stack([rows, cols])
+        values = values.to(torch.float32)
         matrix = torch.sparse_coo_tensor(index, values, (len(self.verts), features.shape[0]), check_invariants=False)
         with warnings.catch_warnings():  # "sparse CSR support is in beta": CSR products are the fast path here
             warnings.filterwarnings("ignore", message="Sparse CSR tensor support is in beta")
             self.sums += torch.sparse.mm(matrix.coalesce().to_sparse_csr(), features)
-        self.weights.index_add_(0, index[0], values)
+        self.weights.index_add_(0, rows, values)
 
     def result_tensor(self, fill: str = "nearest") -> tuple[torch.Tensor, torch.Tensor]:
         """Mean feature per vertex as tensors on the accumulator's device.
@@ -292,27 +317,24 @@ def shape_diameter(verts: np.ndarray) -> float:
     return float(pdist(candidates).max())
 
 
-def _first_per_point(rows: np.ndarray, cols: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+def _first_per_point(rows: torch.Tensor, cols: torch.Tensor, k: int, n_vertices: int) -> tuple[torch.Tensor, torch.Tensor]:
     """Keep, for each point (``cols``), its ``k`` lowest vertex indices (``rows``): ball_query's first K."""
-    order = np.lexsort((rows, cols))
+    order = torch.argsort(cols * n_vertices + rows)  # by point, then vertex
     rows, cols = rows[order], cols[order]
-    starts = np.r_[0, np.flatnonzero(np.diff(cols)) + 1]
-    rank = np.arange(cols.size) - np.repeat(starts, np.diff(np.r_[starts, cols.size]))
+    _, counts = torch.unique_consecutive(cols, return_counts=True)
+    starts = torch.cumsum(counts, 0) - counts
+    rank = torch.arange(cols.numel(), device=cols.device) - torch.repeat_interleave(starts, counts)
     keep = rank < k
     return rows[keep], cols[keep]
 
 
-def _last_write_plan(rows: np.ndarray, cols: np.ndarray, device) -> tuple[torch.Tensor, ...]:
+def _last_write_plan(rows: torch.Tensor, cols: torch.Tensor, n_points: int) -> tuple[torch.Tensor, ...]:
     """Index tensors for `_LastWriteAdd` from one view's (vertex, pixel) candidate pairs."""
-    order = np.lexsort((cols, rows))  # by vertex, then pixel: the last of each vertex's run is its last pixel
+    order = torch.argsort(rows * n_points + cols)  # by vertex, then pixel: the last of each vertex's run is its last pixel
     rows, cols = rows[order], cols[order]
-    last = np.r_[rows[1:] != rows[:-1], True]
-    vertices, counts = np.unique(rows, return_counts=True)
-
-    def t(a):
-        return torch.as_tensor(a, dtype=torch.int64, device=device)
-
-    return t(rows), t(cols), t(rows[last]), t(cols[last]), t(vertices), t(counts)
+    vertices, counts = torch.unique_consecutive(rows, return_counts=True)
+    last = torch.cumsum(counts, 0) - 1
+    return rows, cols, rows[last], cols[last], vertices, counts
 
 
 class _LastWriteAdd(torch.autograd.Function):
@@ -341,10 +363,126 @@ class _LastWriteAdd(torch.autograd.Function):
         return grad_sums, grad_features, None, None, None, None, None, None
 
 
-def _pairs_within(verts: np.ndarray, points: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray]:
-    """All (vertex, point) index pairs closer than ``radius``, as two int64 arrays."""
-    neighbours = cKDTree(points).query_ball_point(verts, radius)
-    counts = np.fromiter((len(n) for n in neighbours), dtype=np.int64, count=len(verts))
-    rows = np.repeat(np.arange(len(verts), dtype=np.int64), counts)
-    cols = np.fromiter((j for n in neighbours for j in n), dtype=np.int64, count=int(counts.sum()))
-    return rows, cols
+class FaceCandidates:
+    """The vertices that a ball of radius ``r`` around any point of a face can reach, for every face.
+
+    Vertex ``v`` is a candidate of face ``f`` when ``|v - c_f| <= r + R_f + slack``, with
+    ``c_f`` the face's centroid and ``R_f`` its largest centroid-to-corner distance: every
+    point of the face lies within ``R_f`` of ``c_f``, so every vertex within ``r`` of such a
+    point is a candidate. ``slack`` widens the list for points that lie off their face
+    (lifted from depth); `pairs_within` widens it again, once, when a point lies further off.
+    Listed once per mesh: with a KD-tree on the CPU, by brute force in chunks on a GPU.
+
+    Parameters
+    ----------
+    verts : numpy.ndarray, shape (V, 3), float64
+    faces : numpy.ndarray, shape (F, 3), int64
+    radius : float
+        The ball radius r, in mesh units.
+    device : torch.device
+        Where the lists live and `pairs_within` runs.
+    slack : float, optional
+        Default ``1e-6`` x the bounding-box diagonal plus ``1e-3 r`` (rounding margins).
+
+    Attributes
+    ----------
+    verts : torch.Tensor, shape (V, 3), float64, on ``device``
+    start : torch.Tensor, shape (F,), int64
+        Where face ``f``'s candidates begin in ``vertices``.
+    count : torch.Tensor, shape (F,), int64
+        How many candidates face ``f`` has.
+    vertices : torch.Tensor, shape (sum(count),), int64
+        The candidate vertices, face after face.
+    """
+
+    #: Entries (faces x vertices) of one chunk of the GPU's brute-force listing.
+    CHUNK_ENTRIES = 2**24
+
+    def __init__(self, verts: np.ndarray, faces: np.ndarray, radius: float, device, slack: float | None = None):
+        self.device = torch.device(device)
+        self._verts_np = np.asarray(verts, dtype=np.float64)
+        self._faces_np = np.asarray(faces, dtype=np.int64)
+        self.radius = float(radius)
+        self.verts = torch.tensor(self._verts_np, device=self.device)
+        corners = self._verts_np[self._faces_np]  # (F, 3, 3)
+        self._centroids_np = corners.mean(axis=1)
+        self._reach_np = np.linalg.norm(corners - self._centroids_np[:, None], axis=2).max(axis=1)  # R_f
+        self.centroids = torch.as_tensor(self._centroids_np, device=self.device)
+        self.face_reach = torch.as_tensor(self._reach_np, device=self.device)
+        if slack is None:
+            size = float(np.linalg.norm(np.ptp(self._verts_np, axis=0))) if len(self._verts_np) else 0.0
+            slack = 1e-6 * size + 1e-3 * self.radius
+        self._list(float(slack))
+
+    def _list(self, slack: float) -> None:
+        """List every face's candidates within ``radius + R_f + slack`` of its centroid."""
+        self.slack = slack
+        reach = self.radius + self._reach_np + slack
+        if self.device.type == "cpu":
+            found = cKDTree(self._verts_np).query_ball_point(self._centroids_np, reach)
+            count = np.fromiter((len(n) for n in found), dtype=np.int64, count=len(found))
+            vertices = np.fromiter((j for n in found for j in n), dtype=np.int64, count=int(count.sum()))
+            self.count = torch.as_tensor(count)
+            self.vertices = torch.as_tensor(vertices)
+        else:
+            self.count, self.vertices = self._list_by_brute_force(torch.as_tensor(reach, device=self.device))
+        self.start = torch.cumsum(self.count, 0) - self.count
+
+    def _list_by_brute_force(self, reach: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """(count, vertices) from every centroid-to-vertex distance, a chunk of faces at a time."""
+        n_faces, n_verts = len(self._faces_np), len(self._verts_np)
+        step = max(1, self.CHUNK_ENTRIES // max(n_verts, 1))
+        counts, vertices = [], []
+        for first in range(0, n_faces, step):
+            centres = self.centroids[first : first + step]
+            distance_sq = ((centres[:, None, :] - self.verts[None, :, :]) ** 2).sum(-1)  # (chunk, V)
+            face, vertex = torch.nonzero(distance_sq <= reach[first : first + step, None] ** 2, as_tuple=True)
+            counts.append(torch.bincount(face, minlength=centres.shape[0]))
+            vertices.append(vertex)
+        if not counts:
+            return torch.zeros(0, dtype=torch.int64, device=self.device), torch.zeros(0, dtype=torch.int64, device=self.device)
+        return torch.cat(counts), torch.cat(vertices)
+
+    def pairs_within(
+        self, face_ids: torch.Tensor, points: torch.Tensor, radius: float, *, on_faces: bool = False
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """All (vertex, point) pairs closer than ``radius`` (``<=``, in float64), points given with their faces.
+
+        Parameters
+        ----------
+        face_ids : torch.Tensor, shape (M,), int64
+            The face each point belongs to (the rasterizer's face of its pixel).
+        points : torch.Tensor, shape (M, 3), float64
+            On or near that face.
+        radius : float
+            At most the radius the candidates were listed for.
+        on_faces : bool
+            The points are known to lie on their faces (interpolated from barycentrics), so
+            the check of how far they lie off them is skipped.
+
+        Returns
+        -------
+        rows : torch.Tensor, shape (P,), int64
+            Vertex of each pair.
+        cols : torch.Tensor, shape (P,), int64
+            Point of each pair (its position in ``points``), in increasing order.
+        """
+        if radius > self.radius:
+            raise RenderError(f"the candidates were listed for a radius of {self.radius}; {radius} is larger.")
+        if face_ids.numel() == 0:
+            empty = torch.zeros(0, dtype=torch.int64, device=self.device)
+            return empty, empty
+        if not on_faces:
+            off = torch.linalg.vector_norm(points - self.centroids[face_ids], dim=1) - self.face_reach[face_ids]
+            off_face = float(off.max())
+            if off_face > self.slack:  # points lifted from depth lie off their face: widen the lists once more
+                self._list(2.0 * off_face)
+        count = self.count[face_ids]
+        total = int(count.sum())
+        cols = torch.repeat_interleave(torch.arange(face_ids.numel(), device=self.device), count, output_size=total)
+        first = torch.repeat_interleave(self.start[face_ids] - (torch.cumsum(count, 0) - count), count, output_size=total)
+        rows = self.vertices.index_select(0, first + torch.arange(total, device=self.device))
+        offset = self.verts.index_select(0, rows) - points.index_select(0, cols)
+        distance_sq = (offset * offset).sum(1)
+        close = distance_sq <= radius * radius
+        return rows[close], cols[close]

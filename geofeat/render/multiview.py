@@ -40,7 +40,7 @@ A `FeatureRecipe` says how each stage is done. `RECIPES` holds the named ones:
 from __future__ import annotations
 
 import contextlib
-from collections.abc import Callable
+from collections.abc import Callable, Iterable, Iterator
 from contextlib import AbstractContextManager
 from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING, NamedTuple
@@ -57,7 +57,7 @@ from geofeat.progress import progress_bar
 from geofeat.render.backproject import BACKPROJECT_MODES, RADIUS_BASES, VertexFeatureAccumulator, foreground_pixels
 from geofeat.render.cameras import Cameras
 from geofeat.render.rasterizer import RasterSettings
-from geofeat.render.shading import render_phong
+from geofeat.render.shading import Rendering, render_phong
 
 if TYPE_CHECKING:
     from geofeat.backbones.dino import DinoBackbone
@@ -69,8 +69,14 @@ __all__ = [
     "FeatureRecipe",
     "MultiviewFeatures",
     "PhaseTimer",
+    "RenderedBatch",
+    "ViewSegment",
+    "auto_batch_size",
     "backbone_input",
     "multiview_features",
+    "multiview_features_many",
+    "render_batches",
+    "view_batches",
 ]
 
 #: What vertices seen in no view get: the nearest seen vertex's features, or zeros.
@@ -178,6 +184,91 @@ def _no_timer(phase: str) -> AbstractContextManager:
     return contextlib.nullcontext()
 
 
+class ViewSegment(NamedTuple):
+    """Views ``start:stop`` of shape ``shape`` (positions in the lists given to `multiview_features_many`)."""
+
+    shape: int
+    start: int
+    stop: int
+
+
+class RenderedBatch(NamedTuple):
+    """One batch of views, rendered and ready for the backbone.
+
+    Attributes
+    ----------
+    segments : list of ViewSegment
+        Whose views the batch holds, in order.
+    renderings : list of Rendering
+        One per segment: its Phong images and fragments.
+    images : torch.Tensor, shape (B, H', W', 3)
+        Every segment's images as the backbone sees them (`backbone_input`), concatenated.
+    """
+
+    segments: list[ViewSegment]
+    renderings: list[Rendering]
+    images: torch.Tensor
+
+
+def view_batches(view_counts: list[int], batch_size: int) -> list[list[ViewSegment]]:
+    """Pack the views of several shapes, in order, into batches of at most ``batch_size`` views.
+
+    A batch may hold the last views of one shape and the first of the next, so ``N`` views in
+    all take ``ceil(N / batch_size)`` backbone calls.
+
+    Parameters
+    ----------
+    view_counts : list of int
+        Views of each shape.
+    batch_size : int
+
+    Returns
+    -------
+    list of list of ViewSegment
+    """
+    batches: list[list[ViewSegment]] = [[]]
+    room = batch_size
+    for shape, count in enumerate(view_counts):
+        start = 0
+        while start < count:
+            if room == 0:
+                batches.append([])
+                room = batch_size
+            stop = min(count, start + room)
+            batches[-1].append(ViewSegment(shape, start, stop))
+            room -= stop - start
+            start = stop
+    return [batch for batch in batches if batch]
+
+
+def render_batches(
+    meshes: list[Mesh], cameras: list[Cameras], patch_size: int, *, recipe: FeatureRecipe, batch_size: int
+) -> Iterator[RenderedBatch]:
+    """Render the views of several shapes batch by batch (lazily: one batch per ``next``).
+
+    Parameters
+    ----------
+    meshes : list of Mesh
+    cameras : list of Cameras
+        The views of each mesh; all of the same size.
+    patch_size : int
+        The backbone's (`backbone_input` crops to a multiple of it).
+    recipe : FeatureRecipe
+    batch_size : int
+        Views per batch (see `view_batches`).
+
+    Yields
+    ------
+    RenderedBatch
+    """
+    raster = RasterSettings(cull_backfaces=recipe.cull_backfaces)
+    for batch in view_batches([len(c) for c in cameras], batch_size):
+        with torch.no_grad():  # the images do not depend on any parameter
+            renderings = [render_phong(meshes[s.shape], None, cameras[s.shape][s.start : s.stop], raster) for s in batch]
+            images = torch.cat([backbone_input(r.images, recipe, patch_size) for r in renderings])
+        yield RenderedBatch(batch, renderings, images)
+
+
 def multiview_features(
     mesh: Mesh,
     cameras: Cameras,
@@ -191,21 +282,55 @@ def multiview_features(
     autocast: bool = False,
     timer: PhaseTimer | None = None,
     progress: bool = False,
+    rendered: Iterable[RenderedBatch] | None = None,
 ) -> MultiviewFeatures:
     """Render a mesh from every camera, encode the views and back-project the features to vertices.
 
-    For each batch of views: rasterize and Phong-shade (``render``), run the backbone to its
-    patch grid and sample that grid bilinearly at the foreground pixels, L2-normalised
-    (``forward``), and add those pixels' features to the vertices (``backproject``). Memory
-    grows with one batch of views (and, with ``grad=True``, with the autograd graph of all
-    of them), never with full-resolution feature images.
+    `multiview_features_many` with one shape; see there for the parameters.
+
+    Returns
+    -------
+    MultiviewFeatures
+        ``features`` (V, C) float32 and ``seen`` (V,) bool, on the backbone's device.
+    """
+    return multiview_features_many(
+        [mesh], [cameras], backbone, recipe=recipe, backproject=backproject, fill=fill, batch_size=batch_size,
+        grad=grad, autocast=autocast, timer=timer, progress=progress, rendered=rendered,
+    )[0]  # fmt: skip
+
+
+def multiview_features_many(
+    meshes: list[Mesh],
+    cameras: list[Cameras],
+    backbone: DinoBackbone,
+    *,
+    recipe: FeatureRecipe | None = None,
+    backproject: str | None = None,
+    fill: str = "nearest",
+    batch_size: int | None = None,
+    grad: bool = False,
+    autocast: bool = False,
+    timer: PhaseTimer | None = None,
+    progress: bool = False,
+    rendered: Iterable[RenderedBatch] | None = None,
+) -> list[MultiviewFeatures]:
+    """Render several meshes from their cameras, encode all views together and back-project per mesh.
+
+    The views of all shapes are packed into batches (`view_batches`), so the backbone runs
+    ``ceil(N / batch_size)`` times for ``N`` views in all (the GeoLoRA trainer sends a full
+    shape and its partial shapes in one call). For each batch: rasterize and Phong-shade
+    (``render``), run the backbone to its patch grid and sample that grid bilinearly at the
+    foreground pixels, L2-normalised (``forward``), and add those pixels' features to their
+    shape's vertices (``backproject``). Memory grows with one batch of views (and, with
+    ``grad=True``, with the autograd graph of all of them), never with full-resolution
+    feature images.
 
     Parameters
     ----------
-    mesh : Mesh
-        Triangle mesh with V vertices (point clouds cannot be rendered).
-    cameras : Cameras
-        N views of H x W pixels, H and W multiples of ``backbone.patch_size``.
+    meshes : list of Mesh
+        Triangle meshes (point clouds cannot be rendered); mesh ``i`` has V_i vertices.
+    cameras : list of Cameras
+        The views of each mesh, all H x W pixels, H and W multiples of ``backbone.patch_size``.
     backbone : DinoBackbone
         DINOv2 / DINOv3, with or without LoRA; C = ``backbone.embed_dim``.
     recipe : FeatureRecipe, optional
@@ -215,7 +340,7 @@ def multiview_features(
     fill : {"nearest", "zero"}
         Features of vertices seen in no view: the nearest seen vertex's, or zeros.
     batch_size : int or None
-        Views rendered and encoded together; None: all N at once.
+        Views encoded together; None: all views at once.
     grad : bool
         Record the autograd graph from the backbone's parameters to the vertex features
         (`torch.enable_grad`), or not (`torch.no_grad`), whatever the caller's mode.
@@ -226,59 +351,125 @@ def multiview_features(
         Called as ``with timer(phase):`` around each phase of `PHASES`.
     progress : bool
         Show a progress bar over batches of views.
+    rendered : iterable of RenderedBatch, optional
+        The batches already rendered (`render_batches` with the same meshes, cameras, recipe
+        and batch size, run ahead on another thread); default: rendered here, one batch at a time.
 
     Returns
     -------
-    MultiviewFeatures
-        ``features`` (V, C) float32 and ``seen`` (V,) bool, on the backbone's device.
+    list of MultiviewFeatures
+        One per mesh: ``features`` (V_i, C) float32 and ``seen`` (V_i,) bool, on the backbone's device.
 
     Raises
     ------
     RenderError
-        ``mesh`` has no faces.
-    RenderError
-        Unknown ``backproject`` or ``fill`` mode, or a bad ``batch_size``.
+        A mesh has no faces, the lists differ in length, the cameras differ in size, an
+        unknown ``backproject`` or ``fill`` mode, or a bad ``batch_size``.
     """
-    if mesh.faces is None:
-        raise RenderError(
-            f"{mesh.name or 'the mesh'!r} is a point cloud: multi-view features need faces to render; "
-            "give a triangle mesh (or reconstruct a surface first)."
-        )
+    if len(meshes) != len(cameras) or not meshes:
+        raise RenderError(f"give one Cameras per mesh (at least one); found {len(meshes)} meshes and {len(cameras)} cameras.")
+    for mesh in meshes:
+        if mesh.faces is None:
+            raise RenderError(
+                f"{mesh.name or 'the mesh'!r} is a point cloud: multi-view features need faces to render; "
+                "give a triangle mesh (or reconstruct a surface first)."
+            )
+    sizes = {(c.height, c.width) for c in cameras}
+    if len(sizes) != 1:
+        raise RenderError(f"the cameras of the meshes must all have one image size; found {sorted(sizes)}.")
+    size = sizes.pop()
     recipe = RECIPES["default"] if recipe is None else recipe
     if backproject is not None:
         recipe = replace(recipe, backproject=backproject)
     fill = check_choice(fill, "fill", FILL_MODES, error=RenderError)
-    batch_size = len(cameras) if batch_size is None else check_integer(batch_size, "batch_size", low=1, error=RenderError)
+    n_views = sum(len(c) for c in cameras)
+    batch_size = n_views if batch_size is None else check_integer(batch_size, "batch_size", low=1, error=RenderError)
     timer = timer or _no_timer
     device = backbone.device
-    size = (cameras.height, cameras.width)
-    accumulator = VertexFeatureAccumulator(
-        mesh.verts, mesh.faces, backbone.embed_dim, mode=recipe.backproject, device=device,
-        radius_basis=recipe.radius_basis, max_neighbours=recipe.max_neighbours, dtype=recipe.dtype,
-    )  # fmt: skip
-    raster = RasterSettings(cull_backfaces=recipe.cull_backfaces)
-    starts = range(0, len(cameras), batch_size)
+    accumulators = [
+        VertexFeatureAccumulator(
+            mesh.verts,
+            mesh.faces,
+            backbone.embed_dim,
+            mode=recipe.backproject,
+            device=device,
+            radius_basis=recipe.radius_basis,
+            max_neighbours=recipe.max_neighbours,
+            dtype=recipe.dtype,
+        )  # fmt: skip
+        for mesh in meshes
+    ]
+    batches = iter(rendered if rendered is not None else render_batches(
+        meshes, cameras, backbone.patch_size, recipe=recipe, batch_size=batch_size
+    ))  # fmt: skip
+    n_batches = len(view_batches([len(c) for c in cameras], batch_size))
     with torch.enable_grad() if grad else torch.no_grad():
-        for start in progress_bar(starts, desc=f"views of {mesh.name or 'mesh'}", unit="batch", show=progress):
-            views = cameras[start : start + batch_size]
-            with timer("render"), torch.no_grad():  # the images do not depend on any parameter
-                rendering = render_phong(mesh, None, views, raster)
-                images = backbone_input(rendering.images, recipe, backbone.patch_size)
-            fragments = rendering.fragments
-            pixels = foreground_pixels(fragments.pix_to_face)
+        for _ in progress_bar(range(n_batches), desc=_progress_label(meshes), unit="batch", show=progress):
+            with timer("render"):
+                batch = next(batches)
             with timer("forward"):
                 amp = torch.autocast(device_type=device.type, dtype=torch.bfloat16) if autocast else contextlib.nullcontext()
                 with amp:
-                    grid = backbone.patch_features(images)  # (B, h, w, C)
-                if recipe.pixel_grid == "centers":
-                    features = sample_patch_features(grid, pixels, size)  # (M, C)
-                else:
-                    features = grid_sample_patch_features(grid, pixels, size, recipe.dtype)
+                    grid = backbone.patch_features(batch.images.to(device))  # (B, h, w, C)
+                grids = grid.split([s.stop - s.start for s in batch.segments])
+                samples = []
+                for rendering, grid_part in zip(batch.renderings, grids, strict=True):
+                    pixels = foreground_pixels(rendering.fragments.pix_to_face)
+                    if recipe.pixel_grid == "centers":
+                        samples.append((pixels, sample_patch_features(grid_part, pixels, size)))  # (M, C)
+                    else:
+                        samples.append((pixels, grid_sample_patch_features(grid_part, pixels, size, recipe.dtype)))
             with timer("backproject"):
-                points = corner_points(views, pixels, fragments.depth) if recipe.pixel_grid == "corners" else None
-                accumulator.add_foreground(features, fragments.pix_to_face, fragments.bary, points)
+                for segment, rendering, (pixels, features) in zip(batch.segments, batch.renderings, samples, strict=True):
+                    fragments = rendering.fragments
+                    views = cameras[segment.shape][segment.start : segment.stop]
+                    points = corner_points(views, pixels, fragments.depth) if recipe.pixel_grid == "corners" else None
+                    accumulators[segment.shape].add_foreground(features, fragments.pix_to_face, fragments.bary, points)
         with timer("backproject"):
-            return MultiviewFeatures(*accumulator.result_tensor(fill=fill))
+            return [MultiviewFeatures(*accumulator.result_tensor(fill=fill)) for accumulator in accumulators]
+
+
+def _progress_label(meshes: list[Mesh]) -> str:
+    if len(meshes) == 1:
+        return f"views of {meshes[0].name or 'mesh'}"
+    return f"views of {len(meshes)} meshes"
+
+
+#: Share of the GPU's free memory that `auto_batch_size` plans one batch of views to take.
+BATCH_MEMORY_SHARE = 0.5
+#: Views per batch on the CPU (`auto_batch_size`): the backbone is already busy on every core at this size.
+CPU_BATCH_SIZE = 4
+
+
+def auto_batch_size(n_views: int, height: int, width: int, backbone: DinoBackbone) -> int:
+    """Views per batch for inference without gradients: as many as the GPU's free memory allows.
+
+    On CUDA, one view of ``H x W`` pixels is planned at ``H W (8 C + 64)`` bytes (its
+    foreground features in float32 twice over, the worst case where every pixel is
+    foreground, plus the rasterizer's buffers) and ``h w C x 48`` bytes of backbone
+    activations for its ``h w`` patches; the batch takes at most `BATCH_MEMORY_SHARE` of the
+    free memory. On the CPU: `CPU_BATCH_SIZE`.
+
+    Parameters
+    ----------
+    n_views : int
+    height, width : int
+        Render size in pixels.
+    backbone : DinoBackbone
+
+    Returns
+    -------
+    int
+        Between 1 and ``n_views``.
+    """
+    device = backbone.device
+    if device.type != "cuda":
+        return max(1, min(n_views, CPU_BATCH_SIZE))
+    channels = backbone.embed_dim
+    patches = (height // backbone.patch_size) * (width // backbone.patch_size)
+    per_view = height * width * (8 * channels + 64) + patches * channels * 48
+    free, _ = torch.cuda.mem_get_info(device)
+    return max(1, min(n_views, int(BATCH_MEMORY_SHARE * free) // per_view))
 
 
 def backbone_input(images: torch.Tensor, recipe: FeatureRecipe, patch_size: int) -> torch.Tensor:

@@ -157,3 +157,87 @@ def test_bad_input_is_refused(backbone_folder):
         multiview_features(mesh, cameras, backbone, backproject="splat")
     with pytest.raises(RenderError, match="batch_size"):
         multiview_features(mesh, cameras, backbone, batch_size=0)
+
+
+def test_view_batches_pack_the_views_of_several_shapes_in_order():
+    from geofeat.render.multiview import ViewSegment, view_batches
+
+    batches = view_batches([9, 4, 4], 7)
+    assert batches == [
+        [ViewSegment(0, 0, 7)],
+        [ViewSegment(0, 7, 9), ViewSegment(1, 0, 4), ViewSegment(2, 0, 1)],
+        [ViewSegment(2, 1, 4)],
+    ]
+    assert view_batches([3], 10) == [[ViewSegment(0, 0, 3)]]
+    assert view_batches([2, 0, 1], 1) == [[ViewSegment(0, 0, 1)], [ViewSegment(0, 1, 2)], [ViewSegment(2, 0, 1)]]
+
+
+@pytest.mark.parametrize("batch_size", [None, 5])
+def test_several_shapes_in_one_call_equal_one_call_each(batch_size):
+    """Views of three shapes packed into shared backbone calls: each shape's features as when computed alone."""
+    from geofeat.render.multiview import multiview_features_many
+
+    backbone = DinoBackbone(tiny_dinov3(), kind="dinov3")
+    meshes = [bumpy(0, 2), bumpy(1, 2), bumpy(2, 2)]
+    cameras = [make_cameras(m, n, layout="official", image_size=IMAGE_SIZE) for m, n in zip(meshes, (9, 4, 4), strict=True)]
+    together = multiview_features_many(meshes, cameras, backbone, batch_size=batch_size, fill="zero")
+    for mesh, views, many in zip(meshes, cameras, together, strict=True):
+        alone = multiview_features(mesh, views, backbone, batch_size=3, fill="zero")
+        assert torch.equal(alone.seen, many.seen)
+        torch.testing.assert_close(alone.features, many.features, rtol=0, atol=1e-5)
+
+
+def test_several_shapes_need_one_image_size_and_one_camera_set_each():
+    from geofeat.render.multiview import multiview_features_many
+
+    backbone = DinoBackbone(tiny_dinov3(), kind="dinov3")
+    mesh = bumpy(0, 1)
+    small = make_cameras(mesh, 4, layout="official", image_size=IMAGE_SIZE)
+    large = make_cameras(mesh, 4, layout="official", image_size=2 * IMAGE_SIZE)
+    with pytest.raises(RenderError, match="one image size"):
+        multiview_features_many([mesh, mesh], [small, large], backbone)
+    with pytest.raises(RenderError, match="one Cameras per mesh"):
+        multiview_features_many([mesh, mesh], [small], backbone)
+
+
+def test_prepared_views_give_the_features_of_a_plain_compute(backbone_folder):
+    """The descriptor's prepare (renders made ahead, as geofeat extract does on another thread) changes nothing."""
+    descriptor = geofeat.make_descriptor("dinov3", weights=str(backbone_folder), views=9, image_size=IMAGE_SIZE, batch_size=4)
+    mesh = bumpy(4, 2)
+    prepared = descriptor.prepare(mesh)
+    assert [len(batch.images) for batch in prepared.rendered] == [4, 4, 1]
+    np.testing.assert_array_equal(descriptor.compute_prepared(mesh, prepared), descriptor.compute(mesh))
+
+
+def test_amp_is_keyed_as_it_resolves_and_batch_size_is_not_keyed(backbone_folder):
+    make = geofeat.make_descriptor
+    plain = make("dinov3", weights=str(backbone_folder), device="cpu")
+    assert plain.get_params()["amp"] == "off"  # "auto" on the CPU: float32
+    assert "batch_size" not in plain.get_params() and "device" not in plain.get_params()
+    assert make("dinov3", weights=str(backbone_folder), device="cpu", batch_size=3).params_json() == plain.params_json()
+    forced = make("dinov3", weights=str(backbone_folder), device="cpu", amp="on")
+    assert forced.get_params()["amp"] == "on" and forced.params_json() != plain.params_json()
+    reference = make("dinov3", weights=str(backbone_folder), preset="reference", amp="auto")
+    assert reference.get_params()["amp"] == "off"  # a preset that reproduces other code keeps float32
+    with pytest.raises(geofeat.GeofeatError, match="amp"):
+        make("dinov3", weights=str(backbone_folder), amp="bf16")
+
+
+def test_auto_batch_size_on_the_cpu_is_the_cpu_batch():
+    from geofeat.render.multiview import CPU_BATCH_SIZE, auto_batch_size
+
+    backbone = DinoBackbone(tiny_dinov3(), kind="dinov3")
+    assert auto_batch_size(49, 512, 512, backbone) == CPU_BATCH_SIZE
+    assert auto_batch_size(2, 512, 512, backbone) == 2
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_auto_batch_size_on_cuda_fits_the_free_memory():
+    from geofeat.render.multiview import BATCH_MEMORY_SHARE, auto_batch_size
+
+    backbone = DinoBackbone(tiny_dinov3(), kind="dinov3")
+    backbone.model.to("cuda")
+    views = auto_batch_size(49, 512, 512, backbone)
+    free, _ = torch.cuda.mem_get_info()
+    assert 1 <= views <= 49
+    assert views == 49 or views * 512 * 512 * (8 * backbone.embed_dim + 64) <= BATCH_MEMORY_SHARE * free
