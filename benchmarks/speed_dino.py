@@ -3,8 +3,9 @@
 The path is `geofeat.render.multiview_features`, the one of the DINO descriptors and the
 GeoLoRA trainer. Stages, each summed over the batches of views: render (rasterize + gray
 Phong shading), backbone (ImageNet normalisation, ViT forward, bilinear samples of the patch
-grid at the foreground pixels, per-pixel L2 norm) and back-projection (ball mode: KD-tree
-neighbours and a sparse product). Backbones are randomly
+grid at the foreground pixels, per-pixel L2 norm) and back-projection (ball mode: face-candidate
+neighbours and a sparse product). The first pass of each backbone (allocations, and compilation
+with ``--compile``) is timed apart. Backbones are randomly
 initialised DINOv3 architectures (no weights can be downloaded here): a tiny one and one of
 ViT-B/16 size (12 layers, width 768, 12 heads, 4 register tokens).
 
@@ -14,6 +15,7 @@ features of the ViT-B-sized backbone.
 Usage::
 
     python benchmarks/speed_dino.py --data ../shared/data --views 49 --image-size 512
+    python benchmarks/speed_dino.py --device cuda --repeats 5 --compile --out results/h100/speed_dino
 """
 
 from __future__ import annotations
@@ -32,14 +34,15 @@ from common import DEFAULT_DATA, faust_test_shapes, machine, write_results
 from geofeat.backbones import DinoBackbone
 from geofeat.evaluation.report import plot_mesh_colors
 from geofeat.render import make_cameras, multiview_features, render_phong
+from geofeat.render.multiview import auto_batch_size
 
 HERE = Path(__file__).resolve().parent
 
+VIT_B = "ViT-B/16 size (12 layers, width 768)"
+COMPILED = "ViT-B/16 size, torch.compile"
 BACKBONES = {
     "tiny (2 layers, width 32)": dict(hidden_size=32, intermediate_size=64, num_hidden_layers=2, num_attention_heads=2),
-    "ViT-B/16 size (12 layers, width 768)": dict(
-        hidden_size=768, intermediate_size=3072, num_hidden_layers=12, num_attention_heads=12
-    ),
+    VIT_B: dict(hidden_size=768, intermediate_size=3072, num_hidden_layers=12, num_attention_heads=12),
 }
 
 
@@ -52,7 +55,7 @@ def random_dinov3(seed: int, **sizes) -> DinoBackbone:
     return DinoBackbone(DINOv3ViTModel(config), kind="dinov3")
 
 
-def run_stages(mesh, cameras, backbone: DinoBackbone, batch_size: int, autocast: bool = False) -> tuple[dict, np.ndarray]:
+def run_stages(mesh, cameras, backbone: DinoBackbone, batch_size: int | None, autocast: bool) -> tuple[dict, np.ndarray]:
     """Seconds per stage and the vertex features (V, C) of one pass through the multi-view path."""
     seconds = {"render": 0.0, "forward": 0.0, "backproject": 0.0}
 
@@ -70,12 +73,28 @@ def run_stages(mesh, cameras, backbone: DinoBackbone, batch_size: int, autocast:
             synchronize()
             seconds[phase] += time.perf_counter() - start
 
+    if batch_size is None:
+        batch_size = auto_batch_size(len(cameras), cameras.height, cameras.width, backbone)
     features, _ = multiview_features(
         mesh, cameras, backbone, backproject="ball", batch_size=batch_size, autocast=autocast, timer=timer
     )
     return {"render": seconds["render"], "backbone": seconds["forward"], "backproject": seconds["backproject"]}, (
         features.cpu().numpy()
     )
+
+
+def timed_passes(mesh, cameras, backbone, args, autocast: bool) -> tuple[dict, np.ndarray]:
+    """A warm-up pass, then ``args.repeats`` timed passes: the median seconds per stage, peak GPU memory, the features."""
+    start = time.perf_counter()
+    run_stages(mesh, cameras, backbone, args.batch_size, autocast)  # warm-up: first-call allocations (and compilation)
+    first = time.perf_counter() - start
+    if backbone.device.type == "cuda":
+        torch.cuda.reset_peak_memory_stats(backbone.device)
+    passes = [run_stages(mesh, cameras, backbone, args.batch_size, autocast) for _ in range(args.repeats)]
+    seconds = {stage: float(np.median([p[0][stage] for p in passes])) for stage in passes[0][0]}
+    row = {**seconds, "total": float(np.median([sum(p[0].values()) for p in passes])), "first_pass": first}
+    row["peak_gib"] = torch.cuda.max_memory_allocated(backbone.device) / 2**30 if backbone.device.type == "cuda" else None
+    return row, passes[-1][1]
 
 
 def pca_colors(features: np.ndarray) -> np.ndarray:
@@ -110,32 +129,49 @@ def main(argv=None) -> int:
     parser.add_argument("--data", default=DEFAULT_DATA)
     parser.add_argument("--views", type=int, default=49)
     parser.add_argument("--image-size", type=int, default=512)
-    parser.add_argument("--batch-size", type=int, default=7)
+    parser.add_argument(
+        "--batch-size",
+        type=int,
+        default=None,
+        help="views per backbone call; default: as many as GPU memory allows (4 on the CPU)",
+    )
     parser.add_argument("--device", default="auto")
-    parser.add_argument("--autocast", action="store_true", help="bfloat16 autocast of the backbone (the trainer's CUDA setting)")
+    parser.add_argument(
+        "--precision",
+        choices=("auto", "bfloat16", "float32"),
+        default="auto",
+        help="the backbone's: bfloat16 autocast or float32; auto: bfloat16 on CUDA (the descriptors' default), float32 on the CPU",
+    )
+    parser.add_argument("--backbones", choices=("all", "tiny"), default="all", help="tiny: the small backbone only")
+    parser.add_argument(
+        "--compile", action="store_true", help="also time the ViT-B/16-size backbone under torch.compile (first pass = compile)"
+    )
     parser.add_argument("--repeats", type=int, default=1, help="timed passes per backbone; the median is reported")
     parser.add_argument(
         "--out", default=str(HERE / "results" / "speed_dino"), help="writes OUT.json, OUT.md, OUT_views.png, OUT_pca.png"
     )
     args = parser.parse_args(argv)
 
+    device = torch.device(args.device if args.device != "auto" else ("cuda" if torch.cuda.is_available() else "cpu"))
+    autocast = args.precision == "bfloat16" or (args.precision == "auto" and device.type == "cuda")
     mesh = faust_test_shapes(args.data, 1)[0]
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     rows, features_for_figure = [], None
-    for label, sizes in BACKBONES.items():
+    backbones = dict(list(BACKBONES.items())[:1]) if args.backbones == "tiny" else dict(BACKBONES)
+    if args.compile:
+        backbones[COMPILED] = BACKBONES[VIT_B]
+    for label, sizes in backbones.items():
         backbone = random_dinov3(0, **sizes)
-        backbone.model.to(
-            torch.device(args.device if args.device != "auto" else ("cuda" if torch.cuda.is_available() else "cpu"))
-        )
+        backbone.model.to(device)
+        if label == COMPILED:
+            backbone.model = torch.compile(backbone.model)
         cameras = make_cameras(mesh, args.views, layout="official", image_size=args.image_size, device=backbone.device)
-        run_stages(mesh, cameras[:1], backbone, 1, args.autocast)  # warm-up: first-call allocations
-        passes = [run_stages(mesh, cameras, backbone, args.batch_size, args.autocast) for _ in range(args.repeats)]
-        features = passes[-1][1]
-        seconds = {stage: float(np.median([p[0][stage] for p in passes])) for stage in passes[0][0]}
-        rows.append({"name": label, **seconds, "total": float(np.median([sum(p[0].values()) for p in passes]))})
-        print(f"{label}: " + ", ".join(f"{k} {v:.2f} s" for k, v in rows[-1].items() if k != "name"), flush=True)
-        features_for_figure = features
+        row, features = timed_passes(mesh, cameras, backbone, args, autocast)
+        rows.append({"name": label, **row})
+        print(f"{label}: " + ", ".join(f"{k} {v:.2f}" for k, v in row.items() if v is not None), flush=True)
+        if label != COMPILED:
+            features_for_figure = features
     images_for_figure = list(render_phong(mesh, None, cameras).images.cpu().numpy())  # for the figure, not timed
 
     result = {
@@ -146,25 +182,39 @@ def main(argv=None) -> int:
         "vertices": mesh.n_vertices,
         "views": args.views,
         "image_size": args.image_size,
-        "batch_size": args.batch_size,
-        "autocast": args.autocast,
+        "batch_size": args.batch_size or "auto",
+        "autocast": autocast,
         "repeats": args.repeats,
         "gpu": torch.cuda.get_device_name(backbone.device) if backbone.device.type == "cuda" else None,
         "rows": rows,
     }
+    batches = f"batches of {args.batch_size} views" if args.batch_size else "views per batch as memory allows"
     lines = [
         f"One FAUST_r shape ({mesh.name}, {mesh.n_vertices} vertices), {args.views} views at {args.image_size} x {args.image_size}, "
-        f"batches of {args.batch_size} views, device {result['device']} ({result['gpu'] or 'CPU'}), "
-        f"{'bfloat16 autocast' if args.autocast else 'float32'}, median of {args.repeats} pass(es), {result['date']}, {result['machine']}",
+        f"{batches}, device {result['device']} ({result['gpu'] or 'CPU'}), "
+        f"{'bfloat16 autocast' if autocast else 'float32'}, median of {args.repeats} pass(es), {result['date']}, {result['machine']}",
         "",
-        "| backbone (random DINOv3 weights) | render | backbone | back-project (ball) | render + back-project | total |",
-        "|---|---|---|---|---|---|",
+        "| backbone (random DINOv3 weights) | render | backbone | back-project (ball) | total | first pass | peak GPU memory |",
+        "|---|---|---|---|---|---|---|",
     ]
     for row in rows:
+        peak = f"{row['peak_gib']:.2f} GiB" if row["peak_gib"] is not None else "-"
         lines.append(
-            f"| {row['name']} | {row['render']:.2f} s | {row['backbone']:.2f} s | {row['backproject']:.2f} s | "
-            f"{row['render'] + row['backproject']:.2f} s | {row['total']:.2f} s |"
+            f"| {row['name']} | {row['render']:.3f} s | {row['backbone']:.3f} s | {row['backproject']:.3f} s | "
+            f"{row['total']:.3f} s | {row['first_pass']:.2f} s | {peak} |"
         )
+    if args.compile:
+        eager = next(r for r in rows if r["name"] == VIT_B)
+        compiled = next(r for r in rows if r["name"] == COMPILED)
+        saved = eager["total"] - compiled["total"]
+        cost = compiled["first_pass"] - compiled["total"] - (eager["first_pass"] - eager["total"])
+        result["compile"] = {"saved_per_shape_s": saved, "compile_s": cost, "pays_over_100_shapes": 100 * saved > cost}
+        lines += [
+            "",
+            f"torch.compile: {cost:.1f} s to compile, {saved * 1000:.1f} ms saved per shape, so over 100 shapes it "
+            + ("pays" if 100 * saved > cost else "does not pay")
+            + f" ({100 * saved:.1f} s saved against {cost:.1f} s).",
+        ]
     write_results(out, result, "\n".join(lines))
     save_view_grid(images_for_figure, out.parent / f"{out.name}_views.png")
     plot_mesh_colors(
