@@ -10,6 +10,19 @@ exit (Python and torch imports included), so the numbers are what a user waits f
 
 With ``--out OUT.json`` it also writes ``OUT.md``, the table; ``--render-only`` rewrites that
 table from an existing ``OUT.json`` without running anything.
+
+``--dinov3`` times the GPU case instead: ``geofeat extract --descriptor dinov3`` over the
+FAUST_r shapes of ``--data`` (``FAUST_r/off``) with a randomly initialised DINOv3 backbone
+saved as a Hugging Face folder (``--backbone vitb``: ViT-B/16 size, the default; ``tiny``:
+2 layers of width 32, for a check on a CPU), once per ``--prefetch`` value (shapes read and
+rendered on a background thread ahead of the one being encoded; 0: none), each run a fresh
+process and a fresh store. It reports the extract loop's shapes/s and seconds from the
+manifest (the backbone's loading excluded), the process's wall time and the device, in
+``results/speed_extract/dinov3_<device type>.json`` and ``.md`` unless ``--out`` says otherwise::
+
+    python benchmarks/speed_extract.py --dinov3 --data ../shared/data --device cuda
+    python benchmarks/speed_extract.py --dinov3 --backbone tiny --device cpu --first 3 \
+        --param views=4 --param image_size=64 --out /tmp/dinov3_cpu.json      # a quick check on a CPU
 """
 
 from __future__ import annotations
@@ -24,7 +37,11 @@ import tempfile
 import time
 from pathlib import Path
 
-from common import machine
+from common import DEFAULT_DATA, machine
+
+HERE = Path(__file__).resolve().parent
+#: ``--backbone`` choices: keys of `speed_dino.BACKBONES` (random DINOv3 architectures).
+DINOV3_BACKBONES = {"vitb": "ViT-B/16 size (12 layers, width 768)", "tiny": "tiny (2 layers, width 32)"}
 
 
 def free_port() -> int:
@@ -62,6 +79,109 @@ def markdown(report: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
+def faust_folder(data: str, first: int | None, tmp: Path) -> tuple[Path, int]:
+    """``<data>/FAUST_r/off``, or a folder of links to its first ``first`` shapes (sorted by name); and the count."""
+    folder = Path(data) / "FAUST_r" / "off"
+    files = sorted(folder.glob("*.off"))
+    if not files:
+        sys.exit(f"no FAUST_r shapes in {folder}; pass --data, the folder that holds FAUST_r")
+    if first is None or first >= len(files):
+        return folder, len(files)
+    subset = tmp / "shapes"
+    subset.mkdir()
+    for path in files[:first]:
+        (subset / path.name).symlink_to(path.resolve())
+    return subset, first
+
+
+def device_name(device: str) -> str:
+    """The GPU's name for a CUDA device, else the CPU model."""
+    import torch
+
+    if device.startswith("cuda") or (device == "auto" and torch.cuda.is_available()):
+        return torch.cuda.get_device_name(torch.device("cuda" if device == "auto" else device))
+    return machine().split(",")[0]
+
+
+def dinov3_markdown(report: dict) -> str:
+    """The table of a ``--dinov3`` report: one row per run, then what was run and where."""
+    params = " ".join(report["params"]) or "default parameters"
+    amp = report.get("descriptor_params", {}).get("amp")
+    precision = {"on": ", bfloat16 autocast", "off": ", float32"}.get(amp, "")
+    lines = [
+        f"`geofeat extract --descriptor dinov3` ({params}; otherwise 49 views of 512 x 512{precision}) "
+        f"over {report['shapes']} FAUST_r shapes, random DINOv3 backbone of {report['backbone']} from a Hugging Face "
+        f"folder, `--device {report['device']}` ({report['device_name']}); each run a fresh process and store. "
+        "Loop: the extract loop over the shapes, the backbone's loading excluded; process: launch to exit. "
+        f"torch {report['torch']}, transformers {report['transformers']}; {report['machine']}, {report['date']}",
+        "",
+        "| prefetch | shapes computed | loop | shapes/s | vs prefetch 0 | process |",
+        "|---|---|---|---|---|---|",
+    ]
+    base = [r["shapes_per_second"] for r in report["rows"] if r["prefetch"] == 0 and r["shapes_per_second"]]
+    for r in report["rows"]:
+        ratio = f"{r['shapes_per_second'] / (sum(base) / len(base)):.2f}x" if base and r["shapes_per_second"] else "-"
+        rate = f"{r['shapes_per_second']:.3g}" if r["shapes_per_second"] else "-"
+        lines.append(
+            f"| {r['prefetch']} | {r['computed']} | {r['wall_seconds']:.2f} s | {rate} | {ratio} | {r['process_seconds']:.2f} s |"
+        )
+    return "\n".join(lines) + "\n"
+
+
+def run_dinov3(args: argparse.Namespace) -> None:
+    """``--dinov3``: the same extract with each ``--prefetch`` value, from a fresh store each time."""
+    import torch
+    import transformers
+    from speed_dino import BACKBONES, random_dinov3
+
+    rows, descriptor_params = [], None
+    with tempfile.TemporaryDirectory(prefix="geofeat-speed-extract-dinov3-") as tmp:
+        tmp = Path(tmp)
+        folder, n_shapes = faust_folder(args.data, args.first, tmp)
+        weights = tmp / "backbone"
+        random_dinov3(0, **BACKBONES[DINOV3_BACKBONES[args.backbone]]).model.save_pretrained(weights)
+        extract = [sys.executable, "-m", "geofeat", "extract", "--descriptor", "dinov3", "--data", str(folder)]
+        extract += ["--param", f"weights={json.dumps(str(weights))}", "--device", args.device, "--no-progress"]
+        for item in args.param:
+            extract += ["--param", item]
+        env = {**os.environ, "GEOFEAT_CACHE_DIR": str(tmp / "cache")}
+        for run, prefetch in enumerate(args.prefetch * args.repeats):
+            manifest = tmp / f"{run}.json"
+            command = extract + ["--prefetch", str(prefetch), "--out", str(tmp / f"store{run}"), "--manifest", str(manifest)]
+            seconds, result = timed(command, env)
+            row = {
+                "prefetch": prefetch,
+                "computed": result["n_computed"],
+                "failed": result["n_failed"],
+                "wall_seconds": result["wall_seconds"],
+                "shapes_per_second": result["shapes_per_second"],
+                "process_seconds": round(seconds, 2),
+            }
+            rows.append(row)
+            descriptor_params = {k: v for k, v in result["params"].items() if k != "weights"}  # as resolved (amp)
+            print(
+                f"prefetch {prefetch}: {row['computed']} shapes in {row['wall_seconds']:.2f} s, "
+                f"{row['shapes_per_second'] or 0:.3g} shapes/s (process {seconds:.2f} s)",
+                flush=True,
+            )
+            if row["failed"]:
+                failed = next(r for r in result["shapes"] if r["status"] == "failed")
+                sys.exit(f"{row['failed']} shape(s) failed, e.g. {failed['shape']}: {failed['error']}")
+    report = {
+        "machine": machine(), "date": time.strftime("%Y-%m-%d"), "device": args.device, "device_name": device_name(args.device),
+        "torch": torch.__version__, "transformers": transformers.__version__, "backbone": DINOV3_BACKBONES[args.backbone],
+        "shapes": n_shapes, "data": str(Path(args.data).resolve()), "params": args.param,
+        "descriptor_params": descriptor_params, "rows": rows,
+    }  # fmt: skip
+    kind = "cuda" if args.device.startswith("cuda") or (args.device == "auto" and torch.cuda.is_available()) else "cpu"
+    out = Path(args.out) if args.out else HERE / "results" / "speed_extract" / f"dinov3_{kind}.json"
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(report, indent=1) + "\n")
+    out.with_suffix(".md").write_text(dinov3_markdown(report))
+    print(dinov3_markdown(report))
+    print(f"written: {out} and {out.with_suffix('.md')}")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--descriptor", default="wks")
@@ -71,11 +191,25 @@ def main() -> None:
     parser.add_argument("--nproc", type=int, default=2, help="torchrun processes")
     parser.add_argument("--out", help="write the results as JSON here (and the table beside it, .md)")
     parser.add_argument("--render-only", action="store_true", help="rewrite the table from the JSON of --out; run nothing")
+    dino = parser.add_argument_group("--dinov3: the GPU case, with and without read-ahead")
+    dino.add_argument("--dinov3", action="store_true", help="time geofeat extract --descriptor dinov3 per --prefetch value")
+    dino.add_argument("--backbone", choices=sorted(DINOV3_BACKBONES), default="vitb", help="random DINOv3 size (default vitb)")
+    dino.add_argument("--data", default=DEFAULT_DATA, help="the folder holding FAUST_r (default %(default)s)")
+    dino.add_argument("--first", type=int, help="only the first N FAUST_r shapes (sorted by name)")
+    dino.add_argument("--device", default="auto", help="geofeat extract's --device (default auto)")
+    dino.add_argument("--prefetch", type=int, nargs="+", default=[0, 2], help="values to compare (default 0 2)")
+    dino.add_argument("--repeats", type=int, default=1, help="runs of the whole --prefetch list (default 1)")
     args = parser.parse_args()
     if args.render_only:
         if not args.out or not Path(args.out).is_file():
             parser.error("--render-only needs --out, the results JSON of an earlier run")
-        Path(args.out).with_suffix(".md").write_text(markdown(json.loads(Path(args.out).read_text())))
+        report = json.loads(Path(args.out).read_text())
+        Path(args.out).with_suffix(".md").write_text(dinov3_markdown(report) if "backbone" in report else markdown(report))
+        return
+    if args.dinov3:
+        if args.first is not None and args.first < 1:
+            parser.error("--first must be at least 1")
+        run_dinov3(args)
         return
     rows = []
     with tempfile.TemporaryDirectory(prefix="geofeat-speed-extract-") as tmp:

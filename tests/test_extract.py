@@ -85,6 +85,31 @@ def test_cli_computes_every_shape_then_skips_them_all(collection, tmp_path, caps
     assert {p: p.stat().st_mtime_ns for p in geofeat.FeatureCache(store).entries()} == mtimes  # nothing rewritten
 
 
+def test_prefetch_changes_no_record_and_the_throughput_is_reported(collection, tmp_path, capsys):
+    manifests = {}
+    for prefetch in ("0", "2", None):
+        store, manifest = tmp_path / f"store{prefetch}", tmp_path / f"m{prefetch}.json"
+        flag = ["--prefetch", prefetch] if prefetch is not None else []
+        assert run_cli("--data", str(collection), "--out", str(store), "--manifest", str(manifest), *flag) == 0
+        assert "throughput: 5 shapes computed in " in capsys.readouterr().out
+        manifests[prefetch] = json.loads(manifest.read_text())
+    assert [m["prefetch"] for m in manifests.values()] == [0, 2, 0]  # hks prepares nothing ahead: none by default
+
+    def same(record):
+        return {k: v for k, v in record.items() if k not in ("seconds", "entry")}
+
+    assert [same(r) for r in manifests["2"]["shapes"]] == [same(r) for r in manifests["0"]["shapes"]]
+    for result in manifests.values():
+        assert result["format"] == 1 and result["n_computed"] == 5 and result["wall_seconds"] > 0
+        assert result["shapes_per_second"] == pytest.approx(5 / result["wall_seconds"], rel=0.01)  # both rounded
+    again = extract(folder_shapes(collection), "hks", KW, store=tmp_path / "store2", prefetch=2, progress=False)
+    assert (again["n_present"], again["shapes_per_second"], again["prefetch"]) == (5, None, 2)  # skipped shapes do not count
+    assert run_cli("--data", str(collection), "--out", str(tmp_path / "store2"), "--prefetch", "2") == 0
+    assert "throughput: no shape computed (" in capsys.readouterr().out
+    with pytest.raises(ExtractError, match="prefetch"):
+        extract(folder_shapes(collection), "hks", KW, store=tmp_path / "s", prefetch=1.5)
+
+
 def test_a_rerun_computes_only_what_is_missing(collection, tmp_path):
     store = geofeat.FeatureCache(tmp_path / "store")
     shapes = folder_shapes(collection)
@@ -188,6 +213,7 @@ def test_param_values_are_json_when_they_parse():
         (["--descriptor", "hks", "--param", "n_eig"], "KEY=VALUE"),
         (["--descriptor", "hks", "--export", "h5"], "--export-to FILE.h5"),
         (["--descriptor", "hks", "--export-to", "x"], "need --export"),
+        (["--descriptor", "hks", "--prefetch", "-1"], "prefetch"),
     ],
 )
 def test_bad_input_is_a_clear_error(collection, tmp_path, capsys, args, message):

@@ -371,13 +371,21 @@ def _extract_command(args: argparse.Namespace) -> int:
     with _quiet_if(args.no_progress):
         result = extract(
             shapes, args.descriptor, params, store=args.out, manifest=manifest, export=export,
-            device=args.device, progress=not args.no_progress,
+            device=args.device, prefetch=args.prefetch, progress=not args.no_progress,
         )  # fmt: skip
     if distributed.is_main():
         _out(
             f"{result['n_shapes']} shapes: {result['n_computed']} computed, {result['n_present']} already in the store, "
             f"{result['n_failed']} failed ({result['world_size']} process(es))"
         )
+        rate, slowest = result["shapes_per_second"], " (the slowest process)" if result["world_size"] > 1 else ""
+        if rate is None:
+            _out(f"throughput: no shape computed ({result['wall_seconds']:.2f} s{slowest})")
+        else:
+            _out(
+                f"throughput: {result['n_computed']} shapes computed in {result['wall_seconds']:.2f} s{slowest}, "
+                f"{rate:.3g} shapes/s"
+            )
         _out(f"store: {result['store']}")
         if result.get("manifest_error"):
             _out(f"manifest: {result['manifest_error']}; written to {result['manifest'] or 'no place at all'} instead")
@@ -529,6 +537,13 @@ def build_parser() -> argparse.ArgumentParser:
     ext.add_argument("--export-to", metavar="PATH", help="export folder (npy) or file (h5)")
     ext.add_argument("--feature-folder", metavar="NAME", help="--layout beside: folder name (default the descriptor name)")
     ext.add_argument("--device", default="auto", help="auto (the rank's local GPU, else cpu), cpu, cuda, cuda:N")
+    ext.add_argument(
+        "--prefetch",
+        type=int,
+        metavar="N",
+        help="shapes read and prepared (DINO descriptors: rendered) on a background thread ahead of the one being "
+        "computed; 0: none (default: 2 for dinov2, dinov3 and geolora, 0 for the others)",
+    )
     ext.add_argument("--no-progress", action="store_true", help="hide progress bars (they show only on a terminal anyway)")
     ext.set_defaults(func=_extract_command)
     data = sub.add_parser(

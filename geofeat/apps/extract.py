@@ -23,6 +23,7 @@ only.
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import logging
@@ -40,12 +41,12 @@ import torch
 
 from geofeat import distributed
 from geofeat._version import __version__
-from geofeat.checks import parse_key_values
+from geofeat.checks import check_integer, parse_key_values
 from geofeat.descriptors.base import Descriptor
 from geofeat.descriptors.cache import MANIFEST_SUFFIX, FeatureCache
-from geofeat.descriptors.compute import Computed, compute_each
+from geofeat.descriptors.compute import Computed, compute_each, default_prefetch
 from geofeat.descriptors.registry import make_descriptor
-from geofeat.errors import ExtractError
+from geofeat.errors import ExtractError, GeofeatError
 from geofeat.files import atomic_write, probe_writable
 from geofeat.mesh import MESH_SUFFIXES, Mesh, load_mesh
 
@@ -442,6 +443,7 @@ def extract(
     manifest: str | os.PathLike | None = None,
     export: ExportSpec | None = None,
     device: str | torch.device | None = "auto",
+    prefetch: int | None = None,
     progress: bool = True,
     on_record: Callable[[dict[str, Any]], None] | None = None,
 ) -> dict[str, Any]:
@@ -465,6 +467,12 @@ def extract(
     device : str or torch.device
         ``"auto"``: the GPU ``LOCAL_RANK`` when there are GPUs, else the CPU; given to
         descriptors that take a ``device`` (it is not part of the cache key).
+    prefetch : int, optional
+        Shapes read, looked up and prepared (for the DINO descriptors: rendered) on a
+        background thread ahead of the one being computed, so that the GPU is not left
+        waiting for them; 0: none. None: 2 for the DINO descriptors, 0 for the others (see
+        `geofeat.descriptors.compute.compute_each`, which also gives the memory it costs).
+        The features and the records are the same whatever its value.
     progress : bool
         Show a progress bar (rank 0's shard; on a terminal only, see `geofeat.progress`).
     on_record : callable, optional
@@ -474,10 +482,14 @@ def extract(
     -------
     dict
         The manifest: ``descriptor``, ``params``, ``store``, ``world_size``, counts
-        ``n_shapes``/``n_computed``/``n_present``/``n_failed``, and ``shapes``: one record
-        per shape (``shape``, ``path``, ``mesh_hash``, ``n_vertices``, ``n_channels``,
-        ``feature_shape``, ``key``, ``entry``, ``status`` in ``{"computed", "present",
-        "failed"}``, ``seconds``, ``rank``, ``export``; failed ones carry ``error``). Every
+        ``n_shapes``/``n_computed``/``n_present``/``n_failed``, the throughput
+        (``wall_seconds``: the loop over the shapes, on the slowest rank, the model's loading
+        excluded; ``shapes_per_second``: shapes computed, not those already present, per
+        second of it, None when none was computed; ``prefetch``: the read-ahead used), and
+        ``shapes``: one record per shape (``shape``, ``path``, ``mesh_hash``,
+        ``n_vertices``, ``n_channels``, ``feature_shape``, ``key``, ``entry``, ``status`` in
+        ``{"computed", "present", "failed"}``, ``seconds``, ``rank``, ``export``; failed
+        ones carry ``error``). Every
         path in it (``store``, ``path``, ``entry``, ``export``) is absolute. The returned
         dict also holds ``manifest``, the absolute path of the file written (when one was),
         and ``export`` for an HDF5 export. On ranks other than 0 under torchrun, only that
@@ -488,7 +500,8 @@ def extract(
     DescriptorError
         Unknown descriptor or parameter, bad parameter value.
     ExtractError
-        No shapes, or an export layout the shapes cannot take.
+        No shapes, an export layout the shapes cannot take, or a ``prefetch`` that is not
+        an integer >= 0.
     CacheError
         The store cannot be written.
     """
@@ -498,6 +511,8 @@ def extract(
     names = [s.name for s in shapes]
     if len(set(names)) != len(names):
         raise ExtractError("shape names must be unique within a collection (they name manifest records and exports).")
+    if prefetch is not None:
+        prefetch = check_integer(prefetch, "prefetch", low=0, error=ExtractError, expected="a number of shapes >= 0 (0: none)")
     store = store if isinstance(store, FeatureCache) else FeatureCache(store)
     with distributed.process_group(device, timeout_minutes=BARRIER_TIMEOUT_MINUTES) as rank_device:
         info = distributed.group_rank_info()
@@ -520,24 +535,37 @@ def extract(
         label = f"{descriptor} features" + (f" (rank 0 of {info.world_size})" if info.world_size > 1 else "")
         records = []
         sources = [shape.path if shape.path is not None else shape.mesh for shape in mine]
-        for outcome in compute_each(sources, instance, store, progress=progress and info.is_main, desc=label):
-            record = _record(mine[outcome.index], outcome, instance, store, export, info.rank)
-            records.append(record)
-            if on_record is not None:
-                on_record(record)
+        prefetch = default_prefetch(instance) if prefetch is None else prefetch
+        try:  # a model loads now, outside the timed loop (the store keys need its digest)
+            instance.weights_digest()
+        except GeofeatError:
+            pass  # every shape fails with this error below and its record says so
+        start = time.perf_counter()
+        outcomes = compute_each(sources, instance, store, prefetch=prefetch, progress=progress and info.is_main, desc=label)
+        with contextlib.closing(outcomes):  # an error here stops the read-ahead thread at once
+            for outcome in outcomes:
+                record = _record(mine[outcome.index], outcome, instance, store, export, info.rank)
+                records.append(record)
+                if on_record is not None:
+                    on_record(record)
+        seconds = time.perf_counter() - start
+        n_computed = sum(r["status"] == "computed" for r in records)
         log.info(
-            "rank %d of %d: %d shapes, %d computed",
+            "rank %d of %d: %d shapes, %d computed in %.2f s (%s shapes/s)",
             info.rank,
             info.world_size,
             len(records),
-            sum(r["status"] == "computed" for r in records),
+            n_computed,
+            seconds,
+            "-" if not n_computed else f"{n_computed / seconds:.3g}",
         )
         distributed.barrier()  # every rank's entries are in the store
-        gathered = distributed.gather_to_main(records)
+        gathered = distributed.gather_to_main((records, seconds))
         if not info.is_main:
-            return _manifest(instance, store, info.world_size, records)
-        merged = sorted((r for part in gathered for r in part), key=lambda r: r["shape"])
-        result = _manifest(instance, store, info.world_size, merged)
+            return _manifest(instance, store, info.world_size, records, seconds, prefetch)
+        merged = sorted((r for part, _ in gathered for r in part), key=lambda r: r["shape"])
+        slowest = max(rank_seconds for _, rank_seconds in gathered)
+        result = _manifest(instance, store, info.world_size, merged, slowest, prefetch)
         if export is not None and export.format == "h5":
             try:
                 write_h5(export.to, merged, store)
@@ -568,7 +596,8 @@ def _write_manifest(result: dict[str, Any], path: Path, store: FeatureCache) -> 
         return
 
 
-def _manifest(checked: Descriptor, store: FeatureCache, world: int, records: list[dict]) -> dict:
+def _manifest(checked: Descriptor, store: FeatureCache, world: int, records: list[dict], seconds: float, prefetch: int) -> dict:
+    n_computed = sum(r["status"] == "computed" for r in records)
     return {
         "format": MANIFEST_FORMAT,
         "geofeat_version": __version__,
@@ -577,9 +606,12 @@ def _manifest(checked: Descriptor, store: FeatureCache, world: int, records: lis
         "store": str(_absolute(store.root)),
         "world_size": world,
         "n_shapes": len(records),
-        "n_computed": sum(r["status"] == "computed" for r in records),
+        "n_computed": n_computed,
         "n_present": sum(r["status"] == "present" for r in records),
         "n_failed": sum(r["status"] == "failed" for r in records),
         "n_export_failed": sum("export_error" in r for r in records),
+        "wall_seconds": round(seconds, 4),
+        "shapes_per_second": round(n_computed / seconds, 4) if n_computed and seconds > 0 else None,
+        "prefetch": prefetch,
         "shapes": records,
     }

@@ -10,9 +10,11 @@ import contextlib
 import logging
 import multiprocessing
 import os
+import threading
 import time
+from collections import deque
 from collections.abc import Iterator, Sequence
-from concurrent.futures import ProcessPoolExecutor, as_completed
+from concurrent.futures import Future, ProcessPoolExecutor, ThreadPoolExecutor, as_completed
 from dataclasses import dataclass
 
 import numpy as np
@@ -127,16 +129,93 @@ def lookup_or_compute(
     present : bool
         True when the features were read from the store.
     """
+    found = _look_up(descriptor, mesh, store, explicit)
+    if found.features is not None:
+        return found.features, found.key, True
+    return _compute_and_store(descriptor, mesh, store, found.key, explicit), found.key, False
+
+
+@dataclass(frozen=True, eq=False)
+class _Lookup:
+    """What `_look_up` found in a store.
+
+    Attributes
+    ----------
+    key : str or None
+        The store key (`entry_key`); None without a store.
+    features : numpy.ndarray or None
+        The entry's features, shape (V, dim), float32, C-contiguous; None when the entry is
+        missing (or there is no store).
+    """
+
+    key: str | None
+    features: np.ndarray | None = None
+
+
+def _look_up(descriptor: Descriptor, mesh: Mesh, store: FeatureCache | None, explicit: bool = True) -> _Lookup:
+    """The store entry of ``descriptor`` on ``mesh``, if there is one: the first half of `lookup_or_compute`.
+
+    Raises
+    ------
+    CacheError
+        The entry is missing, ``explicit`` is True and the store cannot be written (checked
+        here, before any work).
+    """
     if store is None:
-        return descriptor(mesh), None, False
+        return _Lookup(None)
     key = entry_key(descriptor, mesh)
     hit = store.get(key, n_rows=mesh.n_vertices)
     if hit is not None:
         log.debug("cache hit %s for %s on %r", key[:12], descriptor.name, mesh.name)
-        return np.ascontiguousarray(hit, dtype=np.float32), key, True
+        return _Lookup(key, np.ascontiguousarray(hit, dtype=np.float32))
     if explicit:
         store.check_writable()  # fail before the work, not after it
-    features = descriptor(mesh)
+    return _Lookup(key)
+
+
+#: `_compute_and_store`'s ``prepared`` when nothing was prepared ahead (None is a valid result of ``prepare``).
+_NOT_PREPARED = object()
+
+
+def _compute_and_store(
+    descriptor: Descriptor,
+    mesh: Mesh,
+    store: FeatureCache | None,
+    key: str | None,
+    explicit: bool = True,
+    prepared: object = _NOT_PREPARED,
+) -> np.ndarray:
+    """Compute ``descriptor`` on ``mesh`` and write the entry ``key``: the second half of `lookup_or_compute`.
+
+    Parameters
+    ----------
+    descriptor : Descriptor
+    mesh : Mesh
+    store : FeatureCache or None
+        None: nothing is written.
+    key : str or None
+        The entry (`_look_up`'s ``key``).
+    explicit : bool
+        See `lookup_or_compute`.
+    prepared : object, optional
+        What ``descriptor.prepare(mesh)`` returned, when it ran ahead; the features are then
+        ``descriptor.compute_prepared(mesh, prepared)``, else ``descriptor(mesh)``. Either
+        way they are checked as `Descriptor.__call__` checks them.
+
+    Returns
+    -------
+    numpy.ndarray, shape (V, dim), float32, C-contiguous
+
+    Raises
+    ------
+    DescriptorError
+        Features of the wrong shape or not finite (nothing is written).
+    CacheError
+        ``explicit`` and the write failed.
+    """
+    features = descriptor(mesh) if prepared is _NOT_PREPARED else _checked_prepared(descriptor, mesh, prepared)
+    if store is None:
+        return features
     meta = {
         "mesh_hash": mesh.hash,
         "mesh_name": mesh.name,
@@ -155,7 +234,29 @@ def lookup_or_compute(
         if root not in _UNWRITABLE_WARNED:
             _UNWRITABLE_WARNED.add(root)
             log.warning("features are computed without caching (this warning is shown once): %s", err)
-    return features, key, False
+    return features
+
+
+def _checked_prepared(descriptor: Descriptor, mesh: Mesh, prepared: object) -> np.ndarray:
+    """``descriptor.compute_prepared(mesh, prepared)`` through the checks of `Descriptor.__call__` (its one copy)."""
+    return type(descriptor).__call__(_PreparedWork(descriptor, prepared), mesh)
+
+
+class _PreparedWork:
+    """``descriptor`` itself (every attribute is its), except that ``compute(mesh)`` is ``compute_prepared(mesh, prepared)``."""
+
+    def __init__(self, descriptor: Descriptor, prepared: object):
+        self._descriptor = descriptor
+        self._prepared = prepared
+
+    def compute(self, mesh: Mesh) -> np.ndarray:
+        return self._descriptor.compute_prepared(mesh, self._prepared)
+
+    def __getattr__(self, name: str):
+        return getattr(self._descriptor, name)
+
+    def __repr__(self) -> str:
+        return repr(self._descriptor)
 
 
 @dataclass(frozen=True, eq=False)
@@ -189,6 +290,20 @@ class Computed:
     seconds: float = 0.0
 
 
+#: Shapes read and prepared ahead by `compute_each` for a descriptor that prepares work (`default_prefetch`).
+DEFAULT_PREFETCH = 2
+
+
+def default_prefetch(descriptor: Descriptor) -> int:
+    """`compute_each`'s ``prefetch`` when none is given: `DEFAULT_PREFETCH` for a descriptor that prepares work ahead, else 0.
+
+    A descriptor prepares work when its class overrides `Descriptor.prepare` (the DINO
+    descriptors: cameras and renders). For the others read-ahead would only read the mesh
+    files early, a small gain that costs a thread.
+    """
+    return DEFAULT_PREFETCH if type(descriptor).prepare is not Descriptor.prepare else 0
+
+
 def compute_each(
     meshes_or_paths: Sequence[MeshLike],
     descriptor: Descriptor,
@@ -196,6 +311,7 @@ def compute_each(
     *,
     explicit: bool = True,
     n_jobs: int = 1,
+    prefetch: int | None = None,
     progress: bool = True,
     desc: str | None = None,
 ) -> Iterator[Computed]:
@@ -215,6 +331,18 @@ def compute_each(
     n_jobs : int
         Worker processes; 1 computes in this process, in input order. Workers are started
         with ``spawn`` (safe with PyTorch and OpenMP) and yield in completion order.
+    prefetch : int or None
+        With ``n_jobs == 1``: how many shapes a background thread reads, looks up in the
+        store and, when their entry is missing, prepares (``descriptor.prepare``) ahead of
+        the shape being computed, so that the next shapes' files are read and (for the DINO
+        descriptors) their views rendered while this one is encoded. 0: none, every step in
+        this thread. None: `default_prefetch` (2 for the DINO descriptors, 0 for the
+        others). The outcomes are the same either way. Memory: up to ``prefetch + 1``
+        shapes' prepared work is held at once; for a DINO descriptor that is every rendered
+        view of a shape on its device (with 49 views of 512 x 512 pixels: the shaded images,
+        the backbone's input images, face indices, barycentric coordinates and depths, about
+        0.6 GB a shape).
+        Ignored with ``n_jobs > 1``.
     progress : bool
         Show a progress bar.
     desc : str, optional
@@ -223,11 +351,27 @@ def compute_each(
     Yields
     ------
     Computed
+
+    Notes
+    -----
+    The read-ahead thread stops when the loop ends, raises or is closed (``close()`` on the
+    generator, as `compute_many` does at the first failure): shapes not started are
+    dropped, a shape being prepared is finished, and the thread has ended when the
+    generator is closed. An exception from it other than a `GeofeatError` is raised when
+    its shape's turn comes.
     """
     n_jobs = check_integer(n_jobs, "n_jobs", low=1, expected="a positive integer number of processes")
+    if prefetch is None:
+        prefetch = default_prefetch(descriptor)
+    prefetch = check_integer(prefetch, "prefetch", low=0, expected="a number of shapes >= 0 (0: no read-ahead)")
     items = list(meshes_or_paths)
     bar = progress_bar(total=len(items), desc=desc or f"{descriptor.name} features", unit="shape", show=progress)
     with bar:
+        if (n_jobs == 1 or len(items) <= 1) and prefetch > 0:
+            for outcome in _read_ahead(items, descriptor, store, explicit, prefetch):
+                bar.update()
+                yield outcome
+            return
         if n_jobs == 1 or len(items) <= 1:
             for index, item in enumerate(items):
                 outcome = _compute_one(index, item, descriptor, store, explicit)
@@ -268,6 +412,76 @@ def _compute_one(index: int, item: MeshLike, descriptor: Descriptor, store: Feat
     return Computed(index, status, features, key, mesh.hash, seconds=time.perf_counter() - start)
 
 
+@dataclass(frozen=True, eq=False)
+class _Ready:
+    """One shape read, looked up and (when its entry is missing) prepared by the read-ahead thread."""
+
+    mesh: Mesh | None = None
+    found: _Lookup | None = None
+    prepared: object = _NOT_PREPARED
+    error: GeofeatError | None = None
+    seconds: float = 0.0
+
+
+def _read_ahead(
+    items: list, descriptor: Descriptor, store: FeatureCache | None, explicit: bool, depth: int
+) -> Iterator[Computed]:
+    """`_compute_one` over ``items`` in input order, each shape read and prepared by a thread up to ``depth`` shapes ahead."""
+    stop = threading.Event()
+
+    def ready(item: MeshLike) -> _Ready:  # on the read-ahead thread
+        start = time.perf_counter()
+        mesh = None
+        try:
+            mesh = as_mesh(item)
+            found = _look_up(descriptor, mesh, store, explicit)
+            if found.features is not None or stop.is_set():  # present, or the consumer has stopped
+                return _Ready(mesh, found, seconds=time.perf_counter() - start)
+            prepared = descriptor.prepare(mesh)
+        except GeofeatError as err:
+            return _Ready(mesh, error=err, seconds=time.perf_counter() - start)
+        return _Ready(mesh, found, prepared, seconds=time.perf_counter() - start)
+
+    stored: set[str] = set()  # keys written by this loop (a mesh given twice is present the second time)
+    pending: deque[Future] = deque()
+    pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="geofeat-read-ahead")
+    try:
+        submitted = 0
+        for index in range(len(items)):
+            while submitted < len(items) and submitted <= index + depth:  # shape `index` and `depth` more
+                pending.append(pool.submit(ready, items[submitted]))
+                submitted += 1
+            done = pending.popleft().result()
+            yield _compute_ready(index, done, descriptor, store, explicit, stored)
+    finally:
+        stop.set()
+        pool.shutdown(wait=True, cancel_futures=True)
+
+
+def _compute_ready(
+    index: int, done: _Ready, descriptor: Descriptor, store: FeatureCache | None, explicit: bool, stored: set[str]
+) -> Computed:
+    """The outcome of a shape from `_read_ahead`: what `_compute_one` gives on it (on the consumer's thread)."""
+    start = time.perf_counter()
+    mesh = done.mesh
+    mesh_hash = None if mesh is None else mesh.hash
+    if done.error is not None:
+        return Computed(index, "failed", mesh_hash=mesh_hash, error=done.error, seconds=done.seconds)
+    found = done.found
+    try:
+        if found.features is None and found.key in stored:  # the same mesh earlier in this loop, stored after this look-up
+            found = _look_up(descriptor, mesh, store, explicit)
+        if found.features is not None:
+            seconds = done.seconds + time.perf_counter() - start
+            return Computed(index, "present", found.features, found.key, mesh_hash, seconds=seconds)
+        features = _compute_and_store(descriptor, mesh, store, found.key, explicit, done.prepared)
+    except GeofeatError as err:
+        return Computed(index, "failed", mesh_hash=mesh_hash, error=err, seconds=done.seconds + time.perf_counter() - start)
+    if found.key is not None:
+        stored.add(found.key)
+    return Computed(index, "computed", features, found.key, mesh_hash, seconds=done.seconds + time.perf_counter() - start)
+
+
 #: The descriptor and store of this worker process (`compute_each` with ``n_jobs > 1``).
 _WORKER: tuple[Descriptor, FeatureCache | None, bool] | None = None
 
@@ -288,6 +502,7 @@ def compute_many(
     cache: CacheArg = True,
     n_jobs: int = 1,
     progress: bool = True,
+    prefetch: int | None = None,
     **params,
 ) -> list[np.ndarray]:
     """`compute` over a collection, optionally in several processes, with a progress bar.
@@ -304,6 +519,9 @@ def compute_many(
         (safe with PyTorch and OpenMP), which costs about a second before the first result.
     progress : bool
         Show a tqdm progress bar.
+    prefetch : int or None
+        With ``n_jobs == 1``: shapes read and prepared ahead on a background thread (see
+        `compute_each`); None: 2 for the DINO descriptors, 0 for the others.
 
     Returns
     -------
@@ -318,7 +536,9 @@ def compute_many(
     descriptor = as_descriptor(descriptor, **params)  # unknown names or bad parameters fail here, not in a worker
     items = list(meshes_or_paths)
     results: list[np.ndarray | None] = [None] * len(items)
-    outcomes = compute_each(items, descriptor, resolve_cache(cache), explicit=cache is not True, n_jobs=n_jobs, progress=progress)
+    outcomes = compute_each(
+        items, descriptor, resolve_cache(cache), explicit=cache is not True, n_jobs=n_jobs, prefetch=prefetch, progress=progress
+    )
     with contextlib.closing(outcomes):
         for outcome in outcomes:
             if outcome.error is not None:

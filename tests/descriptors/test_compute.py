@@ -1,12 +1,14 @@
 """`compute` with a name or an instance, and the one loop over a collection (`compute_each`, `compute_many`)."""
 
+import threading
+
 import numpy as np
 import pytest
 from shapes import bumpy, sphere
 
 import geofeat
-from geofeat.descriptors import as_descriptor, make_descriptor
-from geofeat.descriptors.compute import compute_each
+from geofeat.descriptors import Descriptor, as_descriptor, make_descriptor
+from geofeat.descriptors.compute import compute_each, default_prefetch
 from geofeat.descriptors.spectral import HKS, WKS
 from geofeat.errors import DescriptorError, MeshError
 
@@ -80,3 +82,167 @@ def test_compute_many_in_two_worker_processes(tmp_path):
     assert len(geofeat.FeatureCache(store).entries()) == 3
     for mesh, features in zip(meshes, parallel, strict=True):  # read back from the entries the workers wrote
         np.testing.assert_array_equal(features, geofeat.compute(mesh, WKS(n_descr=8), cache=store))
+
+
+# ---- read-ahead: shapes read, looked up and prepared on a background thread (compute_each's prefetch)
+
+
+class PreparedForTests(Descriptor):
+    """A descriptor whose `prepare` does part of the work (sorted squared distances to a few vertices).
+
+    It records which thread prepared which mesh, and how many meshes were prepared when each
+    one was computed; ``wait_for`` holds the first computation until that many are prepared.
+    """
+
+    name = "prepared_for_tests"
+
+    def __init__(self, *, n_descr: int = 4, fail_on: int = -1, nan_on: int = -1):
+        self.n_descr = n_descr
+        self.fail_on = fail_on  # prepare raises a RuntimeError (not a GeofeatError) on a mesh of this many vertices
+        self.nan_on = nan_on  # compute_prepared returns NaN on a mesh of this many vertices
+        self.prepared_on: list[tuple[str, int]] = []  # (mesh name, thread ident)
+        self.computed_after: list[tuple[str, int]] = []  # (mesh name, meshes prepared by then)
+        self.wait_for = 0
+        self._enough = threading.Event()
+
+    def prepare(self, mesh):
+        if mesh.n_vertices == self.fail_on:
+            raise RuntimeError("a bug in prepare")
+        anchors = mesh.verts[:: max(1, mesh.n_vertices // self.n_descr)][: self.n_descr]
+        distances = ((mesh.verts[:, None, :] - anchors[None]) ** 2).sum(-1)
+        self.prepared_on.append((mesh.name, threading.get_ident()))
+        if len(self.prepared_on) >= self.wait_for:
+            self._enough.set()
+        return distances
+
+    def compute_prepared(self, mesh, prepared):
+        if self.wait_for and not self.computed_after:
+            assert self._enough.wait(60), "the read-ahead thread did not prepare the next shapes"
+        self.computed_after.append((mesh.name, len(self.prepared_on)))
+        if mesh.n_vertices == self.nan_on:
+            return np.full_like(prepared, np.nan)
+        return np.sqrt(prepared) / (1.0 + prepared.mean(axis=0))
+
+    def compute(self, mesh):
+        return self.compute_prepared(mesh, self.prepare(mesh))
+
+
+def named(mesh, name):
+    return geofeat.Mesh(mesh.verts, mesh.faces, name=name)
+
+
+def collection_with_trouble(tmp_path):
+    """Seven inputs: a mesh given twice (present the second time, looked up before the first is stored when read
+    ahead), a missing file in the middle, a small mesh last."""
+    meshes = [named(bumpy(seed, 2), f"m{seed}") for seed in range(4)]
+    return [meshes[0], meshes[1], meshes[0], tmp_path / "missing.off", meshes[2], meshes[3], bumpy(0, 1)]
+
+
+def summary(outcomes):
+    return [(o.index, o.status, o.key, o.mesh_hash, None if o.error is None else (type(o.error), str(o.error))) for o in outcomes]
+
+
+@pytest.mark.parametrize(
+    "make",
+    [lambda: PreparedForTests(n_descr=4, nan_on=bumpy(0, 1).n_vertices), lambda: HKS(n_descr=4, n_eig=12)],
+    ids=["prepared", "hks"],
+)
+def test_prefetch_gives_the_outcomes_and_features_of_no_prefetch(tmp_path, make):
+    items = collection_with_trouble(tmp_path)
+    runs, entries = {}, {}
+    for prefetch in (0, 1, 2):
+        descriptor = make()
+        store = geofeat.FeatureCache(tmp_path / f"store{prefetch}")
+        geofeat.compute(items[1], descriptor, cache=store)  # present before the loop
+        runs[prefetch] = list(compute_each(items, descriptor, store, prefetch=prefetch, progress=False))
+        entries[prefetch] = sorted(path.name for path in store.entries())
+    expected = runs[0]
+    last = "failed" if make().name == "prepared_for_tests" else "computed"  # non-finite features: refused, not stored
+    assert [o.status for o in expected] == ["computed", "present", "present", "failed", "computed", "computed", last]
+    assert isinstance(expected[3].error, MeshError)
+    if last == "failed":
+        assert isinstance(expected[6].error, DescriptorError) and "non-finite" in str(expected[6].error)
+    for prefetch in (1, 2):
+        assert summary(runs[prefetch]) == summary(expected) and entries[prefetch] == entries[0]
+        for a, b in zip(runs[prefetch], expected, strict=True):
+            assert (a.features is None) == (b.features is None)
+            if a.features is not None:
+                np.testing.assert_array_equal(a.features, b.features)
+    uncached = list(compute_each(items, make(), None, prefetch=2, progress=False))  # no store: nothing is present
+    assert [o.status for o in uncached] == ["computed", "computed", "computed", "failed", "computed", "computed", last]
+    np.testing.assert_array_equal(uncached[4].features, expected[4].features)
+
+
+def test_prepare_runs_on_one_background_thread_at_most_prefetch_shapes_ahead(tmp_path):
+    meshes = [named(bumpy(seed, 2), f"m{seed}") for seed in range(6)]
+    for prefetch in (1, 2, 3):
+        descriptor = PreparedForTests()
+        descriptor.wait_for = prefetch + 1  # the first shape is computed once the next `prefetch` ones are prepared
+        outcomes = list(compute_each(meshes, descriptor, None, prefetch=prefetch, progress=False))
+        assert [o.status for o in outcomes] == ["computed"] * 6
+        assert [name for name, _ in descriptor.prepared_on] == [m.name for m in meshes]  # each once, in order
+        threads = {ident for _, ident in descriptor.prepared_on}
+        assert len(threads) == 1 and threading.get_ident() not in threads
+        assert [name for name, _ in descriptor.computed_after] == [m.name for m in meshes]
+        for index, (_, prepared) in enumerate(descriptor.computed_after):
+            assert prepared <= min(index + 1 + prefetch, len(meshes)), (prefetch, index, prepared)
+        assert descriptor.computed_after[0][1] == prefetch + 1
+    present = PreparedForTests()
+    store = geofeat.FeatureCache(tmp_path / "store")
+    list(compute_each(meshes, present, store, prefetch=2, progress=False))
+    again = PreparedForTests()
+    assert {o.status for o in compute_each(meshes, again, store, prefetch=2, progress=False)} == {"present"}
+    assert again.prepared_on == []  # nothing is prepared for a shape whose entry is there
+    default = PreparedForTests()
+    list(compute_each(meshes[:3], default, None, progress=False))  # prefetch None: on, since prepare is overridden
+    assert threading.get_ident() not in {ident for _, ident in default.prepared_on}
+    hks = HKS(n_descr=4, n_eig=12)
+    with pytest.raises(DescriptorError, match="prefetch"):
+        list(compute_each(meshes, hks, None, prefetch=-1, progress=False))
+
+
+def read_ahead_threads() -> list[threading.Thread]:
+    return [t for t in threading.enumerate() if t.name.startswith("geofeat-read-ahead")]
+
+
+def test_an_early_stop_or_an_error_ends_the_read_ahead_thread(tmp_path):
+    before = set(threading.enumerate())
+    meshes = [named(bumpy(seed, 2), f"m{seed}") for seed in range(8)]
+    descriptor = PreparedForTests()
+    outcomes = compute_each(meshes, descriptor, None, prefetch=2, progress=False)
+    assert next(outcomes).status == "computed"
+    assert read_ahead_threads()  # running while the loop is
+    outcomes.close()
+    assert read_ahead_threads() == [] and set(threading.enumerate()) == before
+    assert len(descriptor.prepared_on) <= 3  # the shape computed and the 2 ahead of it, no more
+
+    stopped = PreparedForTests()  # compute_many stops at the first failure
+    with pytest.raises(MeshError):
+        geofeat.compute_many([meshes[0], tmp_path / "missing.off", *meshes[1:]], stopped, cache=False, progress=False)
+    assert set(threading.enumerate()) == before
+    assert len(stopped.prepared_on) <= 3  # shapes 0, 2 and 3 at most (the missing file is shape 1)
+
+    buggy = PreparedForTests(fail_on=bumpy(0, 1).n_vertices)  # not a GeofeatError: raised, in its turn
+    items = [meshes[0], meshes[1], bumpy(0, 1), meshes[2]]
+    seen = []
+    with pytest.raises(RuntimeError, match="a bug in prepare"):
+        for outcome in compute_each(items, buggy, None, prefetch=2, progress=False):
+            seen.append(outcome.index)
+    assert seen == [0, 1] and set(threading.enumerate()) == before
+
+
+def test_dinov3_renders_ahead_by_default_and_gives_the_same_features(tmp_path):
+    from tiny_models import tiny_dinov3
+
+    tiny_dinov3().save_pretrained(tmp_path / "v3")
+    params = {"weights": str(tmp_path / "v3"), "views": 4, "image_size": 64, "batch_size": 2, "device": "cpu"}
+    meshes = [named(bumpy(seed, 2), f"m{seed}") for seed in range(3)]
+    runs = {}
+    for prefetch in (0, None):
+        descriptor = make_descriptor("dinov3", **params)
+        store = geofeat.FeatureCache(tmp_path / f"store{prefetch}")
+        runs[prefetch] = list(compute_each(meshes, descriptor, store, prefetch=prefetch, progress=False))
+    assert default_prefetch(descriptor) == 2 and default_prefetch(HKS()) == 0
+    assert summary(runs[None]) == summary(runs[0]) and {o.status for o in runs[0]} == {"computed"}
+    for a, b in zip(runs[None], runs[0], strict=True):
+        np.testing.assert_array_equal(a.features, b.features)
