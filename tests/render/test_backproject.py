@@ -98,7 +98,7 @@ def _faust_view_batches(faust_mesh, n_views=9, size=128, batch=3):
     from geofeat.render import make_cameras, render_phong
     from geofeat.render.backproject import foreground_pixels
 
-    cameras = make_cameras(faust_mesh, n_views, layout="official", image_size=size)
+    cameras = make_cameras(faust_mesh, n_views, layout="official", image_size=size, device="cpu")
     batches = []
     rng = np.random.default_rng(0)
     for start in range(0, n_views, batch):

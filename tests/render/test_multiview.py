@@ -179,7 +179,9 @@ def test_several_shapes_in_one_call_equal_one_call_each(batch_size):
 
     backbone = DinoBackbone(tiny_dinov3(), kind="dinov3")
     meshes = [bumpy(0, 2), bumpy(1, 2), bumpy(2, 2)]
-    cameras = [make_cameras(m, n, layout="official", image_size=IMAGE_SIZE) for m, n in zip(meshes, (9, 4, 4), strict=True)]
+    cameras = [
+        make_cameras(m, n, layout="official", image_size=IMAGE_SIZE, device="cpu") for m, n in zip(meshes, (9, 4, 4), strict=True)
+    ]
     together = multiview_features_many(meshes, cameras, backbone, batch_size=batch_size, fill="zero")
     for mesh, views, many in zip(meshes, cameras, together, strict=True):
         alone = multiview_features(mesh, views, backbone, batch_size=3, fill="zero")
@@ -192,8 +194,8 @@ def test_several_shapes_need_one_image_size_and_one_camera_set_each():
 
     backbone = DinoBackbone(tiny_dinov3(), kind="dinov3")
     mesh = bumpy(0, 1)
-    small = make_cameras(mesh, 4, layout="official", image_size=IMAGE_SIZE)
-    large = make_cameras(mesh, 4, layout="official", image_size=2 * IMAGE_SIZE)
+    small = make_cameras(mesh, 4, layout="official", image_size=IMAGE_SIZE, device="cpu")
+    large = make_cameras(mesh, 4, layout="official", image_size=2 * IMAGE_SIZE, device="cpu")
     with pytest.raises(RenderError, match="one image size"):
         multiview_features_many([mesh, mesh], [small, large], backbone)
     with pytest.raises(RenderError, match="one Cameras per mesh"):
