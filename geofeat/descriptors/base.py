@@ -68,16 +68,25 @@ class Descriptor:
         raise NotImplementedError
 
     def prepare(self, mesh: Mesh) -> object | None:
-        """Work for `mesh` that may run ahead, on a background thread, while another shape is computed
-        (DINO descriptors: cameras and renders, on the descriptor's device). Default: None (nothing)."""
+        """Work for ``mesh`` that may run ahead, on a background thread, while another shape is computed.
+
+        The DINO descriptors make the cameras and render the views here, on their device.
+        Default: nothing (None).
+        """
         return None
 
     def compute_prepared(self, mesh: Mesh, prepared: object | None) -> np.ndarray:
-        """`compute` given what `prepare(mesh)` returned. Default: self.compute(mesh)."""
+        """`compute` given what ``prepare(mesh)`` returned (None: nothing was prepared). Default: ``compute(mesh)``."""
         return self.compute(mesh)
 
-    def __call__(self, mesh: Mesh) -> np.ndarray:
+    def __call__(self, mesh: Mesh, prepared: object | None = None) -> np.ndarray:
         """Compute features, shape (V, dim), C-contiguous float32, every value finite.
+
+        Parameters
+        ----------
+        mesh : Mesh
+        prepared : object, optional
+            What ``prepare(mesh)`` returned, when it ran ahead (`compute_prepared`).
 
         Raises
         ------
@@ -86,7 +95,8 @@ class Descriptor:
             cast to float32: values beyond its range). Such output is never returned, so it
             is never cached either.
         """
-        features = np.ascontiguousarray(self.compute(mesh), dtype=np.float32)
+        raw = self.compute(mesh) if prepared is None else self.compute_prepared(mesh, prepared)
+        features = np.ascontiguousarray(raw, dtype=np.float32)
         if features.ndim != 2 or features.shape[0] != mesh.n_vertices:
             raise DescriptorError(f"descriptor {self.name!r} returned shape {features.shape}; expected ({mesh.n_vertices}, dim).")
         finite = np.isfinite(features)

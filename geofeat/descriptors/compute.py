@@ -213,7 +213,7 @@ def _compute_and_store(
     CacheError
         ``explicit`` and the write failed.
     """
-    features = descriptor(mesh) if prepared is _NOT_PREPARED else _checked_prepared(descriptor, mesh, prepared)
+    features = descriptor(mesh) if prepared is _NOT_PREPARED else descriptor(mesh, prepared)
     if store is None:
         return features
     meta = {
@@ -235,28 +235,6 @@ def _compute_and_store(
             _UNWRITABLE_WARNED.add(root)
             log.warning("features are computed without caching (this warning is shown once): %s", err)
     return features
-
-
-def _checked_prepared(descriptor: Descriptor, mesh: Mesh, prepared: object) -> np.ndarray:
-    """``descriptor.compute_prepared(mesh, prepared)`` through the checks of `Descriptor.__call__` (its one copy)."""
-    return type(descriptor).__call__(_PreparedWork(descriptor, prepared), mesh)
-
-
-class _PreparedWork:
-    """``descriptor`` itself (every attribute is its), except that ``compute(mesh)`` is ``compute_prepared(mesh, prepared)``."""
-
-    def __init__(self, descriptor: Descriptor, prepared: object):
-        self._descriptor = descriptor
-        self._prepared = prepared
-
-    def compute(self, mesh: Mesh) -> np.ndarray:
-        return self._descriptor.compute_prepared(mesh, self._prepared)
-
-    def __getattr__(self, name: str):
-        return getattr(self._descriptor, name)
-
-    def __repr__(self) -> str:
-        return repr(self._descriptor)
 
 
 @dataclass(frozen=True, eq=False)
