@@ -59,6 +59,13 @@ def main(argv=None) -> int:
     parser.add_argument("--steps", type=int, default=20, help="timed steps (plus one warm-up)")
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--amp", default="auto")
+    parser.add_argument(
+        "--workers",
+        type=lambda text: text if text == "auto" else int(text),
+        default="auto",
+        help="sample worker processes (TrainConfig.workers): 0 prepares each sample inside the step; "
+        "with workers the partial column is the time a step waited for them (default auto: 0 on the CPU)",
+    )
     parser.add_argument("--data-root", default=os.environ.get("GEOFEAT_DATA", str(HERE.parent.parent / "shared" / "data")))
     args = parser.parse_args(argv)
 
@@ -66,7 +73,7 @@ def main(argv=None) -> int:
         config = TrainConfig(
             data="faust_r", data_root=args.data_root, split="train", first=10, out=tmp, image_size=args.image_size,
             views_full=args.views_full, views_partial=args.views_partial, backproject=args.backproject,
-            steps=args.steps + 1, device=args.device, amp=args.amp, progress=False,
+            steps=args.steps + 1, device=args.device, amp=args.amp, workers=args.workers, progress=False,
         )  # fmt: skip
         trainer = GeoLoraTrainer(config, backbone=random_backbone(args.model))
         trainer._start_or_resume()
@@ -75,6 +82,7 @@ def main(argv=None) -> int:
         if trainer.device.type == "cuda":
             torch.cuda.reset_peak_memory_stats()
         records = [trainer.train_step() for _ in range(args.steps + 1)][1:]
+        trainer.close()  # the sample workers, if any
     seconds = {p: float(np.median([r.seconds.get(p, 0.0) for r in records])) for p in PHASES}
     step = float(np.median([sum(r.seconds.values()) for r in records]))
     result = {
@@ -84,6 +92,7 @@ def main(argv=None) -> int:
         "partials_per_step": config.partials_per_shape,
         "device": str(trainer.device),
         "amp": config.amp,
+        "workers": trainer.workers,
         "steps_timed": len(records),
         "median_seconds": seconds,
         "median_step_seconds": step,
@@ -97,6 +106,7 @@ def main(argv=None) -> int:
     lines = [
         f"GeoLoRA step time: random DINOv3 {args.model}, {args.image_size} x {args.image_size}, "
         f"{args.views_full} + {config.partials_per_shape} x {args.views_partial} views, {trainer.device}, "
+        f"{trainer.workers} sample worker(s), "
         f"median of {len(records)} steps; {result['machine']}, {result['date']}",
         "",
         "| " + " | ".join(PHASES) + " | step | steps/s |",

@@ -162,6 +162,13 @@ class Mesh:
         """Length of the bounding-box diagonal."""
         return float(np.linalg.norm(self.verts.max(axis=0) - self.verts.min(axis=0)))
 
+    def __setstate__(self, state: dict) -> None:
+        """Unpickled (a copy, or a mesh from another process): its arrays read-only again, as when constructed."""
+        for value in state.values():
+            if isinstance(value, np.ndarray):
+                value.flags.writeable = False
+        self.__dict__.update(state)
+
     def __repr__(self) -> str:
         kind = "point cloud" if self.faces is None else f"{len(self.faces)} faces"
         return f"Mesh(name={self.name!r}, {self.n_vertices} vertices, {kind}, hash={self.hash[:12]})"

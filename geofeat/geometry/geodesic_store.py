@@ -160,10 +160,10 @@ class GeodesicStore(EntryFolder):
         entries = self._entries(mesh)
         return entries[0] if entries else None
 
-    def get(self, mesh: Mesh) -> np.ndarray | None:
-        """The stored matrix of ``mesh`` (checked, as `load` returns it), or None when not stored; never computes."""
+    def get(self, mesh: Mesh, widen: bool = True) -> np.ndarray | None:
+        """The stored matrix of ``mesh`` (checked, as `load` returns it with ``widen``), or None when not stored; never computes."""
         for path in self._entries(mesh):
-            dist = self._read(path, mesh)
+            dist = self._read(path, mesh, widen)
             if isinstance(dist, np.ndarray):
                 return dist
         return None
@@ -175,16 +175,25 @@ class GeodesicStore(EntryFolder):
         a default store that cannot be written: a warning says why).
         """
         for path in self._entries(mesh):
-            if isinstance(self._read(path, mesh), np.ndarray):
+            if isinstance(self._read(path, mesh, widen=False), np.ndarray):  # checked, not converted
                 return path
-        return self._compute(mesh)[0]
+        return self._compute(mesh, widen=False)[0]
 
-    def load(self, mesh: Mesh) -> np.ndarray:
+    def load(self, mesh: Mesh, widen: bool = True) -> np.ndarray:
         """The matrix of ``mesh``, read back (checked) or computed and stored.
+
+        Parameters
+        ----------
+        mesh : Mesh
+            V vertices.
+        widen : bool
+            False: a float16 store returns its values as stored (float16, half the memory
+            of the widened matrix; read back, the file mapped into memory). A float32 store
+            ignores it.
 
         Returns
         -------
-        numpy.ndarray, shape (V, V), float32, read-only
+        numpy.ndarray, shape (V, V), float32 (float16 for a float16 store when ``widen`` is False), read-only
             A float32 store returns exactly `geodesic_matrix` (``method="dijkstra"``,
             ``normalize=True``); read back, it is the file mapped into memory (``mmap``,
             no copy: pages shared between processes, read from the page cache). A float16
@@ -195,8 +204,8 @@ class GeodesicStore(EntryFolder):
         StoreError
             A store given a folder cannot be written (read-only, disk full, a file in the way).
         """
-        dist = self.get(mesh)
-        return dist if dist is not None else self._compute(mesh)[1]
+        dist = self.get(mesh, widen)
+        return dist if dist is not None else self._compute(mesh, widen)[1]
 
     def entry_bytes(self, n_vertices: int) -> int:
         """Size on disk of the entry of a mesh with ``n_vertices`` vertices (the ``.npy`` header included)."""
@@ -259,7 +268,7 @@ class GeodesicStore(EntryFolder):
             if not path.exists():
                 total -= size
 
-    def _compute(self, mesh: Mesh) -> tuple[Path | None, np.ndarray]:
+    def _compute(self, mesh: Mesh, widen: bool = True) -> tuple[Path | None, np.ndarray]:
         size = self.entry_bytes(mesh.n_vertices)
         too_large = self._room(size)
         if too_large is None and self.explicit:
@@ -274,8 +283,11 @@ class GeodesicStore(EntryFolder):
         stored = np.ascontiguousarray(dist, dtype=self.dtype)
         if self.dtype == np.float32:
             result = dist
-        else:
+        elif widen:
             result = stored.astype(np.float32)
+            result.flags.writeable = False
+        else:
+            result = stored.view()
             result.flags.writeable = False
         if too_large is not None:
             log.warning(
@@ -303,8 +315,8 @@ class GeodesicStore(EntryFolder):
             return None, result
         return path, result
 
-    def _read(self, path: Path, mesh: Mesh) -> np.ndarray | None:
-        """The checked float32 matrix in ``path``, or None after deleting a damaged entry."""
+    def _read(self, path: Path, mesh: Mesh, widen: bool = True) -> np.ndarray | None:
+        """The checked matrix in ``path`` (float32, or as stored when not ``widen``), or None after deleting a damaged entry."""
         n = mesh.n_vertices
         try:
             stored = np.load(path, mmap_mode="r")
@@ -316,7 +328,7 @@ class GeodesicStore(EntryFolder):
                 os.utime(path)  # recently used: the last entry the limit evicts
             except OSError as err:  # a read-only store: the order of eviction does not matter there
                 log.debug("cannot touch %s: %s", path, err)
-            if self.dtype == np.float32:
+            if self.dtype == np.float32 or not widen:
                 # No copy: the checked pages of the file are the matrix. The store never changes
                 # a file in place (it renames a new one over it or deletes it, and a mapping
                 # keeps the old content), so the array stays as checked; a copy would cost a

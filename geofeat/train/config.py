@@ -27,7 +27,7 @@ AMP_MODES = ("auto", "on", "off")
 TRAIN_PRESETS = ("default", "reference")
 #: Fields that may differ between a run and its resumption (they do not change what is learned).
 RESUMABLE_CHANGES = frozenset(
-    {"steps", "max_minutes", "progress", "device", "checkpoint_every", "validate_every", "val_pairs", "geodesic_cache"}
+    {"steps", "max_minutes", "progress", "device", "workers", "checkpoint_every", "validate_every", "val_pairs", "geodesic_cache"}
 )
 
 
@@ -95,6 +95,12 @@ class TrainConfig(JsonConfig):
         Seeds the LoRA initialisation, the shape order, the rotations and the partial shapes.
     device : str
         ``"auto"``: CUDA when present (under ``torchrun`` the rank's local GPU), else CPU.
+    workers : int or "auto"
+        Worker processes (per rank) that prepare the coming steps' samples (geodesic
+        matrix, rotations, partial shapes) while the device computes the current one; 0:
+        this process prepares each at the start of its step. ``"auto"``: 0 on the CPU, on
+        CUDA ``min(4, cores - 1)`` (the rank's share of the cores). Does not change what is
+        learned.
     checkpoint_every, validate_every : int
         Steps between checkpoints and between validations (0: only at the end).
     val_dataset : str or None
@@ -137,6 +143,7 @@ class TrainConfig(JsonConfig):
     amp: str = "auto"
     seed: int = 0
     device: str = "auto"
+    workers: int | str = "auto"
     checkpoint_every: int = 5000
     validate_every: int = 5000
     val_dataset: str | None = None
@@ -192,6 +199,10 @@ class TrainConfig(JsonConfig):
         for name in ("lr", "grad_clip", "temperature", "alpha"):
             if not is_finite_number(getattr(self, name)) or getattr(self, name) <= 0:
                 problems.append(f"{name} must be a number > 0, found {getattr(self, name)!r}")
+        if isinstance(self.workers, str) and self.workers.strip().isdigit():  # a flag's text, "2"
+            self.workers = int(self.workers)
+        if self.workers != "auto" and (not is_integer(self.workers) or self.workers < 0):
+            problems.append(f"workers must be an integer >= 0 or 'auto', found {self.workers!r}")
         if self.max_minutes is not None and (not is_finite_number(self.max_minutes) or self.max_minutes <= 0):
             problems.append(f"max_minutes must be a number > 0 or None, found {self.max_minutes!r}")
         if problems:

@@ -164,8 +164,12 @@ class TorchGeodesicStore(geodesic_store.GeodesicStore):
 
     def load(self, mesh: Mesh, device: str | torch.device = "cpu") -> torch.Tensor:
         """The (V, V) float32 matrix of ``mesh`` on ``device``; computed when missing, recomputed when the file is damaged."""
+        return self.load_stored(mesh).to(device).float()
+
+    def load_stored(self, mesh: Mesh) -> torch.Tensor:
+        """The matrix of ``mesh`` as stored: (V, V) float16 on the CPU, a copy (`load` widens it to float32)."""
         try:
-            dist = super().load(mesh)
+            dist = super().load(mesh, widen=False)
         except MeshError as exc:
             raise TrainingError(str(exc)) from exc
-        return torch.from_numpy(np.array(dist)).to(device)
+        return torch.from_numpy(np.array(dist))

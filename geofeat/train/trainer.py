@@ -17,9 +17,16 @@ One step (the GeoLoRA recipe):
 
 The samples (a full shape with its rotation and partial shapes) form one seeded sequence:
 sample ``g`` is the full shape at position ``g`` of the per-epoch permutations, with every
-random draw from ``numpy.random.default_rng([seed, g])``. One process takes sample ``s`` at
-step ``s``, so a run resumed from a checkpoint continues exactly as the uninterrupted run
-would have.
+random draw from ``numpy.random.default_rng([seed, g])`` (`geofeat.train.samples` states the
+rule). One process takes sample ``s`` at step ``s``, so a run resumed from a checkpoint
+continues exactly as the uninterrupted run would have.
+
+Steps 1 to 3 are CPU work (`geofeat.train.samples.prepare_sample`: reading the geodesic matrix,
+the rotations, the partial shapes); steps 4 and 5 are the device's. With ``config.workers``
+worker processes (`geofeat.train.samples.SamplePrefetcher`, started by `GeoLoraTrainer.fit` or
+by the first `GeoLoraTrainer.train_step`) the CPU work of the coming steps runs in the
+background while the device computes the current one; with none it runs in this process at
+the start of the step. Both give the same samples, so the same training to the bit.
 
 Several processes (``torchrun``, one rank per GPU; see `GeoLoraTrainer.sample_indices`):
 at each step rank ``r`` of ``W`` takes the ``shapes_per_rank`` samples from
@@ -36,9 +43,9 @@ position, so a run resumes on any number of ranks and continues the sequence wit
 repeating or skipping a sample (with another rank count, the grouping of samples into
 steps differs from the uninterrupted run).
 
-A run folder holds ``config.json``, ``log.csv`` (one row per step: loss, seconds per phase,
-validation error on validation steps) and ``checkpoints/step_NNNNNNN/`` (an adapter folder
-loadable by the ``geolora`` descriptor, with ``trainer_state.pt`` beside it). How
+A run folder holds ``config.json``, ``log.csv`` (one row per step: loss, seconds per phase
+of `PHASES`, validation error on validation steps) and ``checkpoints/step_NNNNNNN/`` (an
+adapter folder loadable by the ``geolora`` descriptor, with ``trainer_state.pt`` beside it). How
 checkpoints are written, read back and recovered after a crash is `geofeat.train.checkpoints`.
 """
 
@@ -61,16 +68,15 @@ from geofeat.backbones.lora import LoraSettings, add_lora, load_adapter
 from geofeat.datasets.records import Match
 from geofeat.errors import TrainingError
 from geofeat.evaluation.protocol import evaluate_pair, summarize
-from geofeat.geometry.partial import make_partial
 from geofeat.mesh import Mesh
 from geofeat.progress import progress_bar
 from geofeat.render import make_cameras, multiview_features
-from geofeat.render.cameras import rotation_about_up
 from geofeat.render.multiview import RECIPES
 from geofeat.train import checkpoints
 from geofeat.train.checkpoints import DeferredInterrupt
 from geofeat.train.config import RESUMABLE_CHANGES, TrainConfig
 from geofeat.train.losses import geodesic_point_info_nce, point_info_nce
+from geofeat.train.samples import PreparedSample, SampleDataset, SamplePrefetcher, resolve_workers, rotate_about_up
 from geofeat.train.shapes import TorchGeodesicStore, load_training_shapes
 
 log = logging.getLogger(__name__)
@@ -82,29 +88,14 @@ __all__ = [
     "rotate_about_up",
 ]
 
-#: Timed phases of a step, in order.
+#: Timed phases of a step, in order (the ``t_<phase>`` columns of ``log.csv``, seconds). Without
+#: worker processes, ``geodesics`` is the reading of the geodesic matrix from the store and
+#: ``partial`` the rotations and partial shapes; with workers, that work is done in the
+#: background and ``partial`` is the time this process waited for the worker's samples (0 when
+#: they were ready). Both ways ``geodesics`` includes the copy of the matrix (and the ground
+#: truth) to the device and its widening to float32.
 PHASES = ("geodesics", "partial", "render", "forward", "backproject", "loss", "backward", "optimizer")
 _LOG_COLUMNS = ("step", "elapsed_s", "loss", "n_partials", "val_geodesic_error", *(f"t_{p}" for p in PHASES))
-
-
-def rotate_about_up(mesh: Mesh, angle_degrees: float) -> Mesh:
-    """The mesh turned about the y (up) axis through the origin; same vertex order.
-
-    The rotation is `geofeat.render.cameras.rotation_about_up`, the one that turns a camera rig.
-
-    Parameters
-    ----------
-    mesh : Mesh
-        V vertices.
-    angle_degrees : float
-        Counter-clockwise seen from +y.
-
-    Returns
-    -------
-    Mesh
-        Vertices (V, 3) float64 turned, faces and name unchanged.
-    """
-    return Mesh(mesh.verts @ rotation_about_up(angle_degrees).T, mesh.faces, mesh.name)
 
 
 @dataclass
@@ -175,6 +166,10 @@ class GeoLoraTrainer:
         if not self.shapes:
             raise TrainingError(f"no training shape in {config.data!r}.")
         self.geodesics = TorchGeodesicStore(config.geodesic_cache)
+        #: Worker processes that prepare the samples (`geofeat.train.samples.resolve_workers` of ``config.workers``).
+        self.workers = resolve_workers(config.workers, self.device)
+        self._samples = SampleDataset(config, self.shapes, self.geodesics.folder)
+        self._prefetcher: SamplePrefetcher | None = None
         self.backbone = (
             backbone
             if backbone is not None
@@ -342,12 +337,6 @@ class GeoLoraTrainer:
 
     # ------------------------------------------------------------------ one step
 
-    def _shape_index(self, index: int) -> int:
-        """The full shape of global sample ``index``: a seeded permutation of the shapes per epoch."""
-        n = len(self.shapes)
-        order = np.random.default_rng([self.config.seed, index // n, 1]).permutation(n)
-        return int(order[index % n])
-
     def _sample_position(self, step: int) -> int:
         """Global index of the first sample of ``step`` (the samples drawn before it, on all ranks)."""
         origin_step, origin_sample = self._origin
@@ -360,7 +349,8 @@ class GeoLoraTrainer:
         of the earlier steps; rank ``r`` takes ``shapes_per_rank`` consecutive ones, from
         ``position(s) + r * shapes_per_rank``, where ``position(s) = s * W * shapes_per_rank`` for a
         run that kept its rank count (a resumed run continues from the position saved in
-        its checkpoint). Sample ``g`` is the full shape ``_shape_index(g)`` with every draw from
+        its checkpoint). Sample ``g`` is `geofeat.train.samples.prepare_sample` of ``g``: the full shape
+        ``geofeat.train.samples.shape_index(seed, n_shapes, g)`` with every draw from
         ``numpy.random.default_rng([seed, g])``: one process (``g = s``) draws as before.
         """
         step = self.step if step is None else step
@@ -373,38 +363,97 @@ class GeoLoraTrainer:
             return geodesic_point_info_nce(feat_partial, feat_full, gt, dist, offset=self.config.offset, **options)
         return point_info_nce(feat_partial, feat_full, gt, **options)
 
-    def _sample_loss(self, index: int, timer: _Timer) -> tuple[torch.Tensor | None, int]:
-        """The mean loss of the partial shapes of global sample ``index`` and their number (None, 0: none usable).
+    def _sample_features(self, full: Mesh, partials: list[Mesh], timer: _Timer) -> list[tuple[torch.Tensor, torch.Tensor]]:
+        """Features of the shapes of one sample: the full shape first, then each partial shape.
 
-        Draws the full shape, its rotation, the generators, seeds and turns of its partial
-        shapes from ``numpy.random.default_rng([seed, index])``.
+        Parameters
+        ----------
+        full : Mesh
+            The turned full shape, V vertices; rendered from ``config.views_full`` cameras.
+        partials : list of Mesh
+            The turned partial shapes; each rendered from ``config.views_partial`` cameras.
+        timer : _Timer
+            Charged with "render", "forward" and "backproject".
+
+        Returns
+        -------
+        list of (torch.Tensor, torch.Tensor)
+            ``1 + len(partials)`` pairs of `shape_features`: features (n, C) float32 with their
+            autograd graph, and ``seen`` (n,) bool.
         """
         config = self.config
-        rng = np.random.default_rng([config.seed, index])
-        mesh = self.shapes[self._shape_index(index)]
+        features = [self.shape_features(full, config.views_full, timer)]
+        features.extend(self.shape_features(partial, config.views_partial, timer) for partial in partials)
+        return features
+
+    def _sample_loss(self, sample: PreparedSample, timer: _Timer) -> tuple[torch.Tensor | None, int]:
+        """The mean loss of the partial shapes of a prepared sample and their number (None, 0: none usable).
+
+        The sample's CPU tensors go to the device here (asynchronously when pinned), the
+        geodesic matrix widened there from float16 to float32.
+        """
         with timer("geodesics"):
-            dist = self.geodesics.load(mesh, self.device)
-        with timer("partial"):
-            full = rotate_about_up(mesh, rng.uniform(0.0, 360.0))
-            partials = []
-            for _ in range(config.partials_per_shape):
-                kind = config.partial_kinds[rng.integers(len(config.partial_kinds))]
-                partial = make_partial(full, kind, seed=int(rng.integers(2**63 - 1)))
-                turned = rotate_about_up(partial.mesh, rng.uniform(0.0, 360.0))
-                gt = torch.tensor(partial.vertex_map, dtype=torch.int64, device=self.device)
-                partials.append((turned, gt))
-        feat_full, seen_full = self.shape_features(full, config.views_full, timer)
+            dist = sample.geodesics.to(self.device, non_blocking=True).float()
+            gts = [gt.to(self.device, non_blocking=True) for _, gt in sample.partials]
+        features = self._sample_features(sample.full, [mesh for mesh, _ in sample.partials], timer)
+        feat_full, seen_full = features[0]
         losses = []
-        for turned, gt in partials:
-            feat_partial, seen_partial = self.shape_features(turned, config.views_partial, timer)
+        for (feat_partial, seen_partial), gt in zip(features[1:], gts, strict=True):
             with timer("loss"):
                 try:
                     losses.append(self._loss(feat_partial, feat_full, gt, dist, seen_partial, seen_full))
                 except TrainingError as err:  # e.g. no partial vertex seen: as the release, skip
-                    log.warning("step %d, sample %d: skipped a partial shape of %s: %s", self.step, index, mesh.name, err)
+                    log.warning(
+                        "step %d, sample %d: skipped a partial shape of %s: %s", self.step, sample.index, sample.full.name, err
+                    )
         if not losses:
             return None, 0
         return torch.stack(losses).mean(), len(losses)
+
+    def _next_samples(self, timer: _Timer) -> list[PreparedSample]:
+        """The prepared samples of the coming step (`sample_indices`).
+
+        With worker processes: from the running `SamplePrefetcher`, started (or restarted)
+        at the current step when there is none or it stands at another step (the wait is
+        charged to "partial"); made here when the step is past ``config.steps`` (the loader
+        prepares no further). Without: made here, charged to "geodesics" and "partial".
+        """
+        if self.workers > 0 and self.step < self.config.steps:
+            if self._prefetcher is None or self._prefetcher.next_step != self.step:
+                self._start_prefetch()
+            with timer("partial"):
+                samples = self._prefetcher.take(self.step)
+            if samples is not None:
+                return samples
+        return [self._samples.prepare(index, timer) for index in self.sample_indices()]
+
+    def _start_prefetch(self) -> None:
+        """(Re)start the worker processes at the current step, up to ``config.steps``; nothing without workers."""
+        self.close()
+        if self.workers > 0 and self.step < self.config.steps:
+            self._prefetcher = SamplePrefetcher(
+                self._samples, self.sample_indices, self.step, self.config.steps, self.workers,
+                pin_memory=self.device.type == "cuda", seed=self.config.seed,
+            )  # fmt: skip
+
+    @contextlib.contextmanager
+    def _prefetching(self):
+        """The worker processes run inside the block (none without ``config.workers``); they are stopped however it ends."""
+        self._start_prefetch()
+        try:
+            yield
+        finally:
+            self.close()
+
+    def close(self) -> None:
+        """Stop the worker processes that prepare samples, if any, and wait for them.
+
+        `fit` does it before it returns or raises; call it after running `train_step`
+        yourself with ``workers`` (a later `train_step` starts them again).
+        """
+        prefetcher, self._prefetcher = self._prefetcher, None
+        if prefetcher is not None:
+            prefetcher.close()
 
     def _average_gradients(self, n_shapes: int) -> None:
         """Turn the gradients summed over this rank's shapes into the mean over the ``n_shapes`` of all ranks.
@@ -438,8 +487,8 @@ class GeoLoraTrainer:
         self.backbone.model.eval()
         self.optimizer.zero_grad(set_to_none=True)
         loss_sum, n_shapes, n_partials = 0.0, 0, 0
-        for index in self.sample_indices():
-            loss, count = self._sample_loss(index, timer)
+        for sample in self._next_samples(timer):
+            loss, count = self._sample_loss(sample, timer)
             if loss is None:
                 continue
             with timer("backward"):
@@ -533,7 +582,9 @@ class GeoLoraTrainer:
 
         Validates at the start of a new run, every ``validate_every`` steps and at the end;
         checkpoints every ``checkpoint_every`` steps and at the end. The first Ctrl-C finishes
-        the current step, saves a checkpoint and raises ``KeyboardInterrupt``.
+        the current step, saves a checkpoint and raises ``KeyboardInterrupt``. The sample
+        workers (``config.workers``) start before the first validation and are stopped (and
+        waited for) before this returns or raises.
 
         Under ``torchrun`` every rank calls this; rank 0 alone writes ``log.csv``, validates
         and saves checkpoints, while the others go on to the next step's all-reduce (which
@@ -542,6 +593,7 @@ class GeoLoraTrainer:
         once the last checkpoint is on disk.
         """
         config, main = self.config, self.ranks.is_main
+        self.close()  # workers started by earlier train_step calls stand at the position before resuming
         resumed = self._start_or_resume()
         if main:
             checkpoints.truncate_log(self.out, self.step if resumed else None, _LOG_COLUMNS)
@@ -550,7 +602,7 @@ class GeoLoraTrainer:
             self.geodesics.ensure(mesh)
         distributed.barrier()  # (a rank that does not see the shared store computes what it lacks on first use)
         start = time.perf_counter()
-        with self._log_file() as (handle, writer):
+        with self._prefetching(), self._log_file() as (handle, writer):
             if not resumed and main:
                 self._validation_row(writer, 0.0)
                 checkpoints.sync_log(handle)

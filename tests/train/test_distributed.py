@@ -3,8 +3,9 @@
 One module fixture starts two processes with `torch.multiprocessing.spawn` and the variables
 torchrun sets (RANK, WORLD_SIZE, LOCAL_RANK, MASTER_ADDR, MASTER_PORT); each runs the
 ``geofeat train-geolora`` command (`geofeat.apps.cli.main`) twice: a new 2-rank run, then the
-resumption on 2 ranks of a run that one process started. The tests compare those runs with
-single-process runs of the same command.
+resumption on 2 ranks of a run that one process started, both with two sample worker
+processes per rank (``--workers 2``). The tests compare those runs with single-process runs
+of the same command (without workers).
 """
 
 from __future__ import annotations
@@ -65,7 +66,8 @@ def _rank_main(rank: int, world: int, port: int, root: Path) -> None:
         setattr(GeoLoraTrainer, method, counted(method, getattr(GeoLoraTrainer, method)))
     record = {}
     with distributed.process_group("cpu"):  # one group for both commands (each leaves a started group running)
-        for job, argv in (("new", _argv(root, "ddp", 2, *_VALIDATION)), ("grow", _argv(root, "grow", 3))):
+        workers = ("--workers", "2")
+        for job, argv in (("new", _argv(root, "ddp", 2, *_VALIDATION, *workers)), ("grow", _argv(root, "grow", 3, *workers))):
             calls.clear()
             output = io.StringIO()
             with contextlib.redirect_stdout(output):

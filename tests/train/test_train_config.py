@@ -11,7 +11,7 @@ from tiny_models import tiny_dinov3
 import geofeat
 from geofeat.apps.cli import main
 from geofeat.errors import TrainingError
-from geofeat.train.config import TrainConfig
+from geofeat.train.config import RESUMABLE_CHANGES, TrainConfig
 from geofeat.train.shapes import load_training_shapes, prepare_full_shape
 
 
@@ -37,6 +37,16 @@ def test_defaults_are_the_paper_settings():
 def test_bad_settings_are_refused(bad, message):
     with pytest.raises(TrainingError, match=message):
         TrainConfig(**({"data": "x"} | bad))
+
+
+def test_workers_setting_is_checked_and_resumable():
+    assert TrainConfig(data="x").workers == "auto"
+    assert TrainConfig(data="x", workers="2").workers == 2  # the text of a command-line flag
+    for bad in (-1, "many", 1.5, True):
+        with pytest.raises(TrainingError, match="workers must be an integer >= 0 or 'auto'"):
+            TrainConfig(data="x", workers=bad)
+    assert TrainConfig(data="x", workers=3).changes_from(TrainConfig(data="x")) == ["workers"]
+    assert "workers" in RESUMABLE_CHANGES
 
 
 def test_files_round_trip_and_flags_win(tmp_path, caplog):
