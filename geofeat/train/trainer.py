@@ -8,10 +8,10 @@ One step (the GeoLoRA recipe):
    HOLES / RAY, each turned by its own random angle about the up axis (the known vertex
    map is the ground truth);
 4. render the full shape from ``views_full`` and every partial shape from ``views_partial``
-   cameras of the official grid, run the LoRA backbone with gradients, sample its patch
-   features at the foreground pixels and back-project them, through
-   `geofeat.render.multiview_features`, the path of the ``geolora`` descriptor (vertices seen
-   in no view keep zero features);
+   cameras of the official grid, run the LoRA backbone with gradients on all these views in
+   one call, sample its patch features at the foreground pixels and back-project them to
+   each shape, through `geofeat.render.multiview.multiview_features_many`, the path of the
+   ``geolora`` descriptor (vertices seen in no view keep zero features);
 5. average the (geodesic-weighted) PointInfoNCE of the partial shapes, back-propagate, clip
    the gradient norm and take an Adam step.
 
@@ -70,8 +70,8 @@ from geofeat.errors import TrainingError
 from geofeat.evaluation.protocol import evaluate_pair, summarize
 from geofeat.mesh import Mesh
 from geofeat.progress import progress_bar
-from geofeat.render import make_cameras, multiview_features
-from geofeat.render.multiview import RECIPES
+from geofeat.render import make_cameras
+from geofeat.render.multiview import RECIPES, MultiviewFeatures, multiview_features_many
 from geofeat.train import checkpoints
 from geofeat.train.checkpoints import DeferredInterrupt
 from geofeat.train.config import RESUMABLE_CHANGES, TrainConfig
@@ -327,11 +327,36 @@ class GeoLoraTrainer:
             on (`torch.is_grad_enabled`): training steps; validation runs under ``no_grad``.
         seen : torch.Tensor, shape (V,), bool
         """
-        cameras = make_cameras(
-            mesh, n_views, layout=self.config.camera_layout, image_size=self.config.image_size, device=self.device
-        )
-        return multiview_features(
-            mesh, cameras, self.backbone, recipe=RECIPES[self.config.preset], backproject=self.config.backproject,
+        return self.shapes_features([mesh], [n_views], timer, fill)[0]
+
+    def shapes_features(
+        self, meshes: list[Mesh], n_views: list[int], timer: _Timer | None = None, fill: str = "zero"
+    ) -> list[MultiviewFeatures]:
+        """`shape_features` of several meshes, their views encoded together in one backbone call.
+
+        `geofeat.render.multiview.multiview_features_many` with the run's settings: a training
+        step sends the full shape and its partial shapes at once (9 + 2 x 4 views).
+
+        Parameters
+        ----------
+        meshes : list of Mesh
+        n_views : list of int
+            Views of each mesh.
+        timer : _Timer, optional
+        fill : {"zero", "nearest"}
+
+        Returns
+        -------
+        list of MultiviewFeatures
+            One per mesh, as `shape_features` returns it.
+        """
+        config = self.config
+        cameras = [
+            make_cameras(mesh, views, layout=config.camera_layout, image_size=config.image_size, device=self.device)
+            for mesh, views in zip(meshes, n_views, strict=True)
+        ]
+        return multiview_features_many(
+            meshes, cameras, self.backbone, recipe=RECIPES[config.preset], backproject=config.backproject,
             fill=fill, grad=torch.is_grad_enabled(), autocast=self._autocast(), timer=timer,
         )  # fmt: skip
 
@@ -379,12 +404,12 @@ class GeoLoraTrainer:
         -------
         list of (torch.Tensor, torch.Tensor)
             ``1 + len(partials)`` pairs of `shape_features`: features (n, C) float32 with their
-            autograd graph, and ``seen`` (n,) bool.
+            autograd graph, and ``seen`` (n,) bool. All views go through the backbone in one call
+            (`shapes_features`).
         """
         config = self.config
-        features = [self.shape_features(full, config.views_full, timer)]
-        features.extend(self.shape_features(partial, config.views_partial, timer) for partial in partials)
-        return features
+        views = [config.views_full] + [config.views_partial] * len(partials)
+        return [tuple(f) for f in self.shapes_features([full, *partials], views, timer)]
 
     def _sample_loss(self, sample: PreparedSample, timer: _Timer) -> tuple[torch.Tensor | None, int]:
         """The mean loss of the partial shapes of a prepared sample and their number (None, 0: none usable).
