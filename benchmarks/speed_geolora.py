@@ -20,6 +20,7 @@ import json
 import os
 import sys
 import tempfile
+import time
 from pathlib import Path
 
 import numpy as np
@@ -55,7 +56,8 @@ def main(argv=None) -> int:
     parser.add_argument("--image-size", type=int, default=128)
     parser.add_argument("--views-full", type=int, default=9)
     parser.add_argument("--views-partial", type=int, default=4)
-    parser.add_argument("--backproject", default="face")
+    parser.add_argument("--backproject", default=None, help="default: the preset's (ball)")
+    parser.add_argument("--out", help="results name in benchmarks/results (default speed_geolora_<model>_<size>_<device>)")
     parser.add_argument("--steps", type=int, default=20, help="timed steps (plus one warm-up)")
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--amp", default="auto")
@@ -81,7 +83,10 @@ def main(argv=None) -> int:
             trainer.geodesics.ensure(mesh)  # computed once per shape, outside the timed steps
         if trainer.device.type == "cuda":
             torch.cuda.reset_peak_memory_stats()
-        records = [trainer.train_step() for _ in range(args.steps + 1)][1:]
+        records = [trainer.train_step()]  # warm-up (allocations; the sample workers start)
+        start = time.perf_counter()
+        records = [trainer.train_step() for _ in range(args.steps)]
+        wall = (time.perf_counter() - start) / args.steps
         trainer.close()  # the sample workers, if any
     seconds = {p: float(np.median([r.seconds.get(p, 0.0) for r in records])) for p in PHASES}
     step = float(np.median([sum(r.seconds.values()) for r in records]))
@@ -97,21 +102,30 @@ def main(argv=None) -> int:
         "median_seconds": seconds,
         "median_step_seconds": step,
         "steps_per_second": 1.0 / step,
+        "wall_seconds_per_step": wall,
+        "wall_steps_per_second": 1.0 / wall,
+        "hours_for_50000_steps": 50000 * wall / 3600,
         "peak_cuda_memory_gib": torch.cuda.max_memory_allocated() / 2**30 if trainer.device.type == "cuda" else None,
         "machine": machine(),
         "date": datetime.date.today().isoformat(),
     }
-    name = f"speed_geolora_{args.model}_{args.image_size}_{trainer.device.type}"
+    name = args.out or f"speed_geolora_{args.model}_{args.image_size}_{trainer.device.type}"
     (HERE / "results" / f"{name}.json").write_text(json.dumps(result, indent=1) + "\n")
     lines = [
         f"GeoLoRA step time: random DINOv3 {args.model}, {args.image_size} x {args.image_size}, "
         f"{args.views_full} + {config.partials_per_shape} x {args.views_partial} views, {trainer.device}, "
         f"{trainer.workers} sample worker(s), "
-        f"median of {len(records)} steps; {result['machine']}, {result['date']}",
+        f"{'bfloat16 autocast' if trainer._autocast() else 'float32'}, back-projection "
+        f"{config.backproject or 'of the preset (ball)'}, median seconds of {len(records)} steps "
+        f"(step: the sum of the phases; wall: the timed steps' wall clock, {result['hours_for_50000_steps']:.1f} h "
+        f"for 50,000 steps); {result['machine']}, {result['date']}",
         "",
-        "| " + " | ".join(PHASES) + " | step | steps/s |",
-        "|" + "---|" * (len(PHASES) + 2),
-        "| " + " | ".join(f"{seconds[p]:.3f}" for p in PHASES) + f" | {step:.3f} | {1.0 / step:.2f} |",
+        "| " + " | ".join(PHASES) + " | step | steps/s | wall steps/s | peak GPU memory |",
+        "|" + "---|" * (len(PHASES) + 4),
+        "| "
+        + " | ".join(f"{seconds[p]:.3f}" for p in PHASES)
+        + f" | {step:.3f} | {1.0 / step:.2f} | {1.0 / wall:.2f} | "
+        + (f"{result['peak_cuda_memory_gib']:.2f} GiB |" if result["peak_cuda_memory_gib"] is not None else "- |"),
     ]
     (HERE / "results" / f"{name}.md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
