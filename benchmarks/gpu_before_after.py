@@ -1,0 +1,105 @@
+"""Before and after on one GPU: the multi-view DINO path and a GeoLoRA step, stage by stage.
+
+Reads the JSON results that `speed_dino.py` and `speed_geolora.py` wrote for the code as it
+was (``<folder>/before/``) and as it is (``<folder>/``), measured on the same kind of GPU, and
+writes ``<folder>/before_after.md``: seconds per stage, peak GPU memory and the ratio.
+
+    python benchmarks/speed_dino.py --device cuda --repeats 5 --out benchmarks/results/h100/speed_dino_bf16
+    python benchmarks/speed_geolora.py --model vitb16 --image-size 512 --device cuda --steps 20 \\
+        --out h100/speed_geolora_vitb16_512_cuda
+    python benchmarks/gpu_before_after.py --folder benchmarks/results/h100
+
+(the ``before/`` files come from the same two scripts run on an earlier version of geofeat).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parent
+VIT_B = "ViT-B/16 size (12 layers, width 768)"
+DINO_STAGES = ("render", "backbone", "backproject", "total")
+GEOLORA_PHASES = ("geodesics", "partial", "render", "forward", "backproject", "loss", "backward", "optimizer")
+
+
+def _ratio(before: float, after: float) -> str:
+    return f"{before / after:.1f}x" if after > 0 else "-"
+
+
+def dino_table(before: dict, after: dict) -> list[str]:
+    """Rows of the ViT-B/16-size backbone, before and after."""
+    old = next(r for r in before["rows"] if r["name"] == VIT_B)
+    new = next(r for r in after["rows"] if r["name"] == VIT_B)
+    lines = [
+        f"Multi-view DINO path, one FAUST_r shape ({after['vertices']} vertices), {after['views']} views at "
+        f"{after['image_size']} x {after['image_size']}, random DINOv3 of ViT-B/16 size, "
+        f"{'bfloat16 autocast' if after['autocast'] else 'float32'}, median of {after['repeats']} passes, "
+        f"{after['gpu']}. Before: {before['date']}, batches of {before['batch_size']} views; "
+        f"after: {after['date']}, views per batch {after['batch_size']}.",
+        "",
+        "| seconds per shape | " + " | ".join(DINO_STAGES) + " |",
+        "|---|" + "---|" * len(DINO_STAGES),
+        "| before | " + " | ".join(f"{old[s]:.3f}" for s in DINO_STAGES) + " |",
+        "| after | " + " | ".join(f"{new[s]:.3f}" for s in DINO_STAGES) + " |",
+        "| speed-up | " + " | ".join(_ratio(old[s], new[s]) for s in DINO_STAGES) + " |",
+    ]
+    if new.get("peak_gib") is not None:
+        lines += ["", f"Peak GPU memory after: {new['peak_gib']:.2f} GiB."]
+    return lines
+
+
+def geolora_table(before: dict, after: dict) -> list[str]:
+    """Median seconds per phase of a GeoLoRA step, before and after."""
+    old, new = before["median_seconds"], after["median_seconds"]
+    old_step, new_step = before["median_step_seconds"], after["median_step_seconds"]
+    wall = after.get("wall_seconds_per_step")
+    lines = [
+        f"GeoLoRA training step at the paper's settings (DINOv3 ViT-B/16 size, {after['image_size']} x "
+        f"{after['image_size']}, {after['views'][0]} + {after['partials_per_step']} x {after['views'][1]} views, "
+        f"ball back-projection, bfloat16 autocast), median seconds per phase. Before: {before['date']}, "
+        f"{before['steps_timed']} steps; after: {after['date']}, {after['steps_timed']} steps, "
+        f"{after.get('workers', 0)} sample workers.",
+        "",
+        "| | " + " | ".join(GEOLORA_PHASES) + " | step | steps/s | 50,000 steps |",
+        "|---|" + "---|" * (len(GEOLORA_PHASES) + 3),
+        "| before | "
+        + " | ".join(f"{old[p]:.3f}" for p in GEOLORA_PHASES)
+        + f" | {old_step:.3f} | {1 / old_step:.2f} | {50000 * old_step / 3600:.1f} h |",
+        "| after | "
+        + " | ".join(f"{new[p]:.3f}" for p in GEOLORA_PHASES)
+        + f" | {new_step:.3f} | {1 / new_step:.2f} | {50000 * new_step / 3600:.1f} h |",
+    ]
+    if wall is not None:
+        lines += [
+            "",
+            f"Wall clock after, timed steps end to end: {1 / wall:.2f} steps/s, {50000 * wall / 3600:.1f} h for 50,000 steps, "
+            f"{old_step / wall:.1f}x the speed before.",
+        ]
+    return lines
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--folder", default=str(HERE / "results" / "h100"))
+    parser.add_argument("--dino", default="speed_dino_bf16.json")
+    parser.add_argument("--geolora", default="speed_geolora_vitb16_512_cuda.json")
+    args = parser.parse_args(argv)
+    folder = Path(args.folder)
+
+    def load(*parts: str) -> dict:
+        return json.loads(folder.joinpath(*parts).read_text())
+
+    lines = dino_table(load("before", args.dino), load(args.dino))
+    lines += [""] + geolora_table(load("before", args.geolora), load(args.geolora))
+    after_dino = load(args.dino)
+    lines += ["", f"Machine: {after_dino['machine']}."]
+    (folder / "before_after.md").write_text("\n".join(lines) + "\n")
+    print("\n".join(lines))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
