@@ -2,7 +2,8 @@
 
 Reads the JSON results that `speed_dino.py` and `speed_geolora.py` wrote for the code as it
 was (``<folder>/before/``) and as it is (``<folder>/``), measured on the same kind of GPU, and
-writes ``<folder>/before_after.md``: seconds per stage, peak GPU memory and the ratio.
+writes ``<folder>/before_after.md`` (seconds per stage, peak GPU memory and the ratio) and
+``<folder>/before_after_short.md`` (the two headline rows, for the README).
 
     python benchmarks/speed_dino.py --device cuda --repeats 5 --out benchmarks/results/h100/speed_dino_bf16
     python benchmarks/speed_geolora.py --model vitb16 --image-size 512 --device cuda --steps 20 \\
@@ -81,6 +82,26 @@ def geolora_table(before: dict, after: dict) -> list[str]:
     return lines
 
 
+def short_table(load, args) -> list[str]:
+    """The two headline rows: seconds per shape of the DINO path, wall-clock steps/s of GeoLoRA."""
+    old_dino = next(r for r in load("before", args.dino)["rows"] if r["name"] == VIT_B)
+    after_dino = load(args.dino)
+    new_dino = next(r for r in after_dino["rows"] if r["name"] == VIT_B)
+    old_step = load("before", args.geolora)["median_step_seconds"]
+    after_geolora = load(args.geolora)
+    new_step = after_geolora.get("wall_seconds_per_step", after_geolora["median_step_seconds"])
+    return [
+        f"| {after_dino['gpu']} | before | after | |",
+        "|---|---|---|---|",
+        f"| DINOv3 ViT-B/16 features of one 5k-vertex shape, 49 views at 512 x 512 | {old_dino['total']:.3f} s | "
+        f"{new_dino['total']:.3f} s | {old_dino['total'] / new_dino['total']:.1f}x |",
+        f"| GeoLoRA training at the paper's settings | {1 / old_step:.2f} steps/s | {1 / new_step:.2f} steps/s | "
+        f"{old_step / new_step:.1f}x |",
+        "",
+        f"{after_dino['date']}, {after_dino['machine']}; random weights of the paper's backbone size, bfloat16 autocast.",
+    ]
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--folder", default=str(HERE / "results" / "h100"))
@@ -97,6 +118,7 @@ def main(argv=None) -> int:
     after_dino = load(args.dino)
     lines += ["", f"Machine: {after_dino['machine']}."]
     (folder / "before_after.md").write_text("\n".join(lines) + "\n")
+    (folder / "before_after_short.md").write_text("\n".join(short_table(load, args)) + "\n")
     print("\n".join(lines))
     return 0
 
