@@ -34,7 +34,7 @@ from common import DEFAULT_DATA, faust_test_shapes, machine, write_results
 from geofeat.backbones import DinoBackbone
 from geofeat.evaluation.report import plot_mesh_colors
 from geofeat.render import make_cameras, multiview_features, render_phong
-from geofeat.render.multiview import auto_batch_size
+from geofeat.render.multiview import CPU_BATCH_SIZE, auto_batch_size
 
 HERE = Path(__file__).resolve().parent
 
@@ -188,7 +188,12 @@ def main(argv=None) -> int:
         "gpu": torch.cuda.get_device_name(backbone.device) if backbone.device.type == "cuda" else None,
         "rows": rows,
     }
-    batches = f"batches of {args.batch_size} views" if args.batch_size else "views per batch as memory allows"
+    if args.batch_size:
+        batches = f"batches of {args.batch_size} views"
+    elif device.type == "cuda":
+        batches = "views per batch as memory allows"
+    else:
+        batches = f"batches of {CPU_BATCH_SIZE} views (the CPU's automatic batch)"
     lines = [
         f"One FAUST_r shape ({mesh.name}, {mesh.n_vertices} vertices), {args.views} views at {args.image_size} x {args.image_size}, "
         f"{batches}, device {result['device']} ({result['gpu'] or 'CPU'}), "
