@@ -388,7 +388,7 @@ class GeoLoraTrainer:
             return geodesic_point_info_nce(feat_partial, feat_full, gt, dist, offset=self.config.offset, **options)
         return point_info_nce(feat_partial, feat_full, gt, **options)
 
-    def _sample_features(self, full: Mesh, partials: list[Mesh], timer: _Timer) -> list[tuple[torch.Tensor, torch.Tensor]]:
+    def _sample_features(self, full: Mesh, partials: list[Mesh], timer: _Timer) -> list[MultiviewFeatures]:
         """Features of the shapes of one sample: the full shape first, then each partial shape.
 
         Parameters
@@ -402,14 +402,14 @@ class GeoLoraTrainer:
 
         Returns
         -------
-        list of (torch.Tensor, torch.Tensor)
+        list of MultiviewFeatures
             ``1 + len(partials)`` pairs of `shape_features`: features (n, C) float32 with their
             autograd graph, and ``seen`` (n,) bool. All views go through the backbone in one call
             (`shapes_features`).
         """
         config = self.config
         views = [config.views_full] + [config.views_partial] * len(partials)
-        return [tuple(f) for f in self.shapes_features([full, *partials], views, timer)]
+        return self.shapes_features([full, *partials], views, timer)
 
     def _sample_loss(self, sample: PreparedSample, timer: _Timer) -> tuple[torch.Tensor | None, int]:
         """The mean loss of the partial shapes of a prepared sample and their number (None, 0: none usable).
