@@ -269,14 +269,18 @@ def write_table(out: Path, benchmark: str, published: list[dict], invocation: st
     )
     mine = [p | {"differs": p["benchmarks"][benchmark]} for p in published if benchmark in p["benchmarks"]]
     if mine:
+        sources = list(dict.fromkeys(p["source"] for p in mine))
+        for p in mine:
+            p["cited"] = f"[{sources.index(p['source']) + 1}]"
         lines += [
             "",
             "Published figures (typed in by hand from `published_figures.json`; not the same setting, see the last column):",
             "",
         ]
         pub_columns = [("method", "method", "s"), ("benchmark", "published on", "s"), ("metric", "metric", "s"),
-                       ("published", "figure", "s"), ("source", "source", "s"), ("differs", "how our setting differs", "s")]  # fmt: skip
-        lines.append(markdown_table(mine, pub_columns))
+                       ("published", "figure", "s"), ("cited", "source", "s"), ("differs", "how our setting differs", "s")]  # fmt: skip
+        lines += [markdown_table(mine, pub_columns), ""]
+        lines += [f"[{n}] {source}" + ("  " if n < len(sources) else "") for n, source in enumerate(sources, 1)]
     text = "\n".join(lines) + "\n"
     (out / f"{benchmark}.md").write_text(text)
     curves = {

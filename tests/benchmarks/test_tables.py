@@ -112,3 +112,47 @@ def test_summarize_states_the_machines_the_runs_recorded(tmp_path):
     )
     assert result.returncode == 0, result.stderr
     assert "Machine: box A (1 of the 2 runs recorded none)." in (tmp_path / "s.md").read_text()
+
+
+REAL_FILES = REPO / "benchmarks" / "real_files.py"
+
+
+def test_real_files_tables_list_each_published_source_once_under_its_rows(tmp_path):
+    run = tmp_path / "psmal" / "nn_wks"
+    run.mkdir(parents=True)
+    record = {
+        "pipeline": "nn",
+        "descriptor": "wks",
+        "split": "test",
+        "date": "2026-01-02",
+        "n_pairs": 2,
+        "geodesic_error": 12.5,
+        "pck_auc": 0.4,
+        "pck_thresholds": [0.0, 0.1, 0.2],
+        "pck": [0.0, 0.5, 1.0],
+        "pairs": [],
+    }
+    (run / "results.json").write_text(json.dumps(record))
+    figure = {"metric": "error", "benchmark": "PSMAL P2P"}
+    published = [
+        figure | {"method": "A", "published": "1.0", "source": "paper one", "benchmarks": {"psmal": "differs a"}},
+        figure | {"method": "B", "published": "2.0", "source": "paper two", "benchmarks": {"psmal": "differs b"}},
+        figure | {"method": "C", "published": "3.0", "source": "paper one", "benchmarks": {"psmal": "differs c"}},
+        figure | {"method": "D", "published": "4.0", "source": "paper three", "benchmarks": {"becos_p2p": "x"}},
+    ]
+    (tmp_path / "published_figures.json").write_text(json.dumps(published))
+
+    done = subprocess.run(
+        [sys.executable, str(REAL_FILES), "--tables-only", "--out", str(tmp_path)],
+        capture_output=True, text=True, check=False,
+    )  # fmt: skip
+
+    assert done.returncode == 0, done.stderr
+    text = (tmp_path / "psmal.md").read_text()
+    assert "| nn | WKS | 2 | 12.50 |" in text
+    assert "| A | PSMAL P2P | error | 1.0 | [1] | differs a |" in text
+    assert "| B | PSMAL P2P | error | 2.0 | [2] | differs b |" in text
+    assert "| C | PSMAL P2P | error | 3.0 | [1] | differs c |" in text
+    assert text.count("[1] paper one") == 1 and text.count("[2] paper two") == 1
+    assert "paper three" not in text and "| D |" not in text
+    assert not (tmp_path / "becos_p2p.md").exists()
