@@ -33,7 +33,8 @@ A run whose ``results.json`` exists is not repeated (``--force`` repeats it), so
 interrupted call continues where it stopped; ``--tables-only`` rewrites the tables from what
 is there. The published figures are typed in by hand, each with its source, in
 ``<out>/published_figures.json`` (``benchmarks``: for each benchmark table the entry is shown
-in, how our setting differs from the published one).
+in, how our setting differs from the published one); each table numbers the sources of its
+published rows and lists them once below them.
 
 BeCoS divides geodesic distances on a shape by the square root of the area of the full shape
 it was cut from, also when the target is partial (P2P). The BeCoS loader records that length
