@@ -4,32 +4,14 @@ from __future__ import annotations
 
 import json
 import os
-import platform
 from pathlib import Path
 
-import numpy as np
-import scipy
+from machine_info import machine  # noqa: F401  (re-exported: the scripts take it from here)
 
 import geofeat
 
 HERE = Path(__file__).resolve().parent
 DEFAULT_DATA = os.environ.get("GEOFEAT_DATA", str(HERE.parent.parent / "shared" / "data"))
-
-
-def machine() -> str:
-    """CPU model, core count, OS and the numerical library versions, in one line."""
-    cpu = platform.processor() or "unknown CPU"
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    return (
-        f"{cpu}, {os.cpu_count()} cores, {platform.system()} {platform.machine()}, "
-        f"Python {platform.python_version()}, numpy {np.__version__}, scipy {scipy.__version__}"
-    )
 
 
 def faust_test_shapes(data: str | os.PathLike, n_shapes: int) -> list[geofeat.Mesh]:

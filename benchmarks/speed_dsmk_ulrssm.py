@@ -53,7 +53,6 @@ import importlib.metadata
 import json
 import math
 import os
-import platform
 import statistics
 import subprocess
 import sys
@@ -62,8 +61,8 @@ import types
 from pathlib import Path
 
 import numpy as np
-import scipy
 import torch
+from machine_info import machine
 
 HERE = Path(__file__).resolve().parent
 DEFAULT_DATA = os.environ.get("GEOFEAT_DATA", str(HERE.parent.parent / "shared" / "data"))
@@ -86,23 +85,7 @@ DSMK_NAMES = {
 }
 
 
-# -- the machine and the results (standalone: this script runs outside geofeat's environment)
-
-
-def machine() -> str:
-    """CPU model, core count, OS and the numerical library versions, in one line."""
-    cpu = platform.processor() or "unknown CPU"
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    return (
-        f"{cpu}, {os.cpu_count()} cores, {platform.system()} {platform.machine()}, "
-        f"Python {platform.python_version()}, numpy {np.__version__}, scipy {scipy.__version__}, torch {torch.__version__}"
-    )
+# -- the results (this script runs outside geofeat's environment: machine_info imports no geofeat)
 
 
 def write_results(out: Path, result: dict, table: str) -> None:
@@ -348,7 +331,7 @@ def run(args: argparse.Namespace, save) -> None:
     feature = opt["networks"]["feature_extractor"]
     result = {
         "date": datetime.date.today().isoformat(),
-        "machine": machine(),
+        "machine": machine(f"torch {torch.__version__}"),
         "device": str(device),
         "torch_threads": torch.get_num_threads(),
         "dsmk_commit": dsmk_commit(root),
