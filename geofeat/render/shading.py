@@ -152,23 +152,24 @@ def shade_phong(
     normals = vertex_normals(verts_t, faces_t)
     images = torch.empty((*expected, 3), dtype=torch.float32, device=cameras.device)
     images[:] = torch.tensor(settings.background, dtype=torch.float32, device=cameras.device)
-    flat_images = images.view(len(cameras), -1, 3)
-    pix_to_face = fragments.pix_to_face.to(cameras.device).reshape(len(cameras), -1)
-    all_bary = fragments.bary.to(cameras.device).reshape(len(cameras), -1, 3)
-    for view in range(len(cameras)):
-        covered = torch.nonzero(pix_to_face[view] >= 0, as_tuple=True)[0]
-        for start in range(0, covered.numel(), _PIXELS_PER_CHUNK):  # bounds the float64 temporaries
-            pixel = covered[start : start + _PIXELS_PER_CHUNK]
-            corners = faces_t[pix_to_face[view, pixel]]  # (M, 3)
-            bary = all_bary[view, pixel].to(torch.float64)[..., None]  # (M, 3, 1)
-            shaded = _phong(
-                points=(bary * verts_t[corners]).sum(dim=1),
-                normals=(bary * normals[corners]).sum(dim=1),
-                texels=(bary * colors[corners]).sum(dim=1),
-                eye=cameras.position[view],
-                settings=settings,
-            )
-            flat_images[view, pixel] = shaded.float()
+    n_pixels = expected[1] * expected[2]
+    flat_images = images.view(-1, 3)
+    pix_to_face = fragments.pix_to_face.to(cameras.device).reshape(-1)
+    all_bary = fragments.bary.to(cameras.device).reshape(-1, 3)
+    terms = _PhongTerms.of(settings, cameras.device)
+    covered = torch.nonzero(pix_to_face >= 0, as_tuple=True)[0]  # every view at once: one search, one host wait
+    for start in range(0, covered.numel(), _PIXELS_PER_CHUNK):  # bounds the float64 temporaries
+        pixel = covered[start : start + _PIXELS_PER_CHUNK]
+        corners = faces_t[pix_to_face[pixel]]  # (M, 3)
+        bary = all_bary[pixel].to(torch.float64)[..., None]  # (M, 3, 1)
+        shaded = _phong(
+            points=(bary * verts_t[corners]).sum(dim=1),
+            normals=(bary * normals[corners]).sum(dim=1),
+            texels=(bary * colors[corners]).sum(dim=1),
+            eye=cameras.position[pixel // n_pixels],  # (M, 3): the camera of each pixel's view
+            terms=terms,
+        )
+        flat_images[pixel] = shaded.float()
     return images
 
 
@@ -201,21 +202,30 @@ def render_phong(
     return Rendering(images, fragments)
 
 
-def _phong(points, normals, texels, eye, settings: PhongSettings) -> torch.Tensor:
-    """Colours (M, 3) of surface points lit by a point light at ``eye`` and seen from ``eye``."""
-    device, dtype = points.device, points.dtype
+class _PhongTerms(NamedTuple):
+    """`PhongSettings` as tensors on the device, made once per call rather than once per chunk."""
 
-    def rgb(value: Color) -> torch.Tensor:
-        return torch.tensor(value, dtype=dtype, device=device)
+    ambient: torch.Tensor  # (3,) float64
+    diffuse: torch.Tensor  # (3,) float64
+    specular: torch.Tensor  # (3,) float64
+    shininess: float
 
+    @classmethod
+    def of(cls, settings: PhongSettings, device: torch.device) -> _PhongTerms:
+        colors = torch.tensor([settings.ambient, settings.diffuse, settings.specular], dtype=torch.float64, device=device)
+        return cls(colors[0], colors[1], colors[2], settings.shininess)
+
+
+def _phong(points, normals, texels, eye, terms: _PhongTerms) -> torch.Tensor:
+    """Colours (M, 3) of surface points lit by a point light at ``eye`` (3,) or (M, 3) and seen from it."""
     normals = F.normalize(normals, dim=-1, eps=1e-6)
     to_light = F.normalize(eye - points, dim=-1, eps=1e-6)
     to_viewer = to_light  # the light sits at the camera
     cos_light = (normals * to_light).sum(dim=-1, keepdim=True)
     reflected = 2.0 * cos_light * normals - to_light
     highlight = (to_viewer * reflected).sum(dim=-1, keepdim=True).clamp(min=0.0) * (cos_light > 0)
-    lit = rgb(settings.ambient) + rgb(settings.diffuse) * cos_light.clamp(min=0.0)
-    return lit * texels + rgb(settings.specular) * highlight.pow(settings.shininess)
+    lit = terms.ambient + terms.diffuse * cos_light.clamp(min=0.0)
+    return lit * texels + terms.specular * highlight.pow(terms.shininess)
 
 
 def _vertex_colors(vertex_colors, n_vertices: int, settings: PhongSettings, device: torch.device) -> torch.Tensor:

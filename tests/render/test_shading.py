@@ -109,6 +109,15 @@ def test_faust_images_look_like_the_official_ones(faust_mesh):
     assert (shaded[:, 2] >= shaded[:, 0]).all()  # the blue tint of the diffuse light
 
 
+def test_views_shaded_together_equal_views_shaded_one_at_a_time(faust_mesh):
+    cams = official_grid_cameras(faust_mesh, 4, image_size=(64, 48), device="cpu")
+    fragments = rasterize(faust_mesh, None, cams)
+    together = shade_phong(fragments, faust_mesh, None, cams)
+    for view in range(len(cams)):
+        alone = fragments._make(field[view : view + 1] for field in fragments)
+        assert torch.equal(shade_phong(alone, faust_mesh, None, cams[view : view + 1]), together[view : view + 1])
+
+
 def test_settings_and_fragments_are_checked():
     with pytest.raises(RenderError, match="three"):
         PhongSettings(ambient=(0.5, 0.5))
