@@ -41,6 +41,7 @@ from __future__ import annotations
 
 import warnings
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import numpy as np
 import torch
@@ -58,6 +59,180 @@ BALL_RADIUS_FRACTION = 0.004
 RADIUS_BASES = ("diagonal", "diameter")
 
 
+class BackprojectionPlan(NamedTuple):
+    """Which foreground pixels of one batch of views feed which vertices (`Backprojector.plan`).
+
+    Attributes
+    ----------
+    pixels : torch.Tensor or None, shape (K,), int64
+        Positions, in the batch's foreground pixel list (`foreground_pixels` order), of the
+        pixels that reach at least one vertex, increasing: only their features are needed.
+        None: every foreground pixel (``"face"``).
+    rows : torch.Tensor, shape (P,), int64
+        Vertices whose weight grows, with repeats.
+    values : torch.Tensor, shape (P,), float32
+        How much each grows by.
+    matrix : torch.Tensor or None
+        ``"ball"`` and ``"face"``: the sparse (V, K) CSR matrix of pixel weights, so that the
+        vertex sums grow by ``matrix @ features``; None when no pixel reaches a vertex.
+    last_writes : list of tuple
+        ``"ball_last"``: one `_last_write_plan` per view, in view order.
+    """
+
+    pixels: torch.Tensor | None
+    rows: torch.Tensor
+    values: torch.Tensor
+    matrix: torch.Tensor | None = None
+    last_writes: list = []
+
+
+def _sparse_rows(rows: torch.Tensor, cols: torch.Tensor, values: torch.Tensor, size: tuple[int, int]) -> torch.Tensor | None:
+    """The sparse CSR matrix of ``size`` with ``values`` at (``rows``, ``cols``) (no pair twice); None when empty."""
+    if rows.numel() == 0:
+        return None
+    matrix = torch.sparse_coo_tensor(torch.stack([rows, cols]), values, size, check_invariants=False)
+    with warnings.catch_warnings():  # "sparse CSR support is in beta": CSR products are the fast path here
+        warnings.filterwarnings("ignore", message="Sparse CSR tensor support is in beta")
+        return matrix.coalesce().to_sparse_csr()
+
+
+@dataclass
+class Backprojector:
+    """How pixels reach the vertices of one mesh: the mode, the ball radius, each face's candidate vertices.
+
+    Makes a `BackprojectionPlan` per batch of views from its fragments alone (`plan`); a
+    `VertexFeatureAccumulator` then adds the pixels' features along it.
+
+    Parameters
+    ----------
+    verts : numpy.ndarray, shape (V, 3)
+        Mesh vertices (the coordinates the rasterizer used).
+    faces : numpy.ndarray, shape (F, 3), int
+    mode : {"ball", "face", "ball_last"}
+    radius : float, optional
+        Ball radius in mesh units; default ``BALL_RADIUS_FRACTION`` x the size that
+        ``radius_basis`` names.
+    device : torch.device or str
+        Where the plans are made (the pixel features' device).
+    radius_basis : {"diagonal", "diameter"}
+        Size that the default radius is a fraction of: the bounding-box diagonal, or the
+        largest distance between two vertices (`shape_diameter`).
+    max_neighbours : int, optional
+        ``"ball_last"`` only: each pixel reaches at most this many vertices, the first ones in
+        vertex order (pytorch3d ``ball_query``'s K); None: all within the radius.
+    """
+
+    verts: np.ndarray
+    faces: np.ndarray
+    mode: str = "ball"
+    radius: float | None = None
+    device: torch.device | str = "cpu"
+    radius_basis: str = "diagonal"
+    max_neighbours: int | None = None
+    _faces_tensor: torch.Tensor | None = field(init=False, default=None, repr=False)
+    _face_candidates: FaceCandidates | None = field(init=False, default=None, repr=False)
+
+    def __post_init__(self) -> None:
+        if self.mode not in BACKPROJECT_MODES:
+            raise RenderError(f"backprojection mode must be one of {BACKPROJECT_MODES}; found {self.mode!r}.")
+        self.radius_basis = check_choice(self.radius_basis, "radius_basis", RADIUS_BASES, error=RenderError)
+        if self.max_neighbours is not None:
+            self.max_neighbours = check_integer(self.max_neighbours, "max_neighbours", low=1, error=RenderError)
+        self.device = torch.device(self.device)
+        self.verts = np.asarray(self.verts, dtype=np.float64)
+        self.faces = np.asarray(self.faces, dtype=np.int64)
+        if self.radius is None:
+            if self.radius_basis == "diameter":
+                size = shape_diameter(self.verts)
+            else:
+                size = float(np.linalg.norm(self.verts.max(axis=0) - self.verts.min(axis=0)))
+            self.radius = BALL_RADIUS_FRACTION * size
+
+    def plan(self, pix_to_face: torch.Tensor, bary: torch.Tensor, points: torch.Tensor | None = None) -> BackprojectionPlan:
+        """Which foreground pixels of a batch of views feed which vertices: the geometry of `add_planned`.
+
+        It depends on the fragments only, not on the features, so it can be made before the
+        features exist (on another thread, while the backbone encodes other views); the waits
+        on the device that listing the pairs needs all happen here.
+
+        Parameters
+        ----------
+        pix_to_face : torch.Tensor, shape (N, H, W), int64, -1 on background
+        bary : torch.Tensor, shape (N, H, W, 3), float
+        points : torch.Tensor, shape (M, 3), optional
+            Ball modes: the 3D point of each of the M foreground pixels (flat order).
+            Default: the surface point that the face index and barycentrics give.
+
+        Returns
+        -------
+        BackprojectionPlan
+        """
+        device = self.device
+        pixels = torch.nonzero((pix_to_face >= 0).reshape(-1)).squeeze(1).to(device)
+        if points is not None and tuple(points.shape) != (pixels.numel(), 3):
+            raise RenderError(
+                f"points must have shape ({pixels.numel()}, 3), one per foreground pixel; found {tuple(points.shape)}."
+            )
+        face_ids = pix_to_face.reshape(-1).to(device)[pixels]
+        n_vertices = len(self.verts)
+        if self.mode == "face":
+            values = bary.reshape(-1, 3).to(device)[pixels].float().reshape(-1)  # (3 M,)
+            rows = self._faces_on(device)[face_ids].reshape(-1)
+            cols = torch.arange(pixels.numel(), device=device).repeat_interleave(3)
+            return BackprojectionPlan(None, rows, values, _sparse_rows(rows, cols, values, (n_vertices, pixels.numel())))
+        on_faces = points is None
+        if on_faces:
+            points = self._surface_points(face_ids, bary.reshape(-1, 3).to(device)[pixels])
+        rows, cols = self._candidates(device).pairs_within(
+            face_ids, points.to(device, torch.float64), self.radius, on_faces=on_faces
+        )
+        used, cols = torch.unique_consecutive(cols, return_inverse=True)  # cols come in increasing order
+        if self.mode == "ball_last":
+            views = pixels.index_select(0, used) // (pix_to_face.shape[1] * pix_to_face.shape[2])
+            return self._plan_last(used, rows, cols, views)
+        values = torch.ones(rows.numel(), device=device)
+        return BackprojectionPlan(used, rows, values, _sparse_rows(rows, cols, values, (n_vertices, used.numel())))
+
+    def _faces_on(self, device: torch.device) -> torch.Tensor:
+        """The faces as an int64 tensor on ``device``, (F, 3)."""
+        if self._faces_tensor is None or self._faces_tensor.device != device:
+            self._faces_tensor = torch.tensor(self.faces, device=device)
+        return self._faces_tensor
+
+    def _candidates(self, device: torch.device) -> FaceCandidates:
+        """Each face's candidate vertices for the ball, on ``device`` (listed once, on first use)."""
+        if self._face_candidates is None or self._face_candidates.device != device:
+            self._face_candidates = FaceCandidates(self.verts, self.faces, self.radius, device)
+        return self._face_candidates
+
+    def _surface_points(self, face_ids: torch.Tensor, bary: torch.Tensor) -> torch.Tensor:
+        """The surface point of each pixel, (M, 3) float64: its barycentrics in its face."""
+        verts, corners = self._candidates(face_ids.device).verts, self._faces_on(face_ids.device)[face_ids]  # (M, 3)
+        bary = bary.double()
+        points = bary[:, 0:1] * verts.index_select(0, corners[:, 0])
+        points += bary[:, 1:2] * verts.index_select(0, corners[:, 1])
+        points += bary[:, 2:3] * verts.index_select(0, corners[:, 2])
+        return points
+
+    def _plan_last(self, used: torch.Tensor, rows: torch.Tensor, cols: torch.Tensor, views: torch.Tensor) -> BackprojectionPlan:
+        """``"ball_last"``: view after view, each vertex in reach takes its last candidate pixel's feature.
+
+        ``cols`` index ``used``, the pixels with a vertex in reach; ``views`` (K,) is the view of each of them.
+        """
+        if self.max_neighbours is not None:
+            rows, cols = _first_per_point(rows, cols, self.max_neighbours, len(self.verts))
+        writes, reached = [], []
+        if rows.numel():
+            pair_views = views[cols]
+            for view in torch.unique(pair_views).tolist():
+                in_view = pair_views == view
+                write = _last_write_plan(rows[in_view], cols[in_view], used.numel())
+                writes.append(write)
+                reached.append(write[4])  # the vertices reached in this view: their count goes up by one
+        rows = torch.cat(reached) if reached else rows.new_zeros(0)
+        return BackprojectionPlan(used, rows, torch.ones(rows.numel(), device=rows.device), None, writes)
+
+
 @dataclass
 class VertexFeatureAccumulator:
     """Running weighted sums of pixel features per vertex.
@@ -69,20 +244,17 @@ class VertexFeatureAccumulator:
     faces : numpy.ndarray, shape (F, 3), int
     n_channels : int
         Feature channels C.
-    mode : {"ball", "face", "ball_last"}
-    radius : float, optional
-        Ball radius in mesh units; default ``BALL_RADIUS_FRACTION`` x the size that
-        ``radius_basis`` names.
+    mode, radius, radius_basis, max_neighbours
+        See `Backprojector`.
     device : torch.device or str
         Where the sums live (the pixel features' device).
-    radius_basis : {"diagonal", "diameter"}
-        Size that the default radius is a fraction of: the bounding-box diagonal, or the
-        largest distance between two vertices (`shape_diameter`).
-    max_neighbours : int, optional
-        ``"ball_last"`` only: each pixel reaches at most this many vertices, the first ones in
-        vertex order (pytorch3d ``ball_query``'s K); None: all within the radius.
     dtype : torch.dtype
         Precision of the sums (float16 reproduces GeoLoRA's half-precision sums).
+
+    Attributes
+    ----------
+    backprojector : Backprojector
+        The mesh's, with these settings: `add_foreground` plans with it.
     """
 
     verts: np.ndarray
@@ -96,23 +268,13 @@ class VertexFeatureAccumulator:
     dtype: torch.dtype = torch.float32
     sums: torch.Tensor = field(init=False)
     weights: torch.Tensor = field(init=False)
-    _faces_tensor: torch.Tensor | None = field(init=False, default=None, repr=False)
-    _face_candidates: FaceCandidates | None = field(init=False, default=None, repr=False)
+    backprojector: Backprojector = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
-        if self.mode not in BACKPROJECT_MODES:
-            raise RenderError(f"backprojection mode must be one of {BACKPROJECT_MODES}; found {self.mode!r}.")
-        self.radius_basis = check_choice(self.radius_basis, "radius_basis", RADIUS_BASES, error=RenderError)
-        if self.max_neighbours is not None:
-            self.max_neighbours = check_integer(self.max_neighbours, "max_neighbours", low=1, error=RenderError)
-        self.verts = np.asarray(self.verts, dtype=np.float64)
-        self.faces = np.asarray(self.faces, dtype=np.int64)
-        if self.radius is None:
-            if self.radius_basis == "diameter":
-                size = shape_diameter(self.verts)
-            else:
-                size = float(np.linalg.norm(self.verts.max(axis=0) - self.verts.min(axis=0)))
-            self.radius = BALL_RADIUS_FRACTION * size
+        self.backprojector = Backprojector(
+            self.verts, self.faces, self.mode, self.radius, self.device, self.radius_basis, self.max_neighbours
+        )
+        self.verts, self.radius = self.backprojector.verts, self.backprojector.radius
         self.sums = torch.zeros(len(self.verts), self.n_channels, dtype=self.dtype, device=self.device)
         self.weights = torch.zeros(len(self.verts), dtype=torch.float32, device=self.device)
 
@@ -142,6 +304,8 @@ class VertexFeatureAccumulator:
     ) -> None:
         """Accumulate one batch of views given the features of its foreground pixels only.
 
+        `Backprojector.plan` followed by `add_planned` with the rows of the pixels that reach a vertex.
+
         Parameters
         ----------
         features : torch.Tensor, shape (M, C), float
@@ -153,82 +317,34 @@ class VertexFeatureAccumulator:
             Ball modes: the 3D point of each foreground pixel. Default: the surface point that
             the face index and barycentrics give.
         """
-        device = self.sums.device
-        pixels = torch.nonzero((pix_to_face >= 0).reshape(-1)).squeeze(1).to(device)
-        if features.ndim != 2 or features.shape != (pixels.numel(), self.n_channels):
+        n_foreground = int((pix_to_face >= 0).sum())
+        if features.ndim != 2 or features.shape != (n_foreground, self.n_channels):
             raise RenderError(
-                f"foreground features must have shape ({pixels.numel()}, {self.n_channels}) (one row per foreground pixel); "
+                f"foreground features must have shape ({n_foreground}, {self.n_channels}) (one row per foreground pixel); "
                 f"found {tuple(features.shape)}."
             )
-        if points is not None and tuple(points.shape) != (pixels.numel(), 3):
-            raise RenderError(
-                f"points must have shape ({pixels.numel()}, 3), one per foreground pixel; found {tuple(points.shape)}."
-            )
-        face_ids = pix_to_face.reshape(-1).to(device)[pixels]
-        if self.mode == "face":
-            weights_bary = bary.reshape(-1, 3).to(device)[pixels].float()  # (M, 3)
-            rows = self._faces_on(device)[face_ids].reshape(-1)
-            cols = torch.arange(pixels.numel(), device=device).repeat_interleave(3)
-            self._scatter(rows, cols, weights_bary.reshape(-1), features.to(device, torch.float32))
-            return
-        on_faces = points is None
-        if on_faces:
-            points = self._surface_points(face_ids, bary.reshape(-1, 3).to(device)[pixels])
-        rows, cols = self._candidates(device).pairs_within(
-            face_ids, points.to(device, torch.float64), self.radius, on_faces=on_faces
-        )
-        if self.mode == "ball_last":
-            views = pixels // (pix_to_face.shape[1] * pix_to_face.shape[2])
-            self._add_last(features.to(device, self.dtype), views, rows, cols)
-            return
-        self._scatter(rows, cols, torch.ones(rows.numel(), device=device), features.to(device, torch.float32))
+        plan = self.backprojector.plan(pix_to_face, bary, points)
+        features = features.to(self.sums.device)
+        self.add_planned(plan, features if plan.pixels is None else features.index_select(0, plan.pixels))
 
-    def _faces_on(self, device: torch.device) -> torch.Tensor:
-        """The faces as an int64 tensor on ``device``, (F, 3)."""
-        if self._faces_tensor is None or self._faces_tensor.device != device:
-            self._faces_tensor = torch.tensor(self.faces, device=device)
-        return self._faces_tensor
+    def add_planned(self, plan: BackprojectionPlan, features: torch.Tensor) -> None:
+        """Add the features of a plan's pixels to the vertex sums, with no wait on the device.
 
-    def _candidates(self, device: torch.device) -> FaceCandidates:
-        """Each face's candidate vertices for the ball, on ``device`` (listed once, on first use)."""
-        if self._face_candidates is None or self._face_candidates.device != device:
-            self._face_candidates = FaceCandidates(self.verts, self.faces, self.radius, device)
-        return self._face_candidates
-
-    def _surface_points(self, face_ids: torch.Tensor, bary: torch.Tensor) -> torch.Tensor:
-        """The surface point of each pixel, (M, 3) float64: its barycentrics in its face."""
-        verts, corners = self._candidates(face_ids.device).verts, self._faces_on(face_ids.device)[face_ids]  # (M, 3)
-        bary = bary.double()
-        points = bary[:, 0:1] * verts.index_select(0, corners[:, 0])
-        points += bary[:, 1:2] * verts.index_select(0, corners[:, 1])
-        points += bary[:, 2:3] * verts.index_select(0, corners[:, 2])
-        return points
-
-    def _add_last(self, features: torch.Tensor, views: torch.Tensor, rows: torch.Tensor, cols: torch.Tensor) -> None:
-        """``"ball_last"``: one view after the other, each vertex in reach takes the last candidate pixel's feature."""
-        if self.max_neighbours is not None:
-            rows, cols = _first_per_point(rows, cols, self.max_neighbours, len(self.verts))
-        if rows.numel() == 0:
-            return
-        pair_views = views[cols]
-        for view in torch.unique(pair_views).tolist():
-            in_view = pair_views == view
-            plan = _last_write_plan(rows[in_view], cols[in_view], features.shape[0])
-            self.sums = _LastWriteAdd.apply(self.sums, features, *plan)
-            touched = plan[4]  # the vertices reached in this view
-            self.weights.index_add_(0, touched, torch.ones(touched.numel(), device=touched.device))
-
-    def _scatter(self, rows: torch.Tensor, cols: torch.Tensor, values: torch.Tensor, features: torch.Tensor) -> None:
-        """``sums += S @ features`` and ``weights += S @ 1`` for the sparse (V, P) matrix S given by its entries."""
-        if rows.numel() == 0:
-            return
-        index = torch.stack([rows, cols])
-        values = values.to(torch.float32)
-        matrix = torch.sparse_coo_tensor(index, values, (len(self.verts), features.shape[0]), check_invariants=False)
-        with warnings.catch_warnings():  # "sparse CSR support is in beta": CSR products are the fast path here
-            warnings.filterwarnings("ignore", message="Sparse CSR tensor support is in beta")
-            self.sums += torch.sparse.mm(matrix.coalesce().to_sparse_csr(), features)
-        self.weights.index_add_(0, rows, values)
+        Parameters
+        ----------
+        plan : BackprojectionPlan
+            From `Backprojector.plan`, for this mesh, mode and radius.
+        features : torch.Tensor, shape (K, C), float
+            One row per pixel of ``plan.pixels`` (per foreground pixel when it is None), on
+            the accumulator's device.
+        """
+        if plan.last_writes:
+            features = features.to(self.dtype)
+            for write in plan.last_writes:
+                self.sums = _LastWriteAdd.apply(self.sums, features, *write)
+        elif plan.matrix is not None:
+            self.sums += torch.sparse.mm(plan.matrix, features.to(torch.float32))
+        self.weights.index_add_(0, plan.rows, plan.values)
 
     def result_tensor(self, fill: str = "nearest") -> tuple[torch.Tensor, torch.Tensor]:
         """Mean feature per vertex as tensors on the accumulator's device.

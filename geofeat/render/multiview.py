@@ -54,10 +54,17 @@ from geofeat.checks import check_choice, check_integer
 from geofeat.errors import RenderError
 from geofeat.mesh import Mesh
 from geofeat.progress import progress_bar
-from geofeat.render.backproject import BACKPROJECT_MODES, RADIUS_BASES, VertexFeatureAccumulator, foreground_pixels
+from geofeat.render.backproject import (
+    BACKPROJECT_MODES,
+    RADIUS_BASES,
+    BackprojectionPlan,
+    Backprojector,
+    VertexFeatureAccumulator,
+    foreground_pixels,
+)
 from geofeat.render.cameras import Cameras
 from geofeat.render.rasterizer import RasterSettings
-from geofeat.render.shading import Rendering, render_phong
+from geofeat.render.shading import render_phong
 
 if TYPE_CHECKING:
     from geofeat.backbones.dino import DinoBackbone
@@ -81,7 +88,8 @@ __all__ = [
 
 #: What vertices seen in no view get: the nearest seen vertex's features, or zeros.
 FILL_MODES = ("nearest", "zero")
-#: Phases that a `PhaseTimer` is charged with, in the order they run for each batch of views.
+#: Phases that a `PhaseTimer` is charged with. For each batch of views: render, backproject (the
+#: plan: which pixels reach which vertices), forward, backproject (the sums).
 PHASES = ("render", "forward", "backproject")
 
 #: ``timer(phase)`` returns a context manager around the work of that phase (one of `PHASES`).
@@ -193,21 +201,25 @@ class ViewSegment(NamedTuple):
 
 
 class RenderedBatch(NamedTuple):
-    """One batch of views, rendered and ready for the backbone.
+    """One batch of views, rendered, planned for back-projection and ready for the backbone.
 
     Attributes
     ----------
     segments : list of ViewSegment
         Whose views the batch holds, in order.
-    renderings : list of Rendering
-        One per segment: its Phong images and fragments.
     images : torch.Tensor, shape (B, H', W', 3)
         Every segment's images as the backbone sees them (`backbone_input`), concatenated.
+    pixels : list of torch.Tensor
+        One per segment, shape (K, 3) int64: (view within the segment, row, column) of the
+        pixels whose features reach a vertex, in flat order; only these are sampled.
+    plans : list of BackprojectionPlan
+        One per segment: where those pixels' features go (`Backprojector.plan`).
     """
 
     segments: list[ViewSegment]
-    renderings: list[Rendering]
     images: torch.Tensor
+    pixels: list[torch.Tensor]
+    plans: list[BackprojectionPlan]
 
 
 def view_batches(view_counts: list[int], batch_size: int) -> list[list[ViewSegment]]:
@@ -242,33 +254,69 @@ def view_batches(view_counts: list[int], batch_size: int) -> list[list[ViewSegme
 
 
 def render_batches(
-    meshes: list[Mesh], cameras: list[Cameras], patch_size: int, *, recipe: FeatureRecipe, batch_size: int
+    meshes: list[Mesh],
+    cameras: list[Cameras],
+    patch_size: int,
+    *,
+    recipe: FeatureRecipe,
+    batch_size: int,
+    device: torch.device | str | None = None,
+    timer: PhaseTimer | None = None,
 ) -> Iterator[RenderedBatch]:
-    """Render the views of several shapes batch by batch (lazily: one batch per ``next``).
+    """Render and plan the views of several shapes batch by batch (lazily: one batch per ``next``).
+
+    Everything here depends on the geometry only, so it can run ahead of the backbone on
+    another thread: rasterize, shade and resize the views (``render``), then list which
+    foreground pixels reach which vertices (``backproject``: `Backprojector.plan`, with the
+    recipe's mode and radius).
 
     Parameters
     ----------
     meshes : list of Mesh
     cameras : list of Cameras
-        The views of each mesh; all of the same size.
+        The views of each mesh; all of the same size, on one device.
     patch_size : int
         The backbone's (`backbone_input` crops to a multiple of it).
     recipe : FeatureRecipe
     batch_size : int
         Views per batch (see `view_batches`).
+    device : torch.device or str, optional
+        Where the plans are made and the pixels listed: the backbone's; default the cameras'.
+    timer : PhaseTimer, optional
+        Charged with ``"render"`` and ``"backproject"``.
 
     Yields
     ------
     RenderedBatch
     """
+    timer = timer or _no_timer
     raster = RasterSettings(cull_backfaces=recipe.cull_backfaces)
+    device = cameras[0].device if device is None else torch.device(device)
     if cameras[0].device.type == "cuda":  # the GPU is kept busy by fewer, larger launches
         raster = replace(raster, views_per_batch=batch_size, max_candidates=CUDA_MAX_CANDIDATES)
+    backprojectors: dict[int, Backprojector] = {}
     for batch in view_batches([len(c) for c in cameras], batch_size):
-        with torch.no_grad():  # the images do not depend on any parameter
-            renderings = [render_phong(meshes[s.shape], None, cameras[s.shape][s.start : s.stop], raster) for s in batch]
-            images = torch.cat([backbone_input(r.images, recipe, patch_size) for r in renderings])
-        yield RenderedBatch(batch, renderings, images)
+        with torch.no_grad():  # the images and plans do not depend on any parameter
+            with timer("render"):
+                views = [cameras[s.shape][s.start : s.stop] for s in batch]
+                renderings = [render_phong(meshes[s.shape], None, v, raster) for s, v in zip(batch, views, strict=True)]
+                images = torch.cat([backbone_input(r.images, recipe, patch_size) for r in renderings])
+            with timer("backproject"):
+                pixels, plans = [], []
+                for segment, view, rendering in zip(batch, views, renderings, strict=True):
+                    if segment.shape not in backprojectors:
+                        mesh = meshes[segment.shape]
+                        backprojectors[segment.shape] = Backprojector(
+                            mesh.verts, mesh.faces, recipe.backproject, device=device,
+                            radius_basis=recipe.radius_basis, max_neighbours=recipe.max_neighbours,
+                        )  # fmt: skip
+                    fragments = rendering.fragments
+                    foreground = foreground_pixels(fragments.pix_to_face).to(device)  # (M, 3)
+                    points = corner_points(view, foreground, fragments.depth) if recipe.pixel_grid == "corners" else None
+                    plan = backprojectors[segment.shape].plan(fragments.pix_to_face, fragments.bary, points)
+                    pixels.append(foreground if plan.pixels is None else foreground.index_select(0, plan.pixels))
+                    plans.append(plan)
+        yield RenderedBatch(batch, images, pixels, plans)
 
 
 def multiview_features(
@@ -321,9 +369,11 @@ def multiview_features_many(
     The views of all shapes are packed into batches (`view_batches`), so the backbone runs
     ``ceil(N / batch_size)`` times for ``N`` views in all (the GeoLoRA trainer sends a full
     shape and its partial shapes in one call). For each batch: rasterize and Phong-shade
-    (``render``), run the backbone to its patch grid and sample that grid bilinearly at the
-    foreground pixels, L2-normalised (``forward``), and add those pixels' features to their
-    shape's vertices (``backproject``). Memory grows with one batch of views (and, with
+    (``render``), list which foreground pixels reach which vertices (``backproject``:
+    `render_batches`, before the backbone, so that its waits on the device hold no backbone
+    work up), run the backbone to its patch grid and sample that grid bilinearly at those
+    pixels only, L2-normalised (``forward``), and add their features to their shape's
+    vertices (``backproject``). Memory grows with one batch of views (and, with
     ``grad=True``, with the autograd graph of all of them), never with full-resolution
     feature images.
 
@@ -354,8 +404,9 @@ def multiview_features_many(
     progress : bool
         Show a progress bar over batches of views.
     rendered : iterable of RenderedBatch, optional
-        The batches already rendered (`render_batches` with the same meshes, cameras, recipe
-        and batch size, run ahead on another thread); default: rendered here, one batch at a time.
+        The batches already rendered and planned (`render_batches` with the same meshes,
+        cameras, recipe, batch size and device, run ahead on another thread); default:
+        rendered here, one batch at a time.
 
     Returns
     -------
@@ -401,32 +452,29 @@ def multiview_features_many(
         )  # fmt: skip
         for mesh in meshes
     ]
-    batches = iter(rendered if rendered is not None else render_batches(
-        meshes, cameras, backbone.patch_size, recipe=recipe, batch_size=batch_size
-    ))  # fmt: skip
+    if rendered is None:
+        rendered = render_batches(
+            meshes, cameras, backbone.patch_size, recipe=recipe, batch_size=batch_size, device=device, timer=timer
+        )
+    batches = iter(rendered)
     n_batches = len(view_batches([len(c) for c in cameras], batch_size))
     with torch.enable_grad() if grad else torch.no_grad():
         for _ in progress_bar(range(n_batches), desc=_progress_label(meshes), unit="batch", show=progress):
-            with timer("render"):
-                batch = next(batches)
+            batch = next(batches)
             with timer("forward"):
                 amp = torch.autocast(device_type=device.type, dtype=torch.bfloat16) if autocast else contextlib.nullcontext()
                 with amp:
                     grid = backbone.patch_features(batch.images.to(device))  # (B, h, w, C)
                 grids = grid.split([s.stop - s.start for s in batch.segments])
                 samples = []
-                for rendering, grid_part in zip(batch.renderings, grids, strict=True):
-                    pixels = foreground_pixels(rendering.fragments.pix_to_face)
+                for grid_part, pixels in zip(grids, batch.pixels, strict=True):
                     if recipe.pixel_grid == "centers":
-                        samples.append((pixels, sample_patch_features(grid_part, pixels, size)))  # (M, C)
+                        samples.append(sample_patch_features(grid_part, pixels, size))  # (K, C)
                     else:
-                        samples.append((pixels, grid_sample_patch_features(grid_part, pixels, size, recipe.dtype)))
+                        samples.append(grid_sample_patch_features(grid_part, pixels, size, recipe.dtype))
             with timer("backproject"):
-                for segment, rendering, (pixels, features) in zip(batch.segments, batch.renderings, samples, strict=True):
-                    fragments = rendering.fragments
-                    views = cameras[segment.shape][segment.start : segment.stop]
-                    points = corner_points(views, pixels, fragments.depth) if recipe.pixel_grid == "corners" else None
-                    accumulators[segment.shape].add_foreground(features, fragments.pix_to_face, fragments.bary, points)
+                for segment, plan, features in zip(batch.segments, batch.plans, samples, strict=True):
+                    accumulators[segment.shape].add_planned(plan, features)
         with timer("backproject"):
             return [MultiviewFeatures(*accumulator.result_tensor(fill=fill)) for accumulator in accumulators]
 

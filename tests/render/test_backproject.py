@@ -108,6 +108,32 @@ def _faust_view_batches(faust_mesh, n_views=9, size=128, batch=3):
     return batches
 
 
+@pytest.mark.parametrize("mode", ["ball", "ball_last"])
+def test_a_plan_lists_the_pixels_within_the_radius_of_a_vertex_and_reads_no_other(faust_mesh, mode):
+    """Only the pixels a KD-tree finds within the radius of some vertex are planned; the others' features are never read."""
+    from geofeat.render.backproject import Backprojector
+
+    for features, fragments in _faust_view_batches(faust_mesh)[:2]:
+        backprojector = Backprojector(faust_mesh.verts, faust_mesh.faces, mode, max_neighbours=100)
+        plan = backprojector.plan(fragments.pix_to_face, fragments.bary)
+        foreground = (fragments.pix_to_face >= 0).reshape(-1).numpy()
+        face_ids = fragments.pix_to_face.reshape(-1).numpy()[foreground]
+        bary = fragments.bary.reshape(-1, 3).numpy()[foreground].astype(np.float64)
+        points = np.einsum("mk,mkd->md", bary, faust_mesh.verts[faust_mesh.faces[face_ids]])
+        reaching = sorted({pixel for _, pixel in _kdtree_pairs(faust_mesh.verts, points, backprojector.radius)})
+        assert plan.pixels.tolist() == reaching
+        assert 0 < len(reaching) < len(points)  # some pixels reach no vertex at this radius
+        poisoned = features.clone()
+        unused = torch.ones(len(points), dtype=torch.bool)
+        unused[plan.pixels] = False
+        poisoned[unused] = float("nan")
+        clean = VertexFeatureAccumulator(faust_mesh.verts, faust_mesh.faces, 6, mode=mode, max_neighbours=100)
+        clean.add_foreground(features, fragments.pix_to_face, fragments.bary)
+        dirty = VertexFeatureAccumulator(faust_mesh.verts, faust_mesh.faces, 6, mode=mode, max_neighbours=100)
+        dirty.add_foreground(poisoned, fragments.pix_to_face, fragments.bary)
+        assert torch.equal(clean.sums, dirty.sums) and torch.equal(clean.weights, dirty.weights)
+
+
 def test_ball_on_a_real_render_equals_the_kdtree_search_to_1e_6(faust_mesh):
     """A FAUST shape from 9 views: the face-candidate search gives each vertex the mean of exactly the pixels
     a KD-tree finds within the radius (float64 points, as the rasterizer's barycentrics give them)."""
@@ -182,4 +208,4 @@ def test_cuda_backprojection_equals_the_cpu(faust_mesh, mode):
             acc.add_foreground(features.to(device), fragments.pix_to_face.to(device), fragments.bary.to(device))
         results.append([t.cpu() for t in acc.result_tensor(fill="nearest")])
     assert torch.equal(results[0][1], results[1][1])
-    torch.testing.assert_close(results[0][0], results[1][0], rtol=0, atol=1e-5)
+    torch.testing.assert_close(results[0][0], results[1][0], rtol=0, atol=1e-6)

@@ -142,7 +142,8 @@ def test_timer_is_charged_with_every_phase(backbone_folder):
         return torch.no_grad()  # any context manager
 
     multiview_features(mesh, cameras, backbone, batch_size=2, timer=timer)
-    assert calls == ["render", "forward", "backproject"] * 2 + ["backproject"]
+    # per batch: render, the back-projection plan, the backbone, the sums; then the means
+    assert calls == ["render", "backproject", "forward", "backproject"] * 2 + ["backproject"]
 
 
 def test_bad_input_is_refused(backbone_folder):
