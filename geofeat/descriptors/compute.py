@@ -214,8 +214,16 @@ def _compute_and_store(
         ``explicit`` and the write failed.
     """
     features = descriptor(mesh) if prepared is _NOT_PREPARED else descriptor(mesh, prepared)
+    _store_entry(descriptor, mesh, store, key, explicit, features)
+    return features
+
+
+def _store_entry(
+    descriptor: Descriptor, mesh: Mesh, store: FeatureCache | None, key: str | None, explicit: bool, features: np.ndarray
+) -> None:
+    """Write the checked ``features`` of ``mesh`` as the entry ``key`` (nothing without a store); see `_compute_and_store`."""
     if store is None:
-        return features
+        return
     meta = {
         "mesh_hash": mesh.hash,
         "mesh_name": mesh.name,
@@ -234,7 +242,6 @@ def _compute_and_store(
         if root not in _UNWRITABLE_WARNED:
             _UNWRITABLE_WARNED.add(root)
             log.warning("features are computed without caching (this warning is shown once): %s", err)
-    return features
 
 
 @dataclass(frozen=True, eq=False)
@@ -313,13 +320,15 @@ def compute_each(
         With ``n_jobs == 1``: how many shapes a background thread reads, looks up in the
         store and, when their entry is missing, prepares (``descriptor.prepare``) ahead of
         the shape being computed, so that the next shapes' files are read and (for the DINO
-        descriptors) their views rendered while this one is encoded. 0: none, every step in
-        this thread. None: `default_prefetch` (2 for the DINO descriptors, 0 for the
-        others). The outcomes are the same either way. Memory: up to ``prefetch + 1``
+        descriptors) their views rendered while this one is encoded; a computed shape's entry
+        is then written by another thread while the next one is computed, and its outcome
+        comes once it is written. 0: none, every step in this thread. None:
+        `default_prefetch` (2 for the DINO descriptors, 0 for the others). The outcomes are
+        the same either way. Memory: up to ``prefetch + 1``
         shapes' prepared work is held at once; for a DINO descriptor that is every rendered
-        view of a shape on its device (with 49 views of 512 x 512 pixels: the shaded images,
-        the backbone's input images, face indices, barycentric coordinates and depths, about
-        0.6 GB a shape).
+        view of a shape on its device (with 49 views of 512 x 512 pixels: the images as the
+        backbone sees them, the pixels that reach a vertex and where they go, about 0.2 GB a
+        shape).
         Ignored with ``n_jobs > 1``.
     progress : bool
         Show a progress bar.
@@ -404,7 +413,12 @@ class _Ready:
 def _read_ahead(
     items: list, descriptor: Descriptor, store: FeatureCache | None, explicit: bool, depth: int
 ) -> Iterator[Computed]:
-    """`_compute_one` over ``items`` in input order, each shape read and prepared by a thread up to ``depth`` shapes ahead."""
+    """`_compute_one` over ``items`` in input order, each shape read and prepared by a thread up to ``depth`` shapes ahead.
+
+    A computed shape's entry is written by a second thread while the next shape is
+    computed; its outcome is given once the write has ended (one outcome behind the
+    computation), and a write still running when the loop stops is finished before it returns.
+    """
     stop = threading.Event()
 
     def ready(item: MeshLike) -> _Ready:  # on the read-ahead thread
@@ -423,23 +437,76 @@ def _read_ahead(
     stored: set[str] = set()  # keys written by this loop (a mesh given twice is present the second time)
     pending: deque[Future] = deque()
     pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="geofeat-read-ahead")
+    writer = ThreadPoolExecutor(max_workers=1, thread_name_prefix="geofeat-write")
+    writing: _Writing | None = None  # the entry being written and its shape's outcome
     try:
         submitted = 0
         for index in range(len(items)):
             while submitted < len(items) and submitted <= index + depth:  # shape `index` and `depth` more
                 pending.append(pool.submit(ready, items[submitted]))
                 submitted += 1
-            done = pending.popleft().result()
-            yield _compute_ready(index, done, descriptor, store, explicit, stored)
+            try:
+                done = pending.popleft().result()
+                if writing is not None and done.found is not None and done.found.key == writing.key:
+                    outcome, writing = writing.outcome(stored), None  # the same mesh again: its entry first
+                    yield outcome
+                result = _compute_ready(index, done, descriptor, store, explicit, stored, writer)
+            except Exception:  # a bug (not a GeofeatError): raised in its shape's turn, after the shape before it
+                if writing is not None:
+                    outcome, writing = writing.outcome(stored), None
+                    yield outcome
+                raise
+            if writing is not None:
+                outcome, writing = writing.outcome(stored), None
+                yield outcome
+            if isinstance(result, _Writing):
+                writing = result
+            else:
+                yield result
+        if writing is not None:
+            outcome, writing = writing.outcome(stored), None
+            yield outcome
     finally:
         stop.set()
         pool.shutdown(wait=True, cancel_futures=True)
+        writer.shutdown(wait=True)  # a write still running when the loop stopped is finished: nothing computed is lost
+
+
+@dataclass
+class _Writing:
+    """A computed shape whose entry a writer thread is writing (`_read_ahead`)."""
+
+    index: int
+    features: np.ndarray
+    key: str | None
+    mesh_hash: str
+    future: Future
+    seconds: float  # before the write
+    started: float  # when the write was handed over
+
+    def outcome(self, stored: set[str]) -> Computed:
+        """The shape's `Computed` once its entry is written: ``"failed"`` when the write raised a `GeofeatError`."""
+        try:
+            self.future.result()
+        except GeofeatError as err:
+            seconds = self.seconds + time.perf_counter() - self.started
+            return Computed(self.index, "failed", mesh_hash=self.mesh_hash, error=err, seconds=seconds)
+        if self.key is not None:
+            stored.add(self.key)
+        seconds = self.seconds + time.perf_counter() - self.started
+        return Computed(self.index, "computed", self.features, self.key, self.mesh_hash, seconds=seconds)
 
 
 def _compute_ready(
-    index: int, done: _Ready, descriptor: Descriptor, store: FeatureCache | None, explicit: bool, stored: set[str]
-) -> Computed:
-    """The outcome of a shape from `_read_ahead`: what `_compute_one` gives on it (on the consumer's thread)."""
+    index: int,
+    done: _Ready,
+    descriptor: Descriptor,
+    store: FeatureCache | None,
+    explicit: bool,
+    stored: set[str],
+    writer: ThreadPoolExecutor,
+) -> Computed | _Writing:
+    """The outcome of a shape from `_read_ahead` (on the consumer's thread), or its features with the write handed to ``writer``."""
     start = time.perf_counter()
     mesh = done.mesh
     mesh_hash = None if mesh is None else mesh.hash
@@ -452,12 +519,13 @@ def _compute_ready(
         if found.features is not None:
             seconds = done.seconds + time.perf_counter() - start
             return Computed(index, "present", found.features, found.key, mesh_hash, seconds=seconds)
-        features = _compute_and_store(descriptor, mesh, store, found.key, explicit, done.prepared)
+        features = descriptor(mesh) if done.prepared is _NOT_PREPARED else descriptor(mesh, done.prepared)
     except GeofeatError as err:
         return Computed(index, "failed", mesh_hash=mesh_hash, error=err, seconds=done.seconds + time.perf_counter() - start)
-    if found.key is not None:
-        stored.add(found.key)
-    return Computed(index, "computed", features, found.key, mesh_hash, seconds=done.seconds + time.perf_counter() - start)
+    future = writer.submit(_store_entry, descriptor, mesh, store, found.key, explicit, features)
+    return _Writing(
+        index, features, found.key, mesh_hash, future, done.seconds + time.perf_counter() - start, time.perf_counter()
+    )
 
 
 #: The descriptor and store of this worker process (`compute_each` with ``n_jobs > 1``).

@@ -8,7 +8,9 @@ one the GeoLoRA trainer uses too.
 
 from __future__ import annotations
 
+import contextlib
 import os
+import threading
 from dataclasses import replace
 from typing import ClassVar, NamedTuple
 
@@ -196,19 +198,37 @@ class DinoFeatures(Descriptor):
         return cameras, batch_size
 
     def prepare(self, mesh: Mesh) -> PreparedViews:
-        """The cameras of ``mesh`` and all its views rendered, on the backbone's device (may run on another thread)."""
-        cameras, batch_size = self._views(mesh)
-        recipe = self._recipe()
-        rendered = list(render_batches([mesh], [cameras], self.backbone().patch_size, recipe=recipe, batch_size=batch_size))
-        return PreparedViews(cameras, batch_size, rendered)
+        """The cameras of ``mesh`` and all its views rendered and planned, on the backbone's device.
+
+        May run on another thread while the backbone encodes another shape. On CUDA the work
+        goes to a stream of its own, so the GPU renders while the backbone runs on the
+        default stream; `compute_prepared` waits for it there.
+        """
+        backbone = self.backbone()
+        stream = render_stream(backbone.device)
+        with torch.cuda.stream(stream) if stream is not None else contextlib.nullcontext():
+            if stream is not None:
+                stream.wait_stream(torch.cuda.default_stream(backbone.device))  # the backbone's weights, moved there
+            cameras, batch_size = self._views(mesh)
+            rendered = list(render_batches(
+                [mesh], [cameras], backbone.patch_size, recipe=self._recipe(), batch_size=batch_size, device=backbone.device
+            ))  # fmt: skip
+            ready = stream.record_event() if stream is not None else None
+        return PreparedViews(cameras, batch_size, rendered, ready)
 
     def compute_prepared(self, mesh: Mesh, prepared: PreparedViews | None) -> np.ndarray:
-        """Vertex features of shape (V, embed_dim), from the views `prepare` rendered (None: rendered here, batch by batch)."""
+        """Vertex features of shape (V, embed_dim), from the views `prepare` rendered (None: rendered here, batch by batch).
+
+        The prepared tensors stay referenced until the features are on the host, after the
+        default stream has finished with them, so their memory is never reused early.
+        """
         if prepared is None:
             cameras, batch_size = self._views(mesh)
             rendered = None
         else:
-            cameras, batch_size, rendered = prepared
+            cameras, batch_size, rendered, ready = prepared
+            if ready is not None:
+                torch.cuda.current_stream(self.backbone().device).wait_event(ready)
         features, _ = multiview_features(
             mesh, cameras, self.backbone(), recipe=self._recipe(), fill=self.fill, batch_size=batch_size,
             autocast=self.autocast(), progress=True, rendered=rendered,
@@ -224,12 +244,32 @@ class DinoFeatures(Descriptor):
         return replace(recipe, backproject=self.backproject) if self.backproject is not None else recipe
 
 
+_RENDER_STREAMS: dict[torch.device, torch.cuda.Stream] = {}
+_RENDER_STREAMS_LOCK = threading.Lock()
+
+
+def render_stream(device: torch.device) -> torch.cuda.Stream | None:
+    """The CUDA stream that `DinoFeatures.prepare` renders on, one per device (made on first use); None off CUDA."""
+    if device.type != "cuda":
+        return None
+    device = torch.device("cuda", torch.cuda.current_device() if device.index is None else device.index)
+    with _RENDER_STREAMS_LOCK:
+        if device not in _RENDER_STREAMS:
+            _RENDER_STREAMS[device] = torch.cuda.Stream(device)
+        return _RENDER_STREAMS[device]
+
+
 class PreparedViews(NamedTuple):
-    """What `DinoFeatures.prepare` makes ahead of the backbone: cameras, views per batch, rendered batches."""
+    """What `DinoFeatures.prepare` makes ahead of the backbone: cameras, views per batch, rendered and planned batches.
+
+    ``ready`` is the CUDA event recorded on the rendering stream after the last of that work
+    (None on the CPU).
+    """
 
     cameras: Cameras
     batch_size: int
     rendered: list[RenderedBatch]
+    ready: torch.cuda.Event | None = None
 
 
 class DINOv2(DinoFeatures):

@@ -4,6 +4,7 @@ import threading
 
 import numpy as np
 import pytest
+import torch
 from shapes import bumpy, sphere
 
 import geofeat
@@ -201,25 +202,61 @@ def test_prepare_runs_on_one_background_thread_at_most_prefetch_shapes_ahead(tmp
         list(compute_each(meshes, hks, None, prefetch=-1, progress=False))
 
 
+class RecordingCache(geofeat.FeatureCache):
+    """A store that records which thread wrote each entry and what had been computed by then."""
+
+    def __init__(self, root, descriptor):
+        super().__init__(root)
+        self.descriptor = descriptor
+        self.writes: list[tuple[str, int]] = []  # (thread name, meshes computed when the write began)
+
+    def put(self, key, features, meta=None):
+        self.writes.append((threading.current_thread().name, len(self.descriptor.computed_after)))
+        return super().put(key, features, meta)
+
+
+def test_entries_are_written_on_a_thread_of_their_own_and_each_outcome_comes_once_saved(tmp_path):
+    meshes = [named(bumpy(seed, 2), f"m{seed}") for seed in range(5)]
+    descriptor = PreparedForTests()
+    store = RecordingCache(tmp_path / "store", descriptor)
+    for outcome in compute_each(meshes, descriptor, store, prefetch=2, progress=False):
+        assert outcome.status == "computed"
+        np.testing.assert_array_equal(store.get(outcome.key), outcome.features)  # on disk before it is given
+    assert {name.split("_")[0] for name, _ in store.writes} == {"geofeat-write"}
+    assert [computed for _, computed in store.writes] == [1, 2, 3, 4, 5]  # each written after its own computation
+
+    stopped = PreparedForTests()
+    store = geofeat.FeatureCache(tmp_path / "stopped")
+    outcomes = compute_each(meshes, stopped, store, prefetch=2, progress=False)
+    assert next(outcomes).index == 0
+    outcomes.close()  # shape 1 was computed while shape 0 was written: its entry is finished, not lost
+    assert len(stopped.computed_after) == 2 and len(list(store.entries())) == 2
+
+
 def read_ahead_threads() -> list[threading.Thread]:
     return [t for t in threading.enumerate() if t.name.startswith("geofeat-read-ahead")]
 
 
+def working_threads() -> set[threading.Thread]:
+    """The threads a Python program waits for at exit (tqdm's monitor, a daemon started by any bar, is left out)."""
+    return {t for t in threading.enumerate() if not t.daemon}
+
+
 def test_an_early_stop_or_an_error_ends_the_read_ahead_thread(tmp_path):
-    before = set(threading.enumerate())
+    before = working_threads()
     meshes = [named(bumpy(seed, 2), f"m{seed}") for seed in range(8)]
     descriptor = PreparedForTests()
     outcomes = compute_each(meshes, descriptor, None, prefetch=2, progress=False)
     assert next(outcomes).status == "computed"
     assert read_ahead_threads()  # running while the loop is
     outcomes.close()
-    assert read_ahead_threads() == [] and set(threading.enumerate()) == before
+    assert read_ahead_threads() == [] and working_threads() == before
     assert len(descriptor.prepared_on) <= 3  # the shape computed and the 2 ahead of it, no more
 
     stopped = PreparedForTests()  # compute_many stops at the first failure
     with pytest.raises(MeshError):
         geofeat.compute_many([meshes[0], tmp_path / "missing.off", *meshes[1:]], stopped, cache=False, progress=False)
-    assert set(threading.enumerate()) == before
+    assert working_threads() == before
     assert len(stopped.prepared_on) <= 3  # shapes 0, 2 and 3 at most (the missing file is shape 1)
 
     buggy = PreparedForTests(fail_on=bumpy(0, 1).n_vertices)  # not a GeofeatError: raised, in its turn
@@ -228,7 +265,7 @@ def test_an_early_stop_or_an_error_ends_the_read_ahead_thread(tmp_path):
     with pytest.raises(RuntimeError, match="a bug in prepare"):
         for outcome in compute_each(items, buggy, None, prefetch=2, progress=False):
             seen.append(outcome.index)
-    assert seen == [0, 1] and set(threading.enumerate()) == before
+    assert seen == [0, 1] and working_threads() == before
 
 
 def test_dinov3_renders_ahead_by_default_and_gives_the_same_features(tmp_path):
@@ -246,3 +283,22 @@ def test_dinov3_renders_ahead_by_default_and_gives_the_same_features(tmp_path):
     assert summary(runs[None]) == summary(runs[0]) and {o.status for o in runs[0]} == {"computed"}
     for a, b in zip(runs[None], runs[0], strict=True):
         np.testing.assert_array_equal(a.features, b.features)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_dinov3_on_cuda_renders_ahead_on_its_own_stream_with_bfloat16_and_gives_the_same_features(tmp_path):
+    from tiny_models import tiny_dinov3
+
+    from geofeat.descriptors.dino import render_stream
+
+    tiny_dinov3().save_pretrained(tmp_path / "v3")
+    params = {"weights": str(tmp_path / "v3"), "views": 9, "image_size": 128, "device": "cuda", "amp": "on"}
+    meshes = [named(bumpy(seed, 2), f"m{seed}") for seed in range(4)]
+    runs = {}
+    for prefetch in (0, 2):
+        descriptor = make_descriptor("dinov3", **params)
+        runs[prefetch] = list(compute_each(meshes, descriptor, None, prefetch=prefetch, progress=False))
+    assert render_stream(torch.device("cuda")) is not torch.cuda.current_stream()
+    assert {o.status for o in runs[0]} == {o.status for o in runs[2]} == {"computed"}
+    for a, b in zip(runs[2], runs[0], strict=True):
+        np.testing.assert_allclose(a.features, b.features, rtol=0, atol=1e-6)
