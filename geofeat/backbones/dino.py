@@ -395,7 +395,7 @@ class DinoBackbone:
                 f"{max(1, round(width / self.patch_size)) * self.patch_size}) or resize first (geofeat never crops silently)"
             )
         with torch.no_grad():
-            lo, hi = float(images.min()), float(images.max())
+            lo, hi = (float(v) for v in torch.stack(torch.aminmax(images)).cpu())  # one wait on the device, not two
         if lo < -_RANGE_TOL or hi > 1 + _RANGE_TOL:
             raise BackboneError(
                 f"image values must lie in [0, 1], found range [{lo:.4g}, {hi:.4g}]; for 0-255 images divide by 255"

@@ -5,6 +5,7 @@ from __future__ import annotations
 import csv
 import os
 import signal
+import time
 
 import numpy as np
 import pytest
@@ -161,7 +162,14 @@ def test_image_size_must_fit_the_patch(tmp_path):
 def test_cuda_step_with_autocast(tmp_path):
     trainer = _trainer(tmp_path, device="cuda")
     trainer._start_or_resume()
-    assert np.isfinite(trainer.train_step().loss)
+    start = time.perf_counter()
+    record = trainer.train_step()
+    wall = time.perf_counter() - start
+    assert np.isfinite(record.loss)
+    # phases timed by CUDA events: each one there, none negative, together within the step's wall time
+    assert {"render", "forward", "backproject", "loss", "backward", "optimizer"} <= set(record.seconds)
+    assert all(seconds >= 0 for seconds in record.seconds.values())
+    assert sum(record.seconds.values()) <= wall
 
 
 def test_geodesic_store_round_trip_and_repair(tmp_path, caplog):
