@@ -7,7 +7,7 @@ writes ``<folder>/before_after.md`` (seconds per stage, peak GPU memory and the 
 
     python benchmarks/speed_dino.py --device cuda --repeats 5 --out benchmarks/results/h100/speed_dino_bf16
     python benchmarks/speed_geolora.py --model vitb16 --image-size 512 --device cuda --steps 20 \\
-        --out h100/speed_geolora_vitb16_512_cuda
+        --out benchmarks/results/h100/speed_geolora_vitb16_512_cuda
     python benchmarks/gpu_before_after.py --folder benchmarks/results/h100
 
 (the ``before/`` files come from the same two scripts run on an earlier version of geofeat).
@@ -31,70 +31,71 @@ def _ratio(before: float, after: float) -> str:
 
 
 def dino_table(before: dict, after: dict) -> list[str]:
-    """Rows of the ViT-B/16-size backbone, before and after."""
+    """Rows of the ViT-B/16-size backbone, before and after (the pass without stage synchronisations when both have it)."""
     old = next(r for r in before["rows"] if r["name"] == VIT_B)
     new = next(r for r in after["rows"] if r["name"] == VIT_B)
+    stages = DINO_STAGES + (("wall",) if "wall" in old and "wall" in new else ())
     lines = [
         f"Multi-view DINO path, one FAUST_r shape ({after['vertices']} vertices), {after['views']} views at "
         f"{after['image_size']} x {after['image_size']}, random DINOv3 of ViT-B/16 size, "
         f"{'bfloat16 autocast' if after['autocast'] else 'float32'}, median of {after['repeats']} passes, "
-        f"{after['gpu']}. Before: {before['date']}, batches of {before['batch_size']} views; "
-        f"after: {after['date']}, views per batch {after['batch_size']}.",
+        f"{after['gpu']}. Before: {before['date']}, views per batch {before['batch_size']}; "
+        f"after: {after['date']}, views per batch {after['batch_size']}. Stages are timed with the device "
+        "synchronised at their ends (total: their sum); wall: a pass timed as a whole, as the descriptors run it.",
         "",
-        "| seconds per shape | " + " | ".join(DINO_STAGES) + " |",
-        "|---|" + "---|" * len(DINO_STAGES),
-        "| before | " + " | ".join(f"{old[s]:.3f}" for s in DINO_STAGES) + " |",
-        "| after | " + " | ".join(f"{new[s]:.3f}" for s in DINO_STAGES) + " |",
-        "| speed-up | " + " | ".join(_ratio(old[s], new[s]) for s in DINO_STAGES) + " |",
+        "| seconds per shape | " + " | ".join(stages) + " |",
+        "|---|" + "---|" * len(stages),
+        "| before | " + " | ".join(f"{old[s]:.3f}" for s in stages) + " |",
+        "| after | " + " | ".join(f"{new[s]:.3f}" for s in stages) + " |",
+        "| speed-up | " + " | ".join(_ratio(old[s], new[s]) for s in stages) + " |",
     ]
     if new.get("peak_gib") is not None:
         lines += ["", f"Peak GPU memory after: {new['peak_gib']:.2f} GiB."]
     return lines
 
 
+def _wall(result: dict) -> float:
+    """Seconds per GeoLoRA step, wall clock (the phase sum for results that lack it)."""
+    return result.get("wall_seconds_per_step", result["median_step_seconds"])
+
+
 def geolora_table(before: dict, after: dict) -> list[str]:
-    """Median seconds per phase of a GeoLoRA step, before and after."""
+    """Median seconds per phase of a GeoLoRA step, before and after, and the wall-clock steps/s."""
     old, new = before["median_seconds"], after["median_seconds"]
-    old_step, new_step = before["median_step_seconds"], after["median_step_seconds"]
-    wall = after.get("wall_seconds_per_step")
     lines = [
         f"GeoLoRA training step at the paper's settings (DINOv3 ViT-B/16 size, {after['image_size']} x "
         f"{after['image_size']}, {after['views'][0]} + {after['partials_per_step']} x {after['views'][1]} views, "
-        f"ball back-projection, bfloat16 autocast), median seconds per phase. Before: {before['date']}, "
-        f"{before['steps_timed']} steps; after: {after['date']}, {after['steps_timed']} steps, "
-        f"{after.get('workers', 0)} sample workers.",
+        f"preset {after.get('preset', 'default')}, bfloat16 autocast), median seconds per phase. Before: {before['date']}, "
+        f"{before['steps_timed']} steps, {before.get('workers', 0)} sample workers; after: {after['date']}, "
+        f"{after['steps_timed']} steps, {after.get('workers', 0)} sample workers. Step: the sum of the phases; "
+        "wall: the timed steps end to end.",
         "",
-        "| | " + " | ".join(GEOLORA_PHASES) + " | step | steps/s | 50,000 steps |",
+        "| | " + " | ".join(GEOLORA_PHASES) + " | step | wall steps/s | 50,000 steps |",
         "|---|" + "---|" * (len(GEOLORA_PHASES) + 3),
-        "| before | "
-        + " | ".join(f"{old[p]:.3f}" for p in GEOLORA_PHASES)
-        + f" | {old_step:.3f} | {1 / old_step:.2f} | {50000 * old_step / 3600:.1f} h |",
-        "| after | "
-        + " | ".join(f"{new[p]:.3f}" for p in GEOLORA_PHASES)
-        + f" | {new_step:.3f} | {1 / new_step:.2f} | {50000 * new_step / 3600:.1f} h |",
     ]
-    if wall is not None:
-        lines += [
-            "",
-            f"Wall clock after, timed steps end to end: {1 / wall:.2f} steps/s, {50000 * wall / 3600:.1f} h for 50,000 steps, "
-            f"{old_step / wall:.1f}x the speed before.",
-        ]
+    for label, result, phases in (("before", before, old), ("after", after, new)):
+        wall = _wall(result)
+        lines.append(
+            f"| {label} | "
+            + " | ".join(f"{phases[p]:.3f}" for p in GEOLORA_PHASES)
+            + f" | {result['median_step_seconds']:.3f} | {1 / wall:.2f} | {50000 * wall / 3600:.1f} h |"
+        )
+    lines += ["", f"Wall clock after: {_wall(before) / _wall(after):.1f}x the speed before."]
     return lines
 
 
 def short_table(load, args) -> list[str]:
     """The two headline rows: seconds per shape of the DINO path, wall-clock steps/s of GeoLoRA."""
-    old_dino = next(r for r in load("before", args.dino)["rows"] if r["name"] == VIT_B)
-    after_dino = load(args.dino)
+    before_dino, after_dino = load("before", args.dino), load(args.dino)
+    old_dino = next(r for r in before_dino["rows"] if r["name"] == VIT_B)
     new_dino = next(r for r in after_dino["rows"] if r["name"] == VIT_B)
-    old_step = load("before", args.geolora)["median_step_seconds"]
-    after_geolora = load(args.geolora)
-    new_step = after_geolora.get("wall_seconds_per_step", after_geolora["median_step_seconds"])
+    key = "wall" if "wall" in old_dino and "wall" in new_dino else "total"
+    old_step, new_step = _wall(load("before", args.geolora)), _wall(load(args.geolora))
     return [
         f"| {after_dino['gpu']} | before | after | |",
         "|---|---|---|---|",
-        f"| DINOv3 ViT-B/16 features of one 5k-vertex shape, 49 views at 512 x 512 | {old_dino['total']:.3f} s | "
-        f"{new_dino['total']:.3f} s | {old_dino['total'] / new_dino['total']:.1f}x |",
+        f"| DINOv3 ViT-B/16 features of one 5k-vertex shape, 49 views at 512 x 512 | {old_dino[key]:.3f} s | "
+        f"{new_dino[key]:.3f} s | {old_dino[key] / new_dino[key]:.1f}x |",
         f"| GeoLoRA training at the paper's settings | {1 / old_step:.2f} steps/s | {1 / new_step:.2f} steps/s | "
         f"{old_step / new_step:.1f}x |",
         "",

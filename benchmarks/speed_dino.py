@@ -1,11 +1,19 @@
 """Time one shape through the multi-view DINO path, stage by stage, and draw what it makes.
 
 The path is `geofeat.render.multiview_features`, the one of the DINO descriptors and the
-GeoLoRA trainer. Stages, each summed over the batches of views: render (rasterize + gray
-Phong shading), backbone (ImageNet normalisation, ViT forward, bilinear samples of the patch
-grid at the foreground pixels, per-pixel L2 norm) and back-projection (ball mode: face-candidate
-neighbours and a sparse product). The first pass of each backbone (allocations, and compilation
-with ``--compile``) is timed apart. Backbones are randomly
+GeoLoRA trainer. Stages, each summed over the batches of views, the device synchronised at
+each stage's start and end: render (rasterize + gray Phong shading), backbone (ImageNet
+normalisation, ViT forward, bilinear samples of the patch grid at the pixels that reach a
+vertex, per-pixel L2 norm) and back-projection (ball mode: the plan of which pixels reach
+which vertices, face-candidate neighbours, then a sparse product). "wall" is a whole pass
+timed without those synchronisations, as the descriptors run it. The first pass of each
+backbone (allocations, and compilation with ``--compile``) is timed apart.
+
+``--profile`` also records one pass of the ViT-B/16-size backbone with torch.profiler and
+writes ``OUT_profile.md``: the pass's wall time against the time the device spent in
+kernels, and the kernels that took most of it. ``--bf16-weights`` adds a row with the
+backbone's weights cast to bfloat16 (under autocast), and the mean cosine similarity of its
+vertex features, and of autocast's, to float32 ones. Backbones are randomly
 initialised DINOv3 architectures (no weights can be downloaded here): a tiny one and one of
 ViT-B/16 size (12 layers, width 768, 12 heads, 4 register tokens).
 
@@ -16,6 +24,7 @@ Usage::
 
     python benchmarks/speed_dino.py --data ../shared/data --views 49 --image-size 512
     python benchmarks/speed_dino.py --device cuda --repeats 5 --compile --out results/h100/speed_dino
+    python benchmarks/speed_dino.py --device cuda --repeats 5 --profile --bf16-weights --out results/h100/speed_dino_bf16
 """
 
 from __future__ import annotations
@@ -39,7 +48,6 @@ from geofeat.render.multiview import CPU_BATCH_SIZE, auto_batch_size
 HERE = Path(__file__).resolve().parent
 
 VIT_B = "ViT-B/16 size (12 layers, width 768)"
-COMPILED = "ViT-B/16 size, torch.compile"
 BACKBONES = {
     "tiny (2 layers, width 32)": dict(hidden_size=32, intermediate_size=64, num_hidden_layers=2, num_attention_heads=2),
     VIT_B: dict(hidden_size=768, intermediate_size=3072, num_hidden_layers=12, num_attention_heads=12),
@@ -83,18 +91,63 @@ def run_stages(mesh, cameras, backbone: DinoBackbone, batch_size: int | None, au
     )
 
 
+def wall_pass(mesh, cameras, backbone: DinoBackbone, batch_size: int | None, autocast: bool) -> float:
+    """Seconds of one pass with no synchronisation inside it (the device waited for at the end)."""
+    if batch_size is None:
+        batch_size = auto_batch_size(len(cameras), cameras.height, cameras.width, backbone)
+    cuda = backbone.device.type == "cuda"
+    if cuda:
+        torch.cuda.synchronize(backbone.device)
+    start = time.perf_counter()
+    features, _ = multiview_features(mesh, cameras, backbone, backproject="ball", batch_size=batch_size, autocast=autocast)
+    if cuda:
+        torch.cuda.synchronize(backbone.device)
+    return time.perf_counter() - start
+
+
 def timed_passes(mesh, cameras, backbone, args, autocast: bool) -> tuple[dict, np.ndarray]:
-    """A warm-up pass, then ``args.repeats`` timed passes: the median seconds per stage, peak GPU memory, the features."""
+    """A warm-up pass, then ``args.repeats`` timed passes: the median seconds per stage and per pass, peak GPU memory, the features."""
     start = time.perf_counter()
     run_stages(mesh, cameras, backbone, args.batch_size, autocast)  # warm-up: first-call allocations (and compilation)
     first = time.perf_counter() - start
     if backbone.device.type == "cuda":
         torch.cuda.reset_peak_memory_stats(backbone.device)
     passes = [run_stages(mesh, cameras, backbone, args.batch_size, autocast) for _ in range(args.repeats)]
+    walls = [wall_pass(mesh, cameras, backbone, args.batch_size, autocast) for _ in range(args.repeats)]
     seconds = {stage: float(np.median([p[0][stage] for p in passes])) for stage in passes[0][0]}
-    row = {**seconds, "total": float(np.median([sum(p[0].values()) for p in passes])), "first_pass": first}
+    row = {**seconds, "total": float(np.median([sum(p[0].values()) for p in passes])), "wall": float(np.median(walls))}
+    row["first_pass"] = first
     row["peak_gib"] = torch.cuda.max_memory_allocated(backbone.device) / 2**30 if backbone.device.type == "cuda" else None
     return row, passes[-1][1]
+
+
+def profile_pass(mesh, cameras, backbone: DinoBackbone, args, autocast: bool, top: int = 15) -> tuple[dict, list[str]]:
+    """One pass under torch.profiler: its wall seconds, the device's kernel seconds, and a table of the costliest kernels."""
+    from torch.profiler import ProfilerActivity, profile
+
+    cuda = backbone.device.type == "cuda"
+    activities = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if cuda else [])
+    with profile(activities=activities) as prof:
+        wall = wall_pass(mesh, cameras, backbone, args.batch_size, autocast)
+    events = [e for e in prof.key_averages() if cuda and e.device_type == torch.autograd.DeviceType.CUDA]
+    kernel_us = sum(e.self_device_time_total for e in events)
+    launches = sum(e.count for e in events)
+    summary = {"wall_s": wall, "kernel_s": kernel_us / 1e6, "kernel_launches": launches}
+    lines = [
+        "| kernel | calls | device time | share of kernel time |",
+        "|---|---|---|---|",
+    ]
+    for event in sorted(events, key=lambda e: -e.self_device_time_total)[:top]:
+        share = event.self_device_time_total / kernel_us if kernel_us else 0.0
+        name = event.key if len(event.key) <= 90 else event.key[:87] + "..."
+        lines.append(f"| `{name}` | {event.count} | {event.self_device_time_total / 1000:.2f} ms | {share:.0%} |")
+    return summary, lines
+
+
+def mean_cosine(a: np.ndarray, b: np.ndarray) -> float:
+    """Mean over rows of the cosine similarity of two (V, C) feature arrays."""
+    na, nb = np.linalg.norm(a, axis=1), np.linalg.norm(b, axis=1)
+    return float(np.mean((a * b).sum(axis=1) / np.maximum(na * nb, 1e-12)))
 
 
 def pca_colors(features: np.ndarray) -> np.ndarray:
@@ -146,6 +199,10 @@ def main(argv=None) -> int:
     parser.add_argument(
         "--compile", action="store_true", help="also time the ViT-B/16-size backbone under torch.compile (first pass = compile)"
     )
+    parser.add_argument(
+        "--bf16-weights", action="store_true", help="also time the ViT-B/16-size backbone with its weights in bfloat16"
+    )
+    parser.add_argument("--profile", action="store_true", help="profile one pass of the ViT-B/16-size backbone (OUT_profile.md)")
     parser.add_argument("--repeats", type=int, default=1, help="timed passes per backbone; the median is reported")
     parser.add_argument(
         "--out", default=str(HERE / "results" / "speed_dino"), help="writes OUT.json, OUT.md, OUT_views.png, OUT_pca.png"
@@ -159,19 +216,31 @@ def main(argv=None) -> int:
     out.parent.mkdir(parents=True, exist_ok=True)
     rows, features_for_figure = [], None
     backbones = dict(list(BACKBONES.items())[:1]) if args.backbones == "tiny" else dict(BACKBONES)
+    main_label = list(backbones)[-1]  # the variants are of the largest backbone timed
+    compiled, bf16_weights = f"{main_label}, torch.compile", f"{main_label}, bfloat16 weights"
     if args.compile:
-        backbones[COMPILED] = BACKBONES[VIT_B]
+        backbones[compiled] = backbones[main_label]
+    if args.bf16_weights:
+        backbones[bf16_weights] = backbones[main_label]
+    features_by_label, profile = {}, None
     for label, sizes in backbones.items():
         backbone = random_dinov3(0, **sizes)
         backbone.model.to(device)
-        if label == COMPILED:
+        if label == compiled:
             backbone.model = torch.compile(backbone.model)
+        if label == bf16_weights:
+            backbone.model.to(torch.bfloat16)
         cameras = make_cameras(mesh, args.views, layout="official", image_size=args.image_size, device=backbone.device)
-        row, features = timed_passes(mesh, cameras, backbone, args, autocast)
+        row, features = timed_passes(mesh, cameras, backbone, args, autocast or label == bf16_weights)
         rows.append({"name": label, **row})
-        print(f"{label}: " + ", ".join(f"{k} {v:.2f}" for k, v in row.items() if v is not None), flush=True)
-        if label != COMPILED:
+        features_by_label[label] = features
+        print(f"{label}: " + ", ".join(f"{k} {v:.3f}" for k, v in row.items() if v is not None), flush=True)
+        if label == main_label:
             features_for_figure = features
+            if args.profile:
+                profile = profile_pass(mesh, cameras, backbone, args, autocast)
+            if args.bf16_weights:  # the reference for the feature comparison: the same weights in float32
+                _, features_by_label["float32"] = run_stages(mesh, cameras, backbone, args.batch_size, False)
     images_for_figure = list(render_phong(mesh, None, cameras).images.cpu().numpy())  # for the figure, not timed
 
     result = {
@@ -199,20 +268,20 @@ def main(argv=None) -> int:
         f"{batches}, device {result['device']} ({result['gpu'] or 'CPU'}), "
         f"{'bfloat16 autocast' if autocast else 'float32'}, median of {args.repeats} pass(es), {result['date']}, {result['machine']}",
         "",
-        "| backbone (random DINOv3 weights) | render | backbone | back-project (ball) | total | first pass | peak GPU memory |",
-        "|---|---|---|---|---|---|---|",
+        "| backbone (random DINOv3 weights) | render | backbone | back-project (ball) | total | wall | first pass | peak GPU memory |",
+        "|---|---|---|---|---|---|---|---|",
     ]
     for row in rows:
         peak = f"{row['peak_gib']:.2f} GiB" if row["peak_gib"] is not None else "-"
         lines.append(
             f"| {row['name']} | {row['render']:.3f} s | {row['backbone']:.3f} s | {row['backproject']:.3f} s | "
-            f"{row['total']:.3f} s | {row['first_pass']:.2f} s | {peak} |"
+            f"{row['total']:.3f} s | {row['wall']:.3f} s | {row['first_pass']:.2f} s | {peak} |"
         )
     if args.compile:
-        eager = next(r for r in rows if r["name"] == VIT_B)
-        compiled = next(r for r in rows if r["name"] == COMPILED)
-        saved = eager["total"] - compiled["total"]
-        cost = compiled["first_pass"] - compiled["total"] - (eager["first_pass"] - eager["total"])
+        eager = next(r for r in rows if r["name"] == main_label)
+        timed = next(r for r in rows if r["name"] == compiled)
+        saved = eager["total"] - timed["total"]
+        cost = timed["first_pass"] - timed["total"] - (eager["first_pass"] - eager["total"])
         result["compile"] = {"saved_per_shape_s": saved, "compile_s": cost, "pays_over_100_shapes": 100 * saved > cost}
         lines += [
             "",
@@ -220,6 +289,32 @@ def main(argv=None) -> int:
             + ("pays" if 100 * saved > cost else "does not pay")
             + f" ({100 * saved:.1f} s saved against {cost:.1f} s).",
         ]
+    if args.bf16_weights:
+        reference = features_by_label["float32"]
+        similarity = {
+            "autocast": mean_cosine(features_by_label[main_label], reference),
+            "bfloat16_weights": mean_cosine(features_by_label[bf16_weights], reference),
+        }
+        result["cosine_to_float32"] = similarity
+        lines += [
+            "",
+            f"Mean cosine similarity of the vertex features to float32 ones (same weights): "
+            f"{'bfloat16 autocast' if autocast else 'float32'} {similarity['autocast']:.5f}, "
+            f"bfloat16 weights {similarity['bfloat16_weights']:.5f}.",
+        ]
+    if profile is not None:
+        summary, table = profile
+        result["profile"] = summary
+        overlap = summary["kernel_s"] / summary["wall_s"] if summary["wall_s"] else 0.0
+        profile_lines = [
+            f"One pass of the {main_label} backbone under torch.profiler ({lines[0].split(', median')[0]}): "
+            f"wall {summary['wall_s']:.3f} s, device kernels {summary['kernel_s']:.3f} s ({overlap:.0%} of the wall time), "
+            f"{summary['kernel_launches']} kernel launches. The profiler slows the host down, so the wall time "
+            "here is above the table's.",
+            "",
+            *table,
+        ]
+        (out.parent / f"{out.name}_profile.md").write_text("\n".join(profile_lines) + "\n")
     write_results(out, result, "\n".join(lines))
     save_view_grid(images_for_figure, out.parent / f"{out.name}_views.png")
     plot_mesh_colors(

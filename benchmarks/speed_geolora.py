@@ -9,7 +9,8 @@ steps after the first (warm-up). Random weights cost the same time as trained on
     python benchmarks/speed_geolora.py --model vitb16 --image-size 512 --steps 3          # paper settings
     python benchmarks/speed_geolora.py --model vitb16 --image-size 512 --device cuda      # on a GPU
 
-Writes ``benchmarks/results/speed_geolora_<model>_<size>_<device>.json`` and ``.md``.
+Writes ``benchmarks/results/speed_geolora_<model>_<size>_<device>.json`` and ``.md`` (``_reference``
+appended under ``--preset reference``), or ``OUT.json`` and ``OUT.md`` with ``--out OUT``.
 """
 
 from __future__ import annotations
@@ -56,8 +57,11 @@ def main(argv=None) -> int:
     parser.add_argument("--image-size", type=int, default=128)
     parser.add_argument("--views-full", type=int, default=9)
     parser.add_argument("--views-partial", type=int, default=4)
-    parser.add_argument("--backproject", default=None, help="default: the preset's (ball)")
-    parser.add_argument("--out", help="results name in benchmarks/results (default speed_geolora_<model>_<size>_<device>)")
+    parser.add_argument("--preset", choices=("default", "reference"), default="default", help="TrainConfig.preset")
+    parser.add_argument("--backproject", default=None, help="default: the preset's (ball; ball_last under reference)")
+    parser.add_argument(
+        "--out", help="writes OUT.json and OUT.md (default benchmarks/results/speed_geolora_<model>_<size>_<device>[_<preset>])"
+    )
     parser.add_argument("--steps", type=int, default=20, help="timed steps (plus one warm-up)")
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--amp", default="auto")
@@ -74,7 +78,7 @@ def main(argv=None) -> int:
     with tempfile.TemporaryDirectory() as tmp:
         config = TrainConfig(
             data="faust_r", data_root=args.data_root, split="train", first=10, out=tmp, image_size=args.image_size,
-            views_full=args.views_full, views_partial=args.views_partial, backproject=args.backproject,
+            views_full=args.views_full, views_partial=args.views_partial, preset=args.preset, backproject=args.backproject,
             steps=args.steps + 1, device=args.device, amp=args.amp, workers=args.workers, progress=False,
         )  # fmt: skip
         trainer = GeoLoraTrainer(config, backbone=random_backbone(args.model))
@@ -95,6 +99,7 @@ def main(argv=None) -> int:
         "image_size": args.image_size,
         "views": [args.views_full, args.views_partial],
         "partials_per_step": config.partials_per_shape,
+        "preset": config.preset,
         "device": str(trainer.device),
         "amp": config.amp,
         "workers": trainer.workers,
@@ -109,16 +114,19 @@ def main(argv=None) -> int:
         "machine": machine(),
         "date": datetime.date.today().isoformat(),
     }
-    name = args.out or f"speed_geolora_{args.model}_{args.image_size}_{trainer.device.type}"
-    (HERE / "results" / f"{name}.json").write_text(json.dumps(result, indent=1) + "\n")
+    preset = "" if config.preset == "default" else f"_{config.preset}"
+    out = Path(args.out or HERE / "results" / f"speed_geolora_{args.model}_{args.image_size}_{trainer.device.type}{preset}")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.with_name(f"{out.name}.json").write_text(json.dumps(result, indent=1) + "\n")
     lines = [
         f"GeoLoRA step time: random DINOv3 {args.model}, {args.image_size} x {args.image_size}, "
         f"{args.views_full} + {config.partials_per_shape} x {args.views_partial} views, {trainer.device}, "
         f"{trainer.workers} sample worker(s), "
-        f"{'bfloat16 autocast' if trainer._autocast() else 'float32'}, back-projection "
-        f"{config.backproject or 'of the preset (ball)'}, median seconds of {len(records)} steps "
-        f"(step: the sum of the phases; wall: the timed steps' wall clock, {result['hours_for_50000_steps']:.1f} h "
-        f"for 50,000 steps); {result['machine']}, {result['date']}",
+        f"{'bfloat16 autocast' if trainer._autocast() else 'float32'}, preset {config.preset}, back-projection "
+        f"{config.backproject or 'of the preset'}, median seconds of {len(records)} steps "
+        f"(step: the sum of the phases, "
+        f"{'device time between CUDA events' if trainer.device.type == 'cuda' else 'wall time'}; wall: the timed steps' "
+        f"wall clock, {result['hours_for_50000_steps']:.1f} h for 50,000 steps); {result['machine']}, {result['date']}",
         "",
         "| " + " | ".join(PHASES) + " | step | steps/s | wall steps/s | peak GPU memory |",
         "|" + "---|" * (len(PHASES) + 4),
@@ -127,7 +135,7 @@ def main(argv=None) -> int:
         + f" | {step:.3f} | {1.0 / step:.2f} | {1.0 / wall:.2f} | "
         + (f"{result['peak_cuda_memory_gib']:.2f} GiB |" if result["peak_cuda_memory_gib"] is not None else "- |"),
     ]
-    (HERE / "results" / f"{name}.md").write_text("\n".join(lines) + "\n")
+    out.with_name(f"{out.name}.md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
     return 0
 
