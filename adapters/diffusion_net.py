@@ -111,12 +111,41 @@ def tangent_gradients(x: torch.Tensor, operators: SurfaceOperators) -> tuple[tor
     n_vertices = x.shape[-2]
     # (..., V, C) -> (V, B*C): one sparse product for the whole batch
     flat = x.movedim(-2, 0).reshape(n_vertices, -1)
+    backward = flat.requires_grad and torch.is_grad_enabled()
+    transposes = operators.gradient_transposes if backward else (None, None)
 
-    def apply(matrix: torch.Tensor) -> torch.Tensor:
-        out = torch.sparse.mm(matrix, flat).reshape((n_vertices,) + x.shape[:-2] + x.shape[-1:])
+    def apply(matrix: torch.Tensor, transposed: torch.Tensor | None) -> torch.Tensor:
+        if transposed is None or matrix.requires_grad:
+            product = torch.sparse.mm(matrix, flat)
+        else:
+            product = _ConstantSparseProduct.apply(matrix, transposed, flat)
+        out = product.reshape((n_vertices,) + x.shape[:-2] + x.shape[-1:])
         return out.movedim(0, -2)
 
-    return apply(operators.grad_x), apply(operators.grad_y)
+    return apply(operators.grad_x, transposes[0]), apply(operators.grad_y, transposes[1])
+
+
+class _ConstantSparseProduct(torch.autograd.Function):
+    """``matrix @ dense`` for a constant sparse ``matrix``, differentiable in ``dense`` only.
+
+    The same product and gradient as ``torch.sparse.mm``, whose backward multiplies by
+    ``matrix.t()``: a transpose that is not coalesced, so on CUDA every backward pass sorts
+    its entries again and waits for the device to learn their number. Here the backward
+    multiplies by ``transposed``, that transpose coalesced once
+    (`SurfaceOperators.gradient_transposes`).
+    """
+
+    @staticmethod
+    def forward(ctx, matrix: torch.Tensor, transposed: torch.Tensor, dense: torch.Tensor) -> torch.Tensor:
+        """``matrix`` (V, V) sparse, ``transposed`` its coalesced transpose (V, V), ``dense`` (V, C); returns (V, C)."""
+        ctx.save_for_backward(transposed)
+        return torch.sparse.mm(matrix, dense)
+
+    @staticmethod
+    def backward(ctx, grad: torch.Tensor) -> tuple[None, None, torch.Tensor]:
+        """The gradient (V, C) of ``dense`` only."""
+        (transposed,) = ctx.saved_tensors
+        return None, None, torch.sparse.mm(transposed, grad)
 
 
 # ----------------------------------------------------------------------------- layers
@@ -190,13 +219,14 @@ class SpatialGradientFeatures(nn.Module):
 
     def forward(self, grad_x: torch.Tensor, grad_y: torch.Tensor) -> torch.Tensor:
         """Features of shape (..., V, C) from gradient components of shape (..., V, C)."""
-        mixed_x, mixed_y = self.a_re(grad_x), self.a_re(grad_y)
-        if self.a_im is not None:
-            mixed_x = mixed_x - self.a_im(grad_y)
-            if self.mixing == "ulrssm":
-                mixed_y = self.a_re(grad_x) + self.a_im(grad_y)
-            else:
-                mixed_y = mixed_y + self.a_im(grad_x)
+        if self.a_im is None:
+            mixed_x, mixed_y = self.a_re(grad_x), self.a_re(grad_y)
+        elif self.mixing == "ulrssm":  # both parts from the same two products
+            re_x, im_y = self.a_re(grad_x), self.a_im(grad_y)
+            mixed_x, mixed_y = re_x - im_y, re_x + im_y
+        else:
+            mixed_x, mixed_y = self.a_re(grad_x), self.a_re(grad_y)
+            mixed_x, mixed_y = mixed_x - self.a_im(grad_y), mixed_y + self.a_im(grad_x)
         return torch.tanh(grad_x * mixed_x + grad_y * mixed_y)
 
 

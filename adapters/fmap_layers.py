@@ -44,6 +44,7 @@ __all__ = [
     "regularized_fmap",
     "resolvent_mask",
     "soft_pointmap",
+    "soft_pointmaps",
 ]
 
 
@@ -69,24 +70,30 @@ def _dtype_device(reference) -> tuple[torch.dtype, torch.device]:
 
 
 def _batched(
-    items: dict[str, tuple[object, int]], dtype: torch.dtype, device: torch.device, integer: tuple[str, ...] = ()
+    items: dict[str, tuple[object, int]],
+    dtype: torch.dtype,
+    device: torch.device,
+    integer: tuple[str, ...] = (),
+    host: tuple[str, ...] = (),
 ) -> tuple[dict[str, torch.Tensor], bool]:
     """Convert inputs to tensors with a leading batch dimension shared by all.
 
     ``items`` maps a name to ``(value, core_ndim)``: a value with ``core_ndim`` dimensions is
     unbatched (it is expanded to the common batch size), one with ``core_ndim + 1`` is batched.
+    The items named in ``host`` go to the CPU instead of ``device`` (they are read there).
     Returns the tensors, shape ``(B, *core)``, and whether any input was batched.
     """
     tensors: dict[str, torch.Tensor] = {}
     batch_sizes: dict[str, int] = {}
     for name, (value, core_ndim) in items.items():
         t = _to_tensor(value)
+        target = torch.device("cpu") if name in host else device
         if name in integer and not t.is_floating_point():
-            t = t.to(device=device, dtype=torch.int64)
+            t = t.to(device=target, dtype=torch.int64)
         else:
             if t.is_complex() or t.dtype == torch.bool:
                 raise FunctionalMapError(f"{name} must hold real numbers; found dtype {t.dtype}.")
-            t = t.to(device=device, dtype=dtype)
+            t = t.to(device=target, dtype=dtype)
         if t.ndim == core_ndim:
             t = t.unsqueeze(0)
         elif t.ndim == core_ndim + 1:
@@ -182,21 +189,40 @@ def resolvent_mask(evals_x, evals_y, gamma: float = 0.5, kind: str = "resolvent"
 
 
 def _solve_fmap(a: torch.Tensor, b: torch.Tensor, weights: torch.Tensor, lambda_: float) -> torch.Tensor:
-    """Row-wise closed form ``C_i (A A^T + lambda diag(W_i)) = B_i A^T``: a (B, k_x, p), b (B, k_y, p), weights (B, k_y, k_x)."""
+    """Row-wise closed form ``C_i (A A^T + lambda diag(W_i)) = B_i A^T``.
+
+    Parameters
+    ----------
+    a : torch.Tensor, shape (B, k_x, p)
+    b : torch.Tensor, shape (B, k_y, p)
+    weights : torch.Tensor, shape (B, k_y, k_x)
+        On the device of ``a``; already checked by `_check_not_singular`.
+    lambda_ : float
+
+    Returns
+    -------
+    torch.Tensor, shape (B, k_y, k_x)
+
+    Notes
+    -----
+    On the CPU a system that the solver finds singular raises `FunctionalMapError`. On
+    other devices the solver's report is not read, since reading it waits for the device:
+    a system singular only up to rounding (the singular-by-construction ones are caught
+    before) then gives non-finite entries instead.
+    """
     gram = a @ a.transpose(1, 2)  # (B, k_x, k_x)
     rhs = b @ a.transpose(1, 2)  # (B, k_y, k_x)
     systems = gram.unsqueeze(1) + lambda_ * torch.diag_embed(weights)  # (B, k_y, k_x, k_x), symmetric
-    _check_not_singular(a, weights, lambda_)
-    try:
-        return torch.linalg.solve(systems, rhs.unsqueeze(-1)).squeeze(-1)
-    except torch.linalg.LinAlgError as err:  # singular up to rounding, where this kernel notices it
+    solution, info = torch.linalg.solve_ex(systems, rhs.unsqueeze(-1))
+    if solution.device.type == "cpu" and bool(info.any()):
         raise FunctionalMapError(
-            f"the functional map system is singular ({err}): the features do not determine C. "
-            "Use more feature channels, fewer basis functions or a positive lambda_."
-        ) from err
+            f"the functional map system is singular (the solver found {int((info > 0).sum())} singular row system(s)): "
+            "the features do not determine C. Use more feature channels, fewer basis functions or a positive lambda_."
+        )
+    return solution.squeeze(-1)
 
 
-def _check_not_singular(a: torch.Tensor, weights: torch.Tensor, lambda_: float) -> None:
+def _check_not_singular(weights: torch.Tensor, lambda_: float, n_channels: int) -> None:
     """Raise `FunctionalMapError` when a row system is singular by construction.
 
     Row ``i`` solves with ``A A^T + lambda diag(W_i)``, with ``A`` (k_x, p) of rank at most
@@ -205,15 +231,22 @@ def _check_not_singular(a: torch.Tensor, weights: torch.Tensor, lambda_: float) 
     is decided from the shapes and the mask, not from whether a particular LAPACK kernel
     happens to raise on a matrix that is singular only up to rounding; other numerically
     singular systems are left to the solver.
+
+    Parameters
+    ----------
+    weights : torch.Tensor, shape (B, k_y, k_x)
+        The Laplacian mask, on the CPU (read here without waiting for a device).
+    lambda_ : float
+    n_channels : int
+        Feature channels p.
     """
-    n_channels = a.shape[-1]
     free = (lambda_ * weights <= 0).sum(dim=-1)  # (B, k_y): coordinates without regularisation
     bad = free > n_channels
     if bool(bad.any()):
         rows = torch.nonzero(bad)[:, -1].unique().tolist()
         raise FunctionalMapError(
             f"the functional map system is singular for {len(rows)} row(s) of C (first {rows[:5]}): "
-            f"{int(free.max())} of the {a.shape[-2]} basis coefficients are unregularised but the features have only "
+            f"{int(free.max())} of the {weights.shape[-1]} basis coefficients are unregularised but the features have only "
             f"{n_channels} channel(s), so they do not determine C. "
             "Use more feature channels, fewer basis functions or a positive lambda_."
         )
@@ -257,7 +290,9 @@ def regularized_fmap(
         Lumped vertex areas of ``x``.
     mass_y : array_like, shape (V_y,) or (B, V_y)
     evals_x : array_like, shape (k_x,) or (B, k_x)
-        Eigenvalues of ``x``, matching the columns of ``evecs_x``.
+        Eigenvalues of ``x``, matching the columns of ``evecs_x``. They are read on the
+        host (the mask is built there): CPU tensors or arrays spare a copy from the device,
+        which would wait for it.
     evals_y : array_like, shape (k_y,) or (B, k_y)
     lambda_ : float
         Weight of the Laplacian term (ULRSSM's default 100; DPFM's code defaults to 1e-3).
@@ -293,6 +328,7 @@ def regularized_fmap(
         },
         dtype,
         device,
+        host=("evals_x", "evals_y"),
     )
     fx, fy = t["feat_x"], t["feat_y"]
     if fx.shape[2] != fy.shape[2]:
@@ -301,9 +337,13 @@ def regularized_fmap(
         )
     _check_basis(t["evecs_x"], t["mass_x"], t["evals_x"], fx.shape[1], "x")
     _check_basis(t["evecs_y"], t["mass_y"], t["evals_y"], fy.shape[1], "y")
+    host_weights = resolvent_mask(t["evals_x"], t["evals_y"], gamma=gamma, kind=mask)  # (B, k_y, k_x), on the CPU
+    _check_not_singular(host_weights, lambda_, fx.shape[2])
+    if bidirectional:
+        _check_not_singular(host_weights.transpose(1, 2), lambda_, fx.shape[2])
+    weights = host_weights.to(device)
     a = t["evecs_x"].transpose(1, 2) @ (t["mass_x"].unsqueeze(-1) * fx)  # (B, k_x, p)
     b = t["evecs_y"].transpose(1, 2) @ (t["mass_y"].unsqueeze(-1) * fy)  # (B, k_y, p)
-    weights = resolvent_mask(t["evals_x"], t["evals_y"], gamma=gamma, kind=mask)  # (B, k_y, k_x)
     c_xy = _unbatch(_solve_fmap(a, b, weights, lambda_), batched)
     if not bidirectional:
         return c_xy
@@ -384,6 +424,45 @@ def soft_pointmap(feat_x, feat_y, temperature: float = 0.07, normalize: bool = T
         fx, fy = F.normalize(fx, p=2, dim=-1), F.normalize(fy, p=2, dim=-1)
     similarity = fy @ fx.transpose(1, 2)  # (B, V_y, V_x)
     return _unbatch(torch.softmax(similarity / temperature, dim=-1), batched)
+
+
+def soft_pointmaps(feat_x, feat_y, temperature: float = 0.07, normalize: bool = True) -> tuple[torch.Tensor, torch.Tensor]:
+    """Both soft point maps ``P_yx`` and ``P_xy`` of `soft_pointmap`, from one similarity matrix.
+
+    ``P_xy`` is the row-wise softmax of the transposed similarities of ``P_yx`` (as
+    ULRSSM's code computes it): one product of the features instead of two, forward and
+    backward. Equal to two calls of `soft_pointmap` up to rounding.
+
+    Parameters
+    ----------
+    feat_x : torch.Tensor, shape (V_x, p) or (B, V_x, p)
+    feat_y : torch.Tensor, shape (V_y, p) or (B, V_y, p)
+    temperature : float
+        > 0; lower is sharper.
+    normalize : bool
+        L2-normalise every feature vector first, so similarities are cosines in [-1, 1].
+
+    Returns
+    -------
+    P_yx : torch.Tensor, shape (V_y, V_x) or (B, V_y, V_x)
+        Soft map y -> x, rows sum to one.
+    P_xy : torch.Tensor, shape (V_x, V_y) or (B, V_x, V_y)
+        Soft map x -> y, rows sum to one.
+    """
+    temperature = _positive(temperature, "temperature")
+    dtype, device = _dtype_device(feat_x)
+    t, batched = _batched({"feat_x": (feat_x, 2), "feat_y": (feat_y, 2)}, dtype, device)
+    fx, fy = t["feat_x"], t["feat_y"]
+    if fx.shape[2] != fy.shape[2]:
+        raise FunctionalMapError(
+            f"feat_x and feat_y must have the same number of channels; found {fx.shape[2]} and {fy.shape[2]}."
+        )
+    if normalize:
+        fx, fy = F.normalize(fx, p=2, dim=-1), F.normalize(fy, p=2, dim=-1)
+    similarity = fy @ fx.transpose(1, 2)  # (B, V_y, V_x)
+    p_yx = torch.softmax(similarity / temperature, dim=-1)
+    p_xy = torch.softmax(similarity.transpose(1, 2) / temperature, dim=-1)  # (B, V_x, V_y)
+    return _unbatch(p_yx, batched), _unbatch(p_xy, batched)
 
 
 def pointmap_to_fmap(P, evecs_x, evecs_y, mass_y) -> torch.Tensor:

@@ -81,6 +81,8 @@ _OLD_CONFIG_FILE = "head_config.json"
 _OLD_LAYOUT_HINT = "Rewrite it in place with geofeat.adapters.heads.upgrade_head(folder) (the weights are kept)."
 #: Input feature arrays a head keeps in memory (a target shape is matched to several sources in a row).
 _FEATURES_KEPT = 4
+#: Normalised meshes a head keeps (`Head.prepare`: training sees the same shapes at every epoch).
+_NORMALIZED_KEPT = 64
 
 
 @dataclass
@@ -199,6 +201,7 @@ class Head:
         self.config = config
         _check_inputs(config)
         self._features: LRUCache[tuple[str, str, str], np.ndarray] = LRUCache(_FEATURES_KEPT)
+        self._normalized: LRUCache[tuple, Mesh] = LRUCache(_NORMALIZED_KEPT)
         self._descriptor: tuple[tuple[str, str], Descriptor | str] | None = None
 
     # -- inputs
@@ -212,9 +215,10 @@ class Head:
         """The pair after `HeadConfig.mesh_normalization` (`normalized_pair`); heads compute on prepared pairs.
 
         `match` and `fit` prepare every pair once; the other methods that take a pair
-        (``training_loss``, ``predict``, ``loss_terms``...) expect a prepared one.
+        (``training_loss``, ``predict``, ``loss_terms``...) expect a prepared one. The
+        normalised meshes of the last 64 shapes are kept.
         """
-        return normalized_pair(pair, self.config.mesh_normalization)
+        return normalized_pair(pair, self.config.mesh_normalization, self._normalized)
 
     def features(self, mesh: Mesh) -> np.ndarray:
         """Input features (V, C) float32 of a mesh of a prepared pair (read-only; the last few are kept in memory)."""

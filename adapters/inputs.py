@@ -18,6 +18,7 @@ from geofeat.datasets.records import ShapePair
 from geofeat.descriptors.base import Descriptor
 from geofeat.descriptors.compute import compute
 from geofeat.errors import HeadError, UnusablePair
+from geofeat.lru import LRUCache
 from geofeat.mesh import Mesh, normalize
 
 __all__ = [
@@ -148,7 +149,7 @@ def normalized_mesh(mesh: Mesh, how: str | None, frame: Mesh | None = None) -> M
     return Mesh(verts.astype(np.float32).astype(np.float64), mesh.faces, name=mesh.name)
 
 
-def normalized_pair(pair: ShapePair, how: str | None) -> ShapePair:
+def normalized_pair(pair: ShapePair, how: str | None, kept: LRUCache[tuple, Mesh] | None = None) -> ShapePair:
     """The pair a head computes on: `HeadConfig.mesh_normalization` applied the way the references' data has it.
 
     With ``"unit_area"`` every full shape is centred at its mean vertex and scaled to unit
@@ -161,6 +162,11 @@ def normalized_pair(pair: ShapePair, how: str | None) -> ShapePair:
     ----------
     pair : ShapePair
     how : {None, "unit_area"}
+    kept : LRUCache, optional
+        Normalised meshes to reuse and to add to, keyed by the content hashes of the mesh
+        and of its frame and by ``how`` (a `Mesh` is validated and hashed when made, which
+        costs more than the transform): a head that sees the same shapes at every epoch
+        normalises each once.
 
     Returns
     -------
@@ -170,9 +176,18 @@ def normalized_pair(pair: ShapePair, how: str | None) -> ShapePair:
     """
     if how is None:
         return pair
-    x = normalized_mesh(pair.x, how)
-    y = normalized_mesh(pair.y, how, frame=pair.x if pair.protocol == "p2f" else None)
+    x = _normalized_kept(pair.x, how, None, kept)
+    y = _normalized_kept(pair.y, how, pair.x if pair.protocol == "p2f" else None, kept)
     return dataclasses.replace(pair, x=x, y=y)
+
+
+def _normalized_kept(mesh: Mesh, how: str, frame: Mesh | None, kept: LRUCache[tuple, Mesh] | None) -> Mesh:
+    """`normalized_mesh`, taken from ``kept`` when there (under the name of ``mesh``) and added to it otherwise."""
+    if kept is None:
+        return normalized_mesh(mesh, how, frame=frame)
+    key = (mesh.hash, None if frame is None else frame.hash, how)
+    found = kept.get_or_compute(key, lambda: normalized_mesh(mesh, how, frame=frame))
+    return found if found.name == mesh.name else found.renamed(mesh.name)
 
 
 def input_features(mesh: Mesh, descriptor: str | Descriptor, params: dict | None = None) -> np.ndarray:

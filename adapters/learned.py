@@ -41,6 +41,9 @@ __all__ = ["LearnedHead"]
 
 #: Meshes whose input features and operators a learned head keeps (`LearnedHead.shape_inputs`).
 _INPUTS_KEPT = 64
+#: Training steps whose losses `LearnedHead.fit` keeps on the device before reading them back
+#: at once (reading a loss waits for the device to finish its step).
+_LOSSES_READ_EVERY = 256
 
 
 class LearnedHead(Head):
@@ -55,6 +58,8 @@ class LearnedHead(Head):
         self.model: torch.nn.Module | None = None
         self.in_channels: int | None = None
         self._inputs: LRUCache[str, tuple[torch.Tensor, SurfaceOperators]] = LRUCache(_INPUTS_KEPT)
+        # mesh hash -> (the eigenvalues of its operators in _inputs, a CPU copy of them)
+        self._host_evals: LRUCache[str, tuple[torch.Tensor, torch.Tensor]] = LRUCache(_INPUTS_KEPT)
 
     def build_model(self, in_channels: int) -> torch.nn.Module:
         """The trainable module for ``in_channels`` input features."""
@@ -83,9 +88,26 @@ class LearnedHead(Head):
 
         def build() -> tuple[torch.Tensor, SurfaceOperators]:
             feats = torch.tensor(self.features(mesh), device=self.device)  # a copy: the array is shared and read-only
-            return feats, self.operators(mesh).to(self.device)
+            host = self.operators(mesh)
+            ops = host.to(self.device)
+            self._host_evals.put(mesh.hash, (ops.evals, host.evals))
+            return feats, ops
 
         return self._inputs.get_or_compute(mesh.hash, build)
+
+    def host_eigenvalues(self, mesh: Mesh) -> torch.Tensor:
+        """The eigenvalues of the operators of `shape_inputs`, on the CPU, shape (k,) float32.
+
+        For what is computed on the host from them (functional-map masks, partial ranks):
+        a copy kept from when the operators were built, so that reading them does not wait
+        for the device. Operators given by `use_inputs` (or put in the cache otherwise) are
+        copied once.
+        """
+        ops = self.shape_inputs(mesh)[1]
+        kept = self._host_evals.get(mesh.hash)
+        if kept is None or kept[0] is not ops.evals:
+            kept = self._host_evals.put(mesh.hash, (ops.evals, ops.evals.cpu()))
+        return kept[1]
 
     def use_inputs(self, mesh: Mesh, features: torch.Tensor, operators: SurfaceOperators) -> None:
         """Use these input features and operators for ``mesh`` instead of computing them.
@@ -108,6 +130,7 @@ class LearnedHead(Head):
         import torch
 
         self._inputs.put(mesh.hash, (features.to(self.device, torch.float32), operators.to(self.device)))
+        self._host_evals.pop(mesh.hash)
 
     def _ensure_model(self, mesh: Mesh) -> torch.nn.Module:
         import torch
@@ -133,6 +156,7 @@ class LearnedHead(Head):
         scheduler = torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, T_max=total) if config.cosine_annealing else None
         rng = np.random.default_rng(config.seed)
         losses: list[float] = []
+        pending: list[torch.Tensor] = []  # detached losses not read back yet
         start = time.perf_counter()
         bar = progress_bar(total=total, desc=f"training {self.name}", unit="pair", show=config.progress)
         try:
@@ -152,14 +176,18 @@ class LearnedHead(Head):
                     optimizer.step()
                     if scheduler is not None:
                         scheduler.step()
-                    losses.append(float(loss.detach()))
+                    pending.append(loss.detach())
                     bar.update(1)
-                    bar.set_postfix(loss=f"{losses[-1]:.4f}")
+                    if not bar.disable or len(pending) >= _LOSSES_READ_EVERY:  # a shown loss is read at every step
+                        _read_back(pending, losses)
+                        bar.set_postfix(loss=f"{losses[-1]:.4f}")
                     if config.max_minutes is not None and time.perf_counter() - start > 60.0 * config.max_minutes:
+                        _read_back(pending, losses)
                         log.info("%s: time budget spent after %d steps", self.name, len(losses))
                         return losses
         finally:
             bar.close()
+        _read_back(pending, losses)
         return losses
 
     def match(self, pair: ShapePair) -> Match:
@@ -198,3 +226,12 @@ class LearnedHead(Head):
         check_state(model, state, source)
         model.load_state_dict(state, strict=True)
         self.model = model.to(self.device)
+
+
+def _read_back(pending: list[torch.Tensor], losses: list[float]) -> None:
+    """Append the values of the scalar tensors ``pending`` to ``losses`` (one read from their device) and empty it."""
+    if pending:
+        import torch
+
+        losses.extend(torch.stack(pending).tolist())
+        pending.clear()

@@ -17,6 +17,7 @@ head's settings can be checked against `CONSTRUCTIONS` without loading it.
 from __future__ import annotations
 
 from dataclasses import dataclass, fields, replace
+from functools import cached_property
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -104,6 +105,18 @@ class SurfaceOperators:
     def device(self) -> torch.device:
         """Device holding the tensors."""
         return self.mass.device
+
+    @cached_property
+    def gradient_transposes(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """``grad_x.T`` and ``grad_y.T``, coalesced sparse COO (V, V), on the device of the record.
+
+        Made once per record, on first use, from ``grad_x`` and ``grad_y`` themselves (a record
+        made by ``dataclasses.replace`` or `to` makes its own). The backward pass of
+        `geofeat.adapters.diffusion_net.tangent_gradients` multiplies by them; torch's own
+        backward would transpose and coalesce again at every step, which on CUDA sorts the
+        entries and waits for the device.
+        """
+        return self.grad_x.t().coalesce(), self.grad_y.t().coalesce()
 
     def to(self, device: str | torch.device) -> SurfaceOperators:
         """The same operators on another device.

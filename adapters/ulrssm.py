@@ -80,6 +80,7 @@ import torch.nn.functional as F
 from geofeat.checks import canonical, check_boolean, check_number, is_boolean, is_integer
 from geofeat.datasets.records import Match, ShapePair
 from geofeat.errors import HeadError
+from geofeat.lru import LRUCache
 from geofeat.mesh import Mesh
 
 from .diffusion_net import GRADIENT_MIXINGS, DiffusionNet
@@ -93,6 +94,7 @@ from .fmap_layers import (
     pointmap_to_fmap,
     regularized_fmap,
     soft_pointmap,
+    soft_pointmaps,
 )
 from .functional_maps import nearest_neighbors
 from .heads import HeadConfig, check_integers, check_numbers
@@ -108,6 +110,8 @@ __all__ = ["LOSS_TERMS", "PARTIAL_PROTOCOLS", "ULRSSMConfig", "ULRSSMHead"]
 PARTIAL_PROTOCOLS = ("p2f", "p2p")
 #: Keys of `ULRSSMHead.loss_terms` (unweighted terms, and the weighted total).
 LOSS_TERMS = ("bij", "orth", "couple", "lap", "total")
+#: Meshes whose DiffusionNet operators (the first ``diffusion_eig`` eigenpairs) the head keeps.
+_DIFFUSION_OPS_KEPT = 64
 
 
 @dataclass
@@ -232,6 +236,8 @@ class ULRSSMHead(LearnedHead):
     def __init__(self, config: ULRSSMConfig | None = None, **settings: Any):
         super().__init__(config, **settings)
         _validate(self.config)
+        # mesh hash -> (its operators from shape_inputs, their first diffusion_eig eigenpairs)
+        self._diffusion_ops: LRUCache[str, tuple[SurfaceOperators, SurfaceOperators]] = LRUCache(_DIFFUSION_OPS_KEPT)
 
     @classmethod
     def release_state(cls, raw: dict, source: str = "checkpoint") -> ReleaseState:
@@ -344,7 +350,7 @@ class ULRSSMHead(LearnedHead):
         model.eval()
         params = [p for p in model.parameters() if p.requires_grad]
         optimizer = torch.optim.Adam(params, lr=c.tta_lr)
-        losses: list[float] = []
+        losses: list[torch.Tensor] = []  # read back at the end: reading one waits for the device
         with torch.enable_grad():
             for _ in range(steps):
                 loss = self.training_loss(pair)
@@ -353,9 +359,9 @@ class ULRSSMHead(LearnedHead):
                 if c.grad_clip is not None:
                     torch.nn.utils.clip_grad_norm_(params, c.grad_clip)
                 optimizer.step()
-                losses.append(float(loss.detach()))
+                losses.append(loss.detach())
         model.zero_grad(set_to_none=True)
-        return losses
+        return torch.stack(losses).tolist() if losses else []
 
     # -- the loss
 
@@ -389,7 +395,8 @@ class ULRSSMHead(LearnedHead):
         feat_y, ops_y = self._embed(pair.y)
         k = self._n_fmap(ops_x, ops_y)
         evecs_x, evecs_y = ops_x.evecs[:, :k], ops_y.evecs[:, :k]
-        evals_x, evals_y = ops_x.evals[:k], ops_y.evals[:k]
+        # the eigenvalues are only read on the host (mask, partial rank): their CPU copies
+        evals_x, evals_y = self.host_eigenvalues(pair.x)[:k], self.host_eigenvalues(pair.y)[:k]
         c_xy, c_yx = regularized_fmap(
             feat_x, feat_y, evecs_x, evecs_y, ops_x.mass, ops_y.mass, evals_x, evals_y,
             lambda_=c.fmap_lambda, gamma=c.resolvent_gamma, bidirectional=True,
@@ -406,12 +413,13 @@ class ULRSSMHead(LearnedHead):
                 terms["lap"] = laplacian_commutativity_loss(c_xy, evals_x, evals_y) + laplacian_commutativity_loss(
                     c_yx, evals_y, evals_x
                 )
-        if c.w_couple > 0:
+        if c.w_couple > 0 and partial:
             p_yx = soft_pointmap(feat_x, feat_y, temperature=c.temperature)  # (V_y, V_x)
             terms["couple"] = coupling_loss(c_xy, p_yx, evecs_x, evecs_y, ops_y.mass)
-            if not partial:
-                p_xy = soft_pointmap(feat_y, feat_x, temperature=c.temperature)  # (V_x, V_y)
-                terms["couple"] = terms["couple"] + coupling_loss(c_yx, p_xy, evecs_y, evecs_x, ops_x.mass)
+        elif c.w_couple > 0:
+            p_yx, p_xy = soft_pointmaps(feat_x, feat_y, temperature=c.temperature)  # (V_y, V_x), (V_x, V_y)
+            terms["couple"] = coupling_loss(c_xy, p_yx, evecs_x, evecs_y, ops_y.mass)
+            terms["couple"] = terms["couple"] + coupling_loss(c_yx, p_xy, evecs_y, evecs_x, ops_x.mass)
         terms["total"] = c.w_bij * terms["bij"] + c.w_orth * terms["orth"] + c.w_couple * terms["couple"] + c.w_lap * terms["lap"]
         return terms
 
@@ -421,14 +429,22 @@ class ULRSSMHead(LearnedHead):
         """Network features (V, width_out) of ``mesh`` and its operators (all ``n_eig`` eigenpairs)."""
         model = self._ensure_model(mesh)
         feats, ops = self.shape_inputs(mesh)
-        return model(feats, self._diffusion_operators(ops)), ops
+        return model(feats, self._diffusion_operators(mesh, ops)), ops
 
-    def _diffusion_operators(self, ops: SurfaceOperators) -> SurfaceOperators:
-        """The operators with the first ``diffusion_eig`` eigenpairs, for DiffusionNet."""
+    def _diffusion_operators(self, mesh: Mesh, ops: SurfaceOperators) -> SurfaceOperators:
+        """The operators ``ops`` of ``mesh`` with their first ``diffusion_eig`` eigenpairs, for DiffusionNet.
+
+        One record per operators, kept: what a record makes once for the backward pass
+        (`SurfaceOperators.gradient_transposes`) is not made again at every step.
+        """
         k = min(self.config.diffusion_eig, ops.k)
         if k == ops.k:
             return ops
-        return dataclasses.replace(ops, evals=ops.evals[:k], evecs=ops.evecs[:, :k])
+        kept = self._diffusion_ops.get(mesh.hash)
+        if kept is None or kept[0] is not ops or kept[1].k != k:
+            sliced = dataclasses.replace(ops, evals=ops.evals[:k], evecs=ops.evecs[:, :k])
+            kept = self._diffusion_ops.put(mesh.hash, (ops, sliced))
+        return kept[1]
 
     def _n_fmap(self, ops_x: SurfaceOperators, ops_y: SurfaceOperators) -> int:
         """``n_fmap`` clipped to the eigenpairs both shapes have."""

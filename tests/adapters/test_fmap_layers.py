@@ -200,6 +200,22 @@ def test_pointmap_to_fmap_of_a_permutation_equals_the_numpy_conversion(pair):
     np.testing.assert_allclose(fl.pointmap_to_fmap(hard, bx.evecs[:, :20], by.evecs[:, :10], by.mass).numpy(), small, atol=1e-12)
 
 
+def test_soft_pointmaps_equal_two_soft_pointmaps_with_their_gradients():
+    feat_x, feat_y, *_ = tiny_problem(p=4)
+    grads = []
+    for both in (True, False):
+        fx, fy = feat_x.clone().requires_grad_(), feat_y.clone().requires_grad_()
+        if both:
+            p_yx, p_xy = fl.soft_pointmaps(fx, fy, temperature=0.3)
+        else:
+            p_yx, p_xy = fl.soft_pointmap(fx, fy, temperature=0.3), fl.soft_pointmap(fy, fx, temperature=0.3)
+        weights = torch.arange(p_yx.numel(), dtype=p_yx.dtype).reshape(p_yx.shape)
+        ((p_yx * weights).sum() + (p_xy * weights.T).square().sum()).backward()
+        grads.append((p_yx.detach(), p_xy.detach(), fx.grad, fy.grad))
+    for new, old in zip(*grads, strict=True):
+        torch.testing.assert_close(new, old, rtol=1e-12, atol=1e-12)
+
+
 def test_soft_pointmap_of_identical_features_is_the_permutation(pair):
     p = fl.soft_pointmap(pair.feat_x, pair.feat_y, temperature=0.01)
     assert p.shape == (pair.y.n_vertices, pair.x.n_vertices)
