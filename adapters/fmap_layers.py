@@ -205,16 +205,17 @@ def _solve_fmap(a: torch.Tensor, b: torch.Tensor, weights: torch.Tensor, lambda_
 
     Notes
     -----
-    On the CPU a system that the solver finds singular raises `FunctionalMapError`. On
-    other devices the solver's report is not read, since reading it waits for the device:
-    a system singular only up to rounding (the singular-by-construction ones are caught
-    before) then gives non-finite entries instead.
+    A system that the solver finds singular raises `FunctionalMapError`, except on a GPU
+    while gradients are recorded (a training step), where reading the solver's report would
+    wait for the device: a system singular only up to rounding (the singular-by-construction
+    ones are caught before) then gives non-finite entries, and the training loop refuses
+    the non-finite loss they lead to (`geofeat.adapters.learned.LearnedHead.fit`).
     """
     gram = a @ a.transpose(1, 2)  # (B, k_x, k_x)
     rhs = b @ a.transpose(1, 2)  # (B, k_y, k_x)
     systems = gram.unsqueeze(1) + lambda_ * torch.diag_embed(weights)  # (B, k_y, k_x, k_x), symmetric
     solution, info = torch.linalg.solve_ex(systems, rhs.unsqueeze(-1))
-    if solution.device.type == "cpu" and bool(info.any()):
+    if (solution.device.type == "cpu" or not torch.is_grad_enabled()) and bool(info.any()):
         raise FunctionalMapError(
             f"the functional map system is singular (the solver found {int((info > 0).sum())} singular row system(s)): "
             "the features do not determine C. Use more feature channels, fewer basis functions or a positive lambda_."

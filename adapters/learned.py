@@ -14,6 +14,7 @@ module is built.
 from __future__ import annotations
 
 import logging
+import math
 import time
 from collections.abc import Sequence
 from typing import TYPE_CHECKING, Any
@@ -229,9 +230,23 @@ class LearnedHead(Head):
 
 
 def _read_back(pending: list[torch.Tensor], losses: list[float]) -> None:
-    """Append the values of the scalar tensors ``pending`` to ``losses`` (one read from their device) and empty it."""
+    """Append the values of the scalar tensors ``pending`` to ``losses`` (one read from their device) and empty it.
+
+    Raises
+    ------
+    HeadError
+        A loss is not finite: training diverged (or met a singular system on a GPU).
+    """
     if pending:
         import torch
 
-        losses.extend(torch.stack(pending).tolist())
+        values = torch.stack(pending).tolist()
         pending.clear()
+        bad = next((i for i, value in enumerate(values) if not math.isfinite(value)), None)
+        if bad is not None:
+            step = len(losses) + bad + 1
+            raise HeadError(
+                f"the training loss is not finite ({values[bad]}) at step {step}: training diverged, the weights are "
+                "unusable. Lower the learning rate or check the input features for extreme values."
+            )
+        losses.extend(values)

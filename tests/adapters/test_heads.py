@@ -154,6 +154,27 @@ def test_fit_skips_unusable_pairs(caplog):
     assert "skipped a training pair" in caplog.text
 
 
+class _DivergingHead(_AffineHead):
+    """Its loss turns to NaN from the third step on, as a diverging training run's does."""
+
+    name = "test_diverging"
+
+    def __init__(self, **settings):
+        super().__init__(**settings)
+        self.steps = 0
+
+    def training_loss(self, pair):
+        self.steps += 1
+        loss = super().training_loss(pair)
+        return loss * float("nan") if self.steps >= 3 else loss
+
+
+def test_fit_refuses_a_loss_that_is_not_finite():
+    head = _DivergingHead(descriptor="wks", n_eig=40, epochs=3, progress=False)
+    with pytest.raises(HeadError, match="not finite .* at step 3"):
+        head.fit([_pair(0), _pair(1)])
+
+
 def test_setting_checks_name_the_setting_and_keep_their_bounds():
     from geofeat.adapters.heads import check_integers, check_numbers
 
