@@ -984,9 +984,7 @@ def load_saved_head(damage: str):
 
 SECOND_PASS += [
     Row("head-folder-sound", "R7", load_saved_head("none"), reference=lambda c: "ULRSSMHead"),
-    Row(
-        "head-folder-weights-truncated", "R7", load_saved_head("truncated"), GeofeatError, "as safetensors"
-    ),
+    Row("head-folder-weights-truncated", "R7", load_saved_head("truncated"), GeofeatError, "as safetensors"),
     Row("head-folder-weights-missing", "R7", load_saved_head("missing"), GeofeatError, "holds no weights.safetensors"),
     Row("head-folder-config-list", "R7", load_saved_head("config-list"), GeofeatError, "must be JSON objects"),
 ]
