@@ -114,7 +114,8 @@ def test_presets_select_the_recipes_and_keep_explicit_parameters(tiny_dinov3_fol
     from geofeat.render.multiview import RECIPES
 
     mesh = bumpy(1, 2)
-    params = {"weights": str(tiny_dinov3_folder), "views": 4, "image_size": 64, "batch_size": 2}
+    # on the CPU, as the backbone compared with: device "auto" would take a GPU where there is one
+    params = {"weights": str(tiny_dinov3_folder), "views": 4, "image_size": 64, "batch_size": 2, "device": "cpu"}
     reference = geofeat.compute(mesh, "dinov3", preset="reference", **params)
     backbone = load_backbone(str(tiny_dinov3_folder), kind="dinov3", device="cpu")
     cameras = make_cameras(mesh, 4, image_size=64, device="cpu")
