@@ -31,3 +31,69 @@ def write_results(out: str | os.PathLike, result: dict, table: str) -> None:
     out.with_suffix(".json").write_text(json.dumps(result, indent=2) + "\n")
     out.with_suffix(".md").write_text(table + "\n")
     print(table)
+
+
+#: CUDA runtime calls that make the host wait for the device, and those that launch a kernel.
+HOST_WAITS = ("cudaStreamSynchronize", "cudaDeviceSynchronize", "cudaEventSynchronize")
+LAUNCHES = ("cudaLaunchKernel", "cuLaunchKernel", "cudaLaunchKernelExC", "cuLaunchKernelEx")
+
+
+def profile_tables(prof, wall: float, top: int = 15) -> tuple[dict, list[str]]:
+    """Kernel time against wall time, and the costliest kernels and host operations, of a torch.profiler run.
+
+    Parameters
+    ----------
+    prof : torch.profiler.profile
+        Finished, with CPU (and CUDA) activity.
+    wall : float
+        Wall seconds of the profiled work.
+    top : int
+        Rows of each table.
+
+    Returns
+    -------
+    summary : dict
+        ``wall_s``, ``kernel_s`` (the device's time in kernels), ``kernel_launches``,
+        ``host_waits`` (synchronisations of the host with the device) and ``host_op_s``
+        (the host's time in its operations, the profiler's self CPU time).
+    lines : list of str
+        Two Markdown tables: kernels by device time, host operations by self CPU time.
+    """
+    import torch
+
+    events = list(prof.key_averages())
+    kernels = [e for e in events if e.device_type == torch.autograd.DeviceType.CUDA]
+    host = [e for e in events if e.device_type == torch.autograd.DeviceType.CPU]
+    kernel_us = sum(e.self_device_time_total for e in kernels)
+    host_us = sum(e.self_cpu_time_total for e in host)
+    summary = {
+        "wall_s": wall,
+        "kernel_s": kernel_us / 1e6,
+        "kernel_launches": sum(e.count for e in host if e.key in LAUNCHES),
+        "host_waits": sum(e.count for e in host if e.key in HOST_WAITS),
+        "host_op_s": host_us / 1e6,
+    }
+
+    def short(name: str) -> str:
+        return name if len(name) <= 90 else name[:87] + "..."
+
+    lines = ["| kernel | calls | device time | share of kernel time |", "|---|---|---|---|"]
+    for event in sorted(kernels, key=lambda e: -e.self_device_time_total)[:top]:
+        share = event.self_device_time_total / kernel_us if kernel_us else 0.0
+        lines.append(f"| `{short(event.key)}` | {event.count} | {event.self_device_time_total / 1000:.2f} ms | {share:.0%} |")
+    lines += ["", "| host operation | calls | host time (self) | share of host time |", "|---|---|---|---|"]
+    for event in sorted(host, key=lambda e: -e.self_cpu_time_total)[:top]:
+        share = event.self_cpu_time_total / host_us if host_us else 0.0
+        lines.append(f"| `{short(event.key)}` | {event.count} | {event.self_cpu_time_total / 1000:.2f} ms | {share:.0%} |")
+    return summary, lines
+
+
+def profile_summary_line(what: str, summary: dict) -> str:
+    """One sentence: wall time, kernel time and its share, launches, host waits, host time."""
+    share = summary["kernel_s"] / summary["wall_s"] if summary["wall_s"] else 0.0
+    return (
+        f"{what}: wall {summary['wall_s']:.3f} s, device kernels {summary['kernel_s']:.3f} s ({share:.0%} of the wall time), "
+        f"{summary['kernel_launches']} kernel launches, {summary['host_waits']} host waits on the device, "
+        f"{summary['host_op_s']:.3f} s of host time in operations. The profiler slows the host down, so the wall time "
+        "here is above the unprofiled one."
+    )

@@ -3,7 +3,8 @@
 Reads the JSON results that `speed_dino.py` and `speed_geolora.py` wrote for the code as it
 was (``<folder>/before/``) and as it is (``<folder>/``), measured on the same kind of GPU, and
 writes ``<folder>/before_after.md`` (seconds per stage, peak GPU memory and the ratio) and
-``<folder>/before_after_short.md`` (the two headline rows, for the README).
+``<folder>/before_after_short.md`` (the two headline rows, for the README); with the results of
+`speed_heads.py` and `speed_dsmk_ulrssm.py` of one run in the folder, also ``<folder>/heads_vs_dsmk.md``.
 
     python benchmarks/speed_dino.py --device cuda --repeats 5 --out benchmarks/results/h100/speed_dino_bf16
     python benchmarks/speed_geolora.py --model vitb16 --image-size 512 --device cuda --steps 20 \\
@@ -103,11 +104,33 @@ def short_table(load, args) -> list[str]:
     ]
 
 
+def heads_table(ours: dict, dsmk: dict) -> list[str]:
+    """Our ULRSSM training step beside DeepShapeMatchingKit's, measured on the same GPU in the same run."""
+    ulrssm = next(r for r in ours["rows"] if r["head"] == "ulrssm")
+    ours_ms = 1000.0 * ulrssm["seconds"] / ulrssm["steps"]
+    theirs_ms = dsmk["step"]["mean_ms"]
+    return [
+        f"ULRSSM training step at the authors' FAUST_r setting, {ours['gpu']}, {ours['date']}: geofeat's "
+        f"(`speed_heads.py`, mean over {ulrssm['steps']} steps of one pass) beside DeepShapeMatchingKit's own iteration "
+        f"(`speed_dsmk_ulrssm.py`, {dsmk['dsmk_commit'][:10]}, mean over {dsmk['step']['iterations']} iterations on "
+        "batches in memory), one pair per step.",
+        "",
+        "| ULRSSM step | ms | steps/s |",
+        "|---|---|---|",
+        f"| DeepShapeMatchingKit | {theirs_ms:.1f} | {1000.0 / theirs_ms:.1f} |",
+        f"| geofeat | {ours_ms:.1f} | {1000.0 / ours_ms:.1f} |",
+        "",
+        f"geofeat's step takes {ours_ms / theirs_ms:.2f} of DeepShapeMatchingKit's time ({theirs_ms / ours_ms:.2f}x its speed).",
+    ]
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--folder", default=str(HERE / "results" / "h100"))
     parser.add_argument("--dino", default="speed_dino_bf16.json")
     parser.add_argument("--geolora", default="speed_geolora_vitb16_512_cuda.json")
+    parser.add_argument("--heads", default="speed_heads.json", help="speed_heads.py's result (for heads_vs_dsmk.md)")
+    parser.add_argument("--dsmk", default="speed_dsmk_ulrssm.json", help="speed_dsmk_ulrssm.py's result, same run")
     args = parser.parse_args(argv)
     folder = Path(args.folder)
 
@@ -120,6 +143,10 @@ def main(argv=None) -> int:
     lines += ["", f"Machine: {after_dino['machine']}."]
     (folder / "before_after.md").write_text("\n".join(lines) + "\n")
     (folder / "before_after_short.md").write_text("\n".join(short_table(load, args)) + "\n")
+    if (folder / args.heads).is_file() and (folder / args.dsmk).is_file():
+        heads = heads_table(load(args.heads), load(args.dsmk))
+        (folder / "heads_vs_dsmk.md").write_text("\n".join(heads) + "\n")
+        lines += ["", *heads]
     print("\n".join(lines))
     return 0
 

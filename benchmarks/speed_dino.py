@@ -38,7 +38,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from common import DEFAULT_DATA, faust_test_shapes, machine, write_results
+from common import DEFAULT_DATA, faust_test_shapes, machine, profile_summary_line, profile_tables, write_results
 
 from geofeat.backbones import DinoBackbone
 from geofeat.evaluation.report import plot_mesh_colors
@@ -121,27 +121,14 @@ def timed_passes(mesh, cameras, backbone, args, autocast: bool) -> tuple[dict, n
     return row, passes[-1][1]
 
 
-def profile_pass(mesh, cameras, backbone: DinoBackbone, args, autocast: bool, top: int = 15) -> tuple[dict, list[str]]:
-    """One pass under torch.profiler: its wall seconds, the device's kernel seconds, and a table of the costliest kernels."""
+def profile_pass(mesh, cameras, backbone: DinoBackbone, args, autocast: bool) -> tuple[dict, list[str]]:
+    """One pass under torch.profiler: wall and kernel seconds, and the costliest kernels and host operations (`profile_tables`)."""
     from torch.profiler import ProfilerActivity, profile
 
-    cuda = backbone.device.type == "cuda"
-    activities = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if cuda else [])
+    activities = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if backbone.device.type == "cuda" else [])
     with profile(activities=activities) as prof:
         wall = wall_pass(mesh, cameras, backbone, args.batch_size, autocast)
-    events = [e for e in prof.key_averages() if cuda and e.device_type == torch.autograd.DeviceType.CUDA]
-    kernel_us = sum(e.self_device_time_total for e in events)
-    launches = sum(e.count for e in events)
-    summary = {"wall_s": wall, "kernel_s": kernel_us / 1e6, "kernel_launches": launches}
-    lines = [
-        "| kernel | calls | device time | share of kernel time |",
-        "|---|---|---|---|",
-    ]
-    for event in sorted(events, key=lambda e: -e.self_device_time_total)[:top]:
-        share = event.self_device_time_total / kernel_us if kernel_us else 0.0
-        name = event.key if len(event.key) <= 90 else event.key[:87] + "..."
-        lines.append(f"| `{name}` | {event.count} | {event.self_device_time_total / 1000:.2f} ms | {share:.0%} |")
-    return summary, lines
+    return profile_tables(prof, wall)
 
 
 def mean_cosine(a: np.ndarray, b: np.ndarray) -> float:
@@ -305,16 +292,8 @@ def main(argv=None) -> int:
     if profile is not None:
         summary, table = profile
         result["profile"] = summary
-        overlap = summary["kernel_s"] / summary["wall_s"] if summary["wall_s"] else 0.0
-        profile_lines = [
-            f"One pass of the {main_label} backbone under torch.profiler ({lines[0].split(', median')[0]}): "
-            f"wall {summary['wall_s']:.3f} s, device kernels {summary['kernel_s']:.3f} s ({overlap:.0%} of the wall time), "
-            f"{summary['kernel_launches']} kernel launches. The profiler slows the host down, so the wall time "
-            "here is above the table's.",
-            "",
-            *table,
-        ]
-        (out.parent / f"{out.name}_profile.md").write_text("\n".join(profile_lines) + "\n")
+        what = f"One pass of the {main_label} backbone under torch.profiler ({lines[0].split(', median')[0]})"
+        (out.parent / f"{out.name}_profile.md").write_text("\n".join([profile_summary_line(what, summary), "", *table]) + "\n")
     write_results(out, result, "\n".join(lines))
     save_view_grid(images_for_figure, out.parent / f"{out.name}_views.png")
     plot_mesh_colors(

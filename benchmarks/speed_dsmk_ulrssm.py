@@ -191,14 +191,23 @@ def import_dsmk(root: Path) -> types.SimpleNamespace:
 
 
 def dsmk_commit(root: Path) -> str:
-    """The DSMK commit: ``DSMK_COMMIT`` in the checkout, else ``git rev-parse HEAD``, else ``"unknown"``."""
+    """The DSMK commit: ``DSMK_COMMIT`` in the checkout, else its git HEAD, else ``"unknown"``.
+
+    A folder that is not itself the top of a git work tree (files copied out of one) is
+    "unknown" unless it holds ``DSMK_COMMIT``: git would otherwise answer for a repository
+    above it.
+    """
     marker = root / "DSMK_COMMIT"
     if marker.is_file():
         return marker.read_text().strip()
+
+    def git(*args: str) -> str:
+        return subprocess.run(["git", "-C", str(root), *args], capture_output=True, text=True, check=True).stdout.strip()
+
     try:
-        return subprocess.run(
-            ["git", "-C", str(root), "rev-parse", "HEAD"], capture_output=True, text=True, check=True
-        ).stdout.strip()
+        if Path(git("rev-parse", "--show-toplevel")).resolve() != root.resolve():
+            return "unknown"
+        return git("rev-parse", "HEAD")
     except (OSError, subprocess.CalledProcessError):
         return "unknown"
 

@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from common import machine
+from common import machine, profile_summary_line, profile_tables
 
 from geofeat.backbones import DinoBackbone
 from geofeat.train.config import TrainConfig
@@ -51,6 +51,21 @@ def random_backbone(model: str, seed: int = 0) -> DinoBackbone:
     return DinoBackbone(DINOv3ViTModel(config), kind="dinov3", source=f"random {model}")
 
 
+def profile_steps(trainer: GeoLoraTrainer, steps: int) -> tuple[dict, list[str]]:
+    """``steps`` training steps under torch.profiler: `common.profile_tables` of them."""
+    from torch.profiler import ProfilerActivity, profile
+
+    activities = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if trainer.device.type == "cuda" else [])
+    with profile(activities=activities) as prof:
+        start = time.perf_counter()
+        for _ in range(steps):
+            trainer.train_step()
+        if trainer.device.type == "cuda":
+            torch.cuda.synchronize()
+        wall = time.perf_counter() - start
+    return profile_tables(prof, wall)
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--model", choices=sorted(MODELS), default="small")
@@ -72,6 +87,11 @@ def main(argv=None) -> int:
         help="sample worker processes (TrainConfig.workers): 0 prepares each sample inside the step; "
         "with workers the partial column is the time a step waited for them (default auto: 0 on the CPU)",
     )
+    parser.add_argument(
+        "--profile",
+        action="store_true",
+        help="profile 3 more steps with torch.profiler (OUT_profile.md: kernels and host operations)",
+    )
     parser.add_argument("--data-root", default=os.environ.get("GEOFEAT_DATA", str(HERE.parent.parent / "shared" / "data")))
     args = parser.parse_args(argv)
 
@@ -91,6 +111,7 @@ def main(argv=None) -> int:
         start = time.perf_counter()
         records = [trainer.train_step() for _ in range(args.steps)]
         wall = (time.perf_counter() - start) / args.steps
+        profile = profile_steps(trainer, 3) if args.profile else None
         trainer.close()  # the sample workers, if any
     seconds = {p: float(np.median([r.seconds.get(p, 0.0) for r in records])) for p in PHASES}
     step = float(np.median([sum(r.seconds.values()) for r in records]))
@@ -136,6 +157,12 @@ def main(argv=None) -> int:
         + (f"{result['peak_cuda_memory_gib']:.2f} GiB |" if result["peak_cuda_memory_gib"] is not None else "- |"),
     ]
     out.with_name(f"{out.name}.md").write_text("\n".join(lines) + "\n")
+    if profile is not None:
+        summary, table = profile
+        result["profile"] = summary
+        out.with_name(f"{out.name}.json").write_text(json.dumps(result, indent=1) + "\n")
+        what = f"3 GeoLoRA steps under torch.profiler ({lines[0].split(', median')[0]})"
+        out.with_name(f"{out.name}_profile.md").write_text("\n".join([profile_summary_line(what, summary), "", *table]) + "\n")
     print("\n".join(lines))
     return 0
 
