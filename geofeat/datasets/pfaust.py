@@ -16,7 +16,10 @@ shape and at vertex ``corres[mask][k]-1`` of the full shape. ``map_yx`` keeps, f
 partial vertex, the first kept template point that lands on it (-1 when none does); with
 ``corres/<full>.sym.vts`` present (FAUST_r has it) ``map_yx_sym`` is built the same way.
 ``overlap_y`` marks the partial vertices with a counterpart; the full shape has no
-ground-truth overlap region in this data, so ``overlap_x`` is None.
+ground-truth overlap region in this data, so ``overlap_x`` is None. The kept template points
+are the pair's ``corr_x`` (their full vertices) and ``corr_y`` (their partial vertices), so
+``protocol="template"`` evaluates every kept template point, as GeoLoRA's evaluation does
+(a partial vertex that several template points land on then counts once per point).
 
 Pairs: every full shape of the split against every partial shape of the split (GeoLoRA:
 test = 2 full x 20 partial = 40 pairs). A shape's split comes from the number its name ends
@@ -144,12 +147,16 @@ class PFaust(PairDataset):
         x = self._mesh(self.root / "neutral_pose" / f"{entry.x}.off")
         mask = self._array(self.root / f"masks_{d}" / f"{entry.y}.vts", lambda p: as_flags(read_indices(p), p))
         kept_y = self._array(self.root / f"corres_{d}" / f"{entry.y}.vts", lambda p: self._kept(p, mask, y.n_vertices))
-        map_yx = first_hit_map(kept_y, self._template(entry.x, x.n_vertices, mask.size)[mask], y.n_vertices)
-        map_yx_sym = None
+        kept_x = self._template(entry.x, x.n_vertices, mask.size)[mask]
+        map_yx = first_hit_map(kept_y, kept_x, y.n_vertices)
+        map_yx_sym = kept_x_sym = None
         if (self.root / "corres" / f"{entry.x}.sym.vts").is_file():
-            template_sym = self._template(entry.x, x.n_vertices, mask.size, sym=True)
-            map_yx_sym = first_hit_map(kept_y, template_sym[mask], y.n_vertices)
-        return ShapePair(x=x, y=y, map_yx=map_yx, overlap_y=has_counterpart(map_yx), map_yx_sym=map_yx_sym, protocol="p2f")
+            kept_x_sym = self._template(entry.x, x.n_vertices, mask.size, sym=True)[mask]
+            map_yx_sym = first_hit_map(kept_y, kept_x_sym, y.n_vertices)
+        return ShapePair(
+            x=x, y=y, map_yx=map_yx, overlap_y=has_counterpart(map_yx), map_yx_sym=map_yx_sym, protocol="p2f",
+            corr_x=kept_x, corr_y=kept_y, corr_x_sym=kept_x_sym,
+        )  # fmt: skip
 
     @staticmethod
     def _kept(path: Path, mask: np.ndarray, n_partial: int) -> np.ndarray:

@@ -50,6 +50,15 @@ def test_template_masks_give_the_vertex_map(faust_r):
     assert dataset[1].y is pair.y
 
 
+def test_kept_template_points_are_the_pairs_template_correspondences(faust_r):
+    """GeoLoRA's evaluation scores every kept template point: the full and partial vertex of each."""
+    pair = load_dataset("pfaust_m", faust_r)[0]
+    kept = np.flatnonzero(MASK)
+    np.testing.assert_array_equal(pair.corr_x, np.asarray(FULL_VTS)[kept] - 1)
+    np.testing.assert_array_equal(pair.corr_y, np.asarray(PARTIAL_VTS) - 1)
+    np.testing.assert_array_equal(pair.corr_x_sym, np.asarray(FULL_SYM)[kept] - 1)
+
+
 def test_float_written_indices_are_accepted(faust_r, lines_writer):
     """The public PFAUST release writes indices as floats (2.812000000000000000e+03)."""
     lines_writer(faust_r / "corres_medium" / "tr_reg_081.vts", [f"{v:.18e}" for v in PARTIAL_VTS])
