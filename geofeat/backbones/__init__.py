@@ -39,7 +39,9 @@ from geofeat.backbones.lora import (
     load_official_lora,
     loaded_adapter_digest,
     lora_state_dict,
+    official_lora_state_dict,
     save_adapter,
+    save_official_lora,
     upgrade_adapter,
 )
 
@@ -55,7 +57,9 @@ __all__ = [
     "load_official_lora",
     "loaded_adapter_digest",
     "lora_state_dict",
+    "official_lora_state_dict",
     "save_adapter",
+    "save_official_lora",
     "upgrade_adapter",
     "IMAGENET_MEAN",
     "IMAGENET_STD",

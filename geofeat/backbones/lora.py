@@ -70,6 +70,8 @@ __all__ = [
     "has_lora",
     "load_adapter",
     "load_official_lora",
+    "official_lora_state_dict",
+    "save_official_lora",
     "lora_state_dict",
     "save_adapter",
     "upgrade_adapter",
@@ -629,6 +631,65 @@ def convert_official_lora(
             out[f"layer.{i}.{target}.lora_A.weight"] = a.clone()
             out[f"layer.{i}.{target}.lora_B.weight"] = b[third * embed_dim : (third + 1) * embed_dim].clone()
     return out
+
+
+def official_lora_state_dict(backbone: DinoBackbone) -> dict[str, Tensor]:
+    """The adapter in the release layout: one fused ``qkv`` LoRA per block (the inverse of `convert_official_lora`).
+
+    Needs an adapter on the query, key and value projections of every block with one ``A``
+    shared by the three (``LoraSettings.shared_a``, as the ``reference`` training preset and
+    `load_official_lora` make it): the fused ``B`` is the three ``B`` stacked.
+
+    Returns
+    -------
+    dict of str to torch.Tensor
+        ``base_model.model.blocks.<i>.attn.qkv.lora_A.default.weight`` (rank, D) and
+        ``...lora_B.default.weight`` (3D, rank), float32 CPU tensors, as the official
+        ``get_state_dict_lora`` saves them.
+
+    Raises
+    ------
+    BackboneError
+        No adapter, or one that the fused layout cannot hold (separate ``A`` per projection,
+        or targets other than query, key and value).
+    """
+    settings = _active_settings(backbone)
+    targets = backbone.attention_projections
+    if not settings.shared_a or set(settings.targets) != set(targets):
+        raise BackboneError(
+            "the release layout holds one LoRA on each block's fused qkv projection: it needs an adapter on "
+            f"{list(targets)} with one A shared by the three (shared_a=True, the reference preset's); this one has "
+            f"targets {list(settings.targets)}, shared_a={settings.shared_a}"
+        )
+    tensors = lora_state_dict(backbone)
+    out: dict[str, Tensor] = {}
+    for block in range(backbone.num_layers):
+        prefix = f"base_model.model.blocks.{block}.attn.qkv"
+        out[f"{prefix}.lora_A.default.weight"] = tensors[f"layer.{block}.{targets[0]}.lora_A.weight"]
+        out[f"{prefix}.lora_B.default.weight"] = torch.cat([tensors[f"layer.{block}.{t}.lora_B.weight"] for t in targets])
+    return out
+
+
+def save_official_lora(backbone: DinoBackbone, path: str | os.PathLike) -> Path:
+    """Write the adapter as a release checkpoint ``.pth`` (`official_lora_state_dict`), atomically.
+
+    The official code loads it with its ``load_state_dict`` into its peft model, and
+    `load_official_lora` reads it back exactly.
+
+    Parameters
+    ----------
+    backbone : DinoBackbone
+        With a shared-A adapter on query, key and value.
+    path : str or os.PathLike
+
+    Returns
+    -------
+    pathlib.Path
+    """
+    from geofeat.files import atomic_write
+
+    state = official_lora_state_dict(backbone)
+    return atomic_write(Path(path), lambda tmp: torch.save(state, tmp))
 
 
 def _read_official(path_or_state_dict: str | os.PathLike | Mapping[str, Any]) -> tuple[Mapping[str, Any], str]:

@@ -297,6 +297,24 @@ def test_official_conversion_is_exact(base_model, images, tmp_path):
     assert not torch.allclose(ours, base_features, atol=1e-3)
 
 
+def test_an_adapter_saved_in_the_release_layout_loads_back_exactly(base_model, tmp_path):
+    from geofeat.backbones.lora import official_lora_state_dict, save_official_lora
+
+    official = _official_state_dict(seed=3)
+    backbone = load_official_lora(DinoBackbone(copy.deepcopy(base_model), kind="dinov3"), official)
+    save_official_lora(backbone, tmp_path / "run.pth")
+    saved = torch.load(tmp_path / "run.pth", weights_only=True)
+    assert set(saved) == set(official)
+    for key, value in official.items():
+        assert torch.equal(saved[key], value)
+    again = load_official_lora(DinoBackbone(copy.deepcopy(base_model), kind="dinov3"), tmp_path / "run.pth")
+    for key, value in lora_state_dict(backbone).items():
+        assert torch.equal(lora_state_dict(again)[key], value)
+    separate = add_lora(DinoBackbone(copy.deepcopy(base_model), kind="dinov3"), LoraSettings(rank=RANK, shared_a=False))
+    with pytest.raises(BackboneError, match="shared_a"):
+        official_lora_state_dict(separate)
+
+
 def test_official_converts_to_our_layout():
     official = _official_state_dict(rank=4)
     tensors = convert_official_lora({k.replace(".default", ""): v for k, v in official.items()}, DIM)
