@@ -312,12 +312,18 @@ class DinoBackbone:
         Patch side in pixels, channels C, number of blocks, CLS + register tokens.
     weights_digest : str
         SHA-256 of the weights as loaded (see `state_dict_digest`), computed once here.
+    rope_augmentation : bool
+        DINOv3 only: run the model in ``train()`` mode, in which it rescales its RoPE
+        coordinates by a random factor at every forward pass (log-uniform in [1/2, 2] for the
+        released ViT-B/16; torch's random generator draws it), as the official GeoLoRA training
+        does. False (default): ``eval()`` mode, the same features on every call.
     """
 
     def __init__(self, model: PreTrainedModel, *, kind: str, layer: int = -1, source: str | None = None) -> None:
         self.kind = _check_kind(kind)
         self.model = model
         self.model.eval()
+        self._rope_augmentation = False
         config = model.config
         patch = config.patch_size
         patch_hw = tuple(patch) if isinstance(patch, (list, tuple)) else (patch, patch)
@@ -348,6 +354,17 @@ class DinoBackbone:
         n = self.num_layers
         expected = f"an integer block index in [{-n}, {n - 1}] for this {n}-block model"
         self._layer = check_integer(value, "layer", low=-n, high=n - 1, error=BackboneError, expected=expected)
+
+    @property
+    def rope_augmentation(self) -> bool:
+        """Run DINOv3 in ``train()`` mode (random RoPE rescaling at every forward); see the class notes."""
+        return self._rope_augmentation
+
+    @rope_augmentation.setter
+    def rope_augmentation(self, value: bool) -> None:
+        if value and self.kind != "dinov3":
+            raise BackboneError(f"RoPE augmentation is a DINOv3 training mode; this backbone is {self.kind}")
+        self._rope_augmentation = bool(value)
 
     @property
     def device(self) -> torch.device:
@@ -426,10 +443,11 @@ class DinoBackbone:
         -------
         torch.Tensor
             (N, H / patch_size, W / patch_size, C) float32 on the model device, not normalised.
-            Gradients flow when enabled (LoRA training); the model is set to ``eval()`` first.
+            Gradients flow when enabled (LoRA training); the model is set to ``eval()`` first
+            (``train()`` with `rope_augmentation`).
         """
         pixels = self._pixels(images)
-        self.model.eval()
+        self.model.train(self.rope_augmentation)
         tokens = self._layer_tokens(pixels)[:, self.num_prefix_tokens :, :]
         n, _, height, width = pixels.shape
         return tokens.reshape(n, height // self.patch_size, width // self.patch_size, self.embed_dim).float()

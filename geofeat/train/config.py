@@ -71,6 +71,12 @@ class TrainConfig(JsonConfig):
         official LoRA on the fused ``qkv`` has (`geofeat.backbones.LoraSettings.shared_a`).
     backproject : {"ball", "face", "ball_last"} or None
         None: the preset's.
+    rope_augmentation : bool or None
+        Run DINOv3 in ``train()`` mode during the training steps, which rescales its RoPE
+        coordinates at random in every forward pass, as the official training does
+        (`geofeat.backbones.DinoBackbone.rope_augmentation`); the draws are seeded by
+        ``seed`` and the sample, so a resumed run draws the same. Validation always runs in
+        ``eval()`` mode. None: the preset's (on under ``"reference"``, off under ``"default"``).
     partials_per_shape : int
         Partial shapes cut from the full shape at every step.
     shapes_per_rank : int
@@ -130,6 +136,7 @@ class TrainConfig(JsonConfig):
     camera_layout: str = "official"
     preset: str = "default"
     backproject: str | None = None
+    rope_augmentation: bool | None = None
     partials_per_shape: int = 2
     shapes_per_rank: int = 1
     partial_kinds: tuple[str, ...] = PARTIAL_KINDS
@@ -169,6 +176,8 @@ class TrainConfig(JsonConfig):
                 )
         if not is_boolean(self.progress):
             problems.append(f"progress must be true or false, found {self.progress!r}")
+        if self.rope_augmentation is not None and not is_boolean(self.rope_augmentation):
+            problems.append(f"rope_augmentation must be true, false or None, found {self.rope_augmentation!r}")
         for name in ("seed", "layer"):
             if not is_integer(getattr(self, name)):
                 problems.append(f"{name} must be an integer, found {getattr(self, name)!r}")

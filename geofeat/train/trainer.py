@@ -322,6 +322,32 @@ class GeoLoraTrainer:
         """bfloat16 autocast of the backbone: ``config.amp`` "on", or "auto" on CUDA."""
         return self.config.amp == "on" or (self.config.amp == "auto" and self.device.type == "cuda")
 
+    def _rope_augmentation(self) -> bool:
+        """Whether the training steps run DINOv3 in ``train()`` mode (``config.rope_augmentation``, or the preset's)."""
+        if self.config.rope_augmentation is not None:
+            return self.config.rope_augmentation
+        return self.config.preset == "reference"
+
+    @contextlib.contextmanager
+    def _training_mode(self, sample_index: int):
+        """The backbone in the training steps' mode for one sample; with RoPE augmentation, its draws seeded by the sample.
+
+        The random RoPE rescaling uses torch's global generator: it is forked and seeded from
+        ``(config.seed, sample_index)``, so a sample's draws do not depend on what ran before
+        it (a resumed run, worker processes) and the caller's random state is left as it was.
+        """
+        if not self._rope_augmentation():
+            yield
+            return
+        devices = [self.device] if self.device.type == "cuda" else []
+        with torch.random.fork_rng(devices=devices):
+            torch.manual_seed(int(np.random.default_rng([self.config.seed, sample_index, 2]).integers(2**63 - 1)))
+            self.backbone.rope_augmentation = True
+            try:
+                yield
+            finally:
+                self.backbone.rope_augmentation = False
+
     def shape_features(
         self, mesh: Mesh, n_views: int, timer: _Timer | None = None, fill: str = "zero"
     ) -> tuple[torch.Tensor, torch.Tensor]:
@@ -442,7 +468,8 @@ class GeoLoraTrainer:
         with timer("geodesics"):
             dist = sample.geodesics.to(self.device, non_blocking=True).float()
             gts = [gt.to(self.device, non_blocking=True) for _, gt in sample.partials]
-        features = self._sample_features(sample.full, [mesh for mesh, _ in sample.partials], timer)
+        with self._training_mode(sample.index):
+            features = self._sample_features(sample.full, [mesh for mesh, _ in sample.partials], timer)
         feat_full, seen_full = features[0]
         losses = []
         for (feat_partial, seen_partial), gt in zip(features[1:], gts, strict=True):

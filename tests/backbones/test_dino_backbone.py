@@ -120,6 +120,22 @@ def test_dinov3_features_are_computed_in_eval_mode(dinov3, images):
     assert not dinov3.training
 
 
+def test_rope_augmentation_runs_dinov3_in_training_mode_on_request(dinov3, dinov2, images):
+    backbone = DinoBackbone(dinov3, kind="dinov3")
+    plain = backbone.patch_features(images).detach()
+    backbone.rope_augmentation = True
+    torch.manual_seed(0)
+    first = backbone.patch_features(images).detach()
+    torch.manual_seed(0)
+    again = backbone.patch_features(images).detach()
+    assert dinov3.training and torch.equal(first, again)  # drawn from torch's generator
+    assert not torch.equal(first, plain)  # the RoPE coordinates were rescaled
+    backbone.rope_augmentation = False
+    assert torch.equal(backbone.patch_features(images).detach(), plain) and not dinov3.training
+    with pytest.raises(BackboneError, match="DINOv3"):
+        DinoBackbone(dinov2, kind="dinov2").rope_augmentation = True
+
+
 def test_layer_choice(dinov2, images):
     last = DinoBackbone(dinov2, kind="dinov2").pixel_features(images[:1, :28, :42])
     same = DinoBackbone(dinov2, kind="dinov2", layer=1).pixel_features(images[:1, :28, :42])

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import os
 import signal
@@ -151,6 +152,27 @@ def test_plain_loss_and_single_kind(tmp_path):
     trainer._start_or_resume()
     record = trainer.train_step()
     assert record.n_partials == 1 and np.isfinite(record.loss)
+
+
+def test_reference_steps_rescale_rope_with_draws_seeded_by_the_sample(tmp_path):
+    trainer = _trainer(tmp_path, preset="reference", backproject="ball", image_size=64)
+    assert trainer._rope_augmentation()
+    sample = trainer._samples.prepare(0)
+    features = []
+    for _ in range(2):
+        with torch.no_grad(), trainer._training_mode(sample.index):
+            assert trainer.backbone.rope_augmentation
+            features.append(
+                trainer._sample_features(sample.full, [m for m, _ in sample.partials], lambda phase: contextlib.nullcontext())
+            )
+    assert not trainer.backbone.rope_augmentation  # validation and inference see eval() mode
+    for (a, _), (b, _) in zip(features[0], features[1], strict=True):
+        assert torch.equal(a, b)  # the same sample draws the same rescaling
+    with torch.no_grad():
+        plain = trainer._sample_features(sample.full, [m for m, _ in sample.partials], lambda phase: contextlib.nullcontext())
+    assert plain[0].seen.any() and not torch.equal(plain[0][0], features[0][0][0])  # eval() mode: no rescaling
+    assert not _trainer(tmp_path / "off", preset="reference", backproject=None, rope_augmentation=False)._rope_augmentation()
+    assert not _trainer(tmp_path / "default")._rope_augmentation()
 
 
 def test_image_size_must_fit_the_patch(tmp_path):
