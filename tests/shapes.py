@@ -45,3 +45,13 @@ def bumpy(seed: int = 0, subdivisions: int = 3) -> geofeat.Mesh:
     from geofeat.apps.demo import blob
 
     return blob(subdivisions, seed, f"bumpy{seed}")
+
+
+def write_off(path: Path, mesh: geofeat.Mesh) -> Path:
+    """Write ``mesh`` as an OFF file at ``path`` (folders made), with every coordinate exact."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    lines = ["OFF", f"{mesh.n_vertices} {len(mesh.faces)} 0"]
+    lines += [" ".join(repr(float(c)) for c in v) for v in mesh.verts]
+    lines += ["3 " + " ".join(str(int(i)) for i in f) for f in mesh.faces]
+    path.write_text("\n".join(lines) + "\n")
+    return path

@@ -4,7 +4,9 @@ A run folder (``config.out``) holds ``config.json`` (the `TrainConfig`), ``log.c
 per step) and ``checkpoints/step_NNNNNNN/``. A checkpoint is one LoRA adapter folder of
 `geofeat.pretrained` (``config.json`` of kind ``"lora_adapter"`` + ``weights.safetensors``,
 what `geofeat.backbones.lora.load_adapter` and the ``geolora`` descriptor load) with one extra
-file, ``trainer_state.pt`` (step, sample position, rank count, optimizer state). It is written
+file, ``trainer_state.pt`` (step, sample position, rank count, optimizer state), and for the
+``reference`` preset's adapters a second one, ``geolora_release.pth``: the adapter in the
+layout of the official release, which the official code loads. It is written
 whole into a temporary sibling folder, ``fsync``-ed and renamed (`geofeat.files.atomic_folder`),
 so an interruption never leaves a half-written one; the log rows up to a checkpoint's step
 are on disk before the checkpoint is.
@@ -35,7 +37,7 @@ from typing import Any
 import torch
 
 from geofeat.backbones import DinoBackbone
-from geofeat.backbones.lora import ADAPTER_KIND, LoraSettings, save_adapter
+from geofeat.backbones.lora import ADAPTER_KIND, LoraSettings, official_lora_state_dict, save_adapter
 from geofeat.errors import DamagedCheckpointError, TrainingError
 from geofeat.files import atomic_write, remove_dead_temporary_folders
 from geofeat.pretrained import CONFIG_FILE, from_pretrained
@@ -44,6 +46,7 @@ from geofeat.safe_load import load_torch_file
 log = logging.getLogger(__name__)
 
 __all__ = [
+    "RELEASE_FILE",
     "STATE_FILE",
     "DeferredInterrupt",
     "checkpoint_folder",
@@ -57,6 +60,8 @@ __all__ = [
     "write_checkpoint",
 ]
 
+#: The adapter as a GeoLoRA release checkpoint (fused qkv LoRA), in the checkpoints of shared-A adapters.
+RELEASE_FILE = "geolora_release.pth"
 #: The trainer's state in a checkpoint folder: ``{"step", "samples", "world_size", "optimizer"}``.
 STATE_FILE = "trainer_state.pt"
 _OLD_ADAPTER_CONFIG = "adapter_config.json"
@@ -145,15 +150,23 @@ def write_checkpoint(
     Returns
     -------
     pathlib.Path
+
+    Notes
+    -----
+    An adapter with one ``A`` shared by query, key and value (the ``reference`` preset's) is
+    also written as a release checkpoint, `RELEASE_FILE`, which the official code and
+    `geofeat.backbones.load_official_lora` load.
     """
     final = checkpoint_folder(run, step)
     if (final / STATE_FILE).is_file():
         return final
     if int(state["step"]) != step:
         raise TrainingError(f"the trainer state is for step {state['step']}, the checkpoint for step {step}.")
+    extra_files = {STATE_FILE: lambda path: torch.save(dict(state), path)}
+    if settings.shared_a:  # the fused-qkv layout of the release holds it: also written so
+        extra_files[RELEASE_FILE] = lambda path: torch.save(official_lora_state_dict(backbone), path)
     save_adapter(
-        backbone, final, settings, extra_info={"step": step, **(extra_info or {})},
-        extra_files={STATE_FILE: lambda path: torch.save(dict(state), path)},
+        backbone, final, settings, extra_info={"step": step, **(extra_info or {})}, extra_files=extra_files
     )  # fmt: skip
     log.info("saved checkpoint %s", final)
     return final

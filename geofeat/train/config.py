@@ -41,8 +41,10 @@ class TrainConfig(JsonConfig):
     Parameters
     ----------
     data : str
-        A folder of meshes (``.off``, ``.obj``, ``.ply``; sorted by name) or the name of a
-        geofeat full-shape dataset (``faust_r``, ``scape_r``) read from ``data_root``.
+        A folder of meshes (``.off``, ``.obj``, ``.ply``; sorted by name), the name of a
+        geofeat full-shape dataset (``faust_r``, ``scape_r``), or one of the official
+        release's training sets (``faust``, ``becos``, ``becos_without_shrec16``, ``smal``;
+        `geofeat.train.shapes.OFFICIAL_TRAINING_SETS`), read from ``data_root``.
     out : str
         Run folder: ``config.json``, ``log.csv``, ``checkpoints/step_NNNNNNN/``.
     data_root : str or None

@@ -28,11 +28,22 @@ from geofeat.progress import progress_bar
 
 log = logging.getLogger(__name__)
 
-__all__ = ["TorchGeodesicStore", "decimate", "load_training_shapes", "prepare_full_shape"]
+__all__ = [
+    "OFFICIAL_TRAINING_SETS",
+    "TorchGeodesicStore",
+    "decimate",
+    "load_training_shapes",
+    "official_training_files",
+    "prepare_full_shape",
+]
 
 
 def decimate(mesh: Mesh, max_vertices: int) -> Mesh:
-    """Quadric decimation to at most about ``max_vertices`` vertices (unchanged when already below).
+    """Quadric decimation to about ``max_vertices`` vertices (unchanged when already below), as the GeoLoRA release.
+
+    The fraction ``1 - max_vertices / V`` of the faces is removed (trimesh's
+    ``simplify_quadric_decimation``, fast-simplification's quadric decimation), so the result
+    has about ``max_vertices`` vertices.
 
     Parameters
     ----------
@@ -49,9 +60,9 @@ def decimate(mesh: Mesh, max_vertices: int) -> Mesh:
         return mesh
     import trimesh
 
-    try:
+    try:  # as the GeoLoRA release: remove the fraction 1 - max_vertices / V of the faces
         simplified = trimesh.Trimesh(np.array(mesh.verts), np.array(mesh.faces), process=False).simplify_quadric_decimation(
-            face_count=2 * max_vertices
+            1.0 - max_vertices / mesh.n_vertices
         )
     except (ImportError, ModuleNotFoundError) as exc:
         raise TrainingError(
@@ -78,6 +89,74 @@ def prepare_full_shape(mesh: Mesh, max_vertices: int) -> Mesh:
     if kept.n_vertices < mesh.n_vertices:
         log.warning("%s: kept its largest connected component (%d of %d vertices)", mesh.name, kept.n_vertices, mesh.n_vertices)
     return kept if kept.n_vertices < mesh.n_vertices else mesh
+
+
+#: The official release's training sets (``config/train/*.yaml`` of vikiehm/geo-lora): the
+#: folder under the data root and which of its meshes are trained on.
+OFFICIAL_TRAINING_SETS = {
+    "faust": "FAUST_r/off: the first 80 shapes (sorted by name)",
+    "becos": "BeCoS/full_full/train: every shape of the pair folders, each once",
+    "becos_without_shrec16": "BeCoS/full_full/train without the SHREC'16 classes (cat, dog, michael, david, victoria, "
+    "wolf, centaur, horse)",
+    "smal": "SMAL_r/off: the shapes whose name holds cow, dog, fox, lion or wolf, turned 180 degrees about x",
+}
+#: ``red_list`` of the official ``becos_without_shrec16`` configuration: file names matching one are left out.
+SHREC16_RED_LIST = (
+    *(rf"{name}[0-9]" for name in ("cat", "dog", "michael", "david", "victoria", "wolf", "centaur", "horse")),
+    *(rf"{name}.off" for name in ("cat", "dog", "michael", "david", "victoria", "wolf", "centaur", "horse")),
+)
+#: ``pattern`` of the official ``smal`` configuration.
+SMAL_PATTERN = ("cow", "dog", "fox", "lion", "wolf")
+
+
+def official_training_files(name: str, root: str | os.PathLike | None) -> list[Path]:
+    """The mesh files an official training configuration trains on, in a fixed order.
+
+    The official data set lists folders with ``os.listdir``, whose order the file system
+    decides; here names are sorted (BeCoS's pair folders by number), so the set is the
+    official one and the order is the same everywhere.
+
+    Parameters
+    ----------
+    name : str
+        A key of `OFFICIAL_TRAINING_SETS`.
+    root : str or os.PathLike, optional
+        The folder holding ``FAUST_r/``, ``BeCoS/`` or ``SMAL_r/`` (``$GEOFEAT_DATA`` when None).
+
+    Returns
+    -------
+    list of pathlib.Path
+
+    Raises
+    ------
+    TrainingError
+        A missing folder (with the expected layout) or no shape in it.
+    """
+    import re
+
+    base = Path(root if root is not None else os.environ.get("GEOFEAT_DATA", ".")).expanduser()
+    folder = {"faust": base / "FAUST_r" / "off", "smal": base / "SMAL_r" / "off"}.get(
+        name, base / "BeCoS" / "full_full" / "train"
+    )
+    if not folder.is_dir():
+        raise TrainingError(f"the {name!r} training set reads {folder}, which does not exist ({OFFICIAL_TRAINING_SETS[name]}).")
+    if name == "faust":
+        files = _folder_meshes(folder)[:80]
+    elif name == "smal":
+        files = [p for p in _folder_meshes(folder) if any(animal in p.name for animal in SMAL_PATTERN)]
+    else:
+        red_list = SHREC16_RED_LIST if name == "becos_without_shrec16" else ()
+        files, seen = [], set()
+        pairs = sorted((p for p in folder.iterdir() if p.is_dir() and p.name.isdigit()), key=lambda p: int(p.name))
+        for pair in pairs:
+            for path in sorted(pair.glob("*.off")):
+                stem = path.name.split("_", 1)[-1]  # 0_<shape>.off and 1_<shape>.off are the same shape
+                if stem not in seen and not any(re.search(pattern, path.name) for pattern in red_list):
+                    seen.add(stem)
+                    files.append(path)
+    if not files:
+        raise TrainingError(f"no training shape of the {name!r} set in {folder} ({OFFICIAL_TRAINING_SETS[name]}).")
+    return files
 
 
 def _folder_meshes(folder: Path) -> list[Path]:
@@ -112,7 +191,9 @@ def load_training_shapes(
     Parameters
     ----------
     data : str
-        A folder of meshes or a full-shape dataset name (``faust_r``, ``scape_r``).
+        A folder of meshes, a full-shape dataset name (``faust_r``, ``scape_r``) or an
+        official training set (`OFFICIAL_TRAINING_SETS`: ``faust``, ``becos``,
+        ``becos_without_shrec16``, ``smal``).
     root : str, optional
         Dataset root (``$GEOFEAT_DATA`` when None); only for dataset names.
     split : str
@@ -129,7 +210,12 @@ def load_training_shapes(
         Connected triangle meshes with at most about ``max_vertices`` vertices.
     """
     folder = Path(data).expanduser()
-    if folder.is_dir():
+    if data in OFFICIAL_TRAINING_SETS:
+        files = official_training_files(data, root)[:first]
+        meshes = [load_mesh(p) for p in progress_bar(files, desc="loading shapes", unit="shape", show=progress)]
+        if data == "smal":  # stored upside down: turned as the official data set does
+            meshes = [Mesh(m.verts @ np.diag([1.0, -1.0, -1.0]), m.faces, m.name) for m in meshes]
+    elif folder.is_dir():
         files = _folder_meshes(folder)[:first]
         meshes = [load_mesh(p) for p in progress_bar(files, desc="loading shapes", unit="shape", show=progress)]
     elif os.sep in data or data.startswith("."):

@@ -219,6 +219,14 @@ def test_reference_preset_trains_one_shared_a_per_block_and_resumes_exactly(tmp_
     state = lora_state_dict(straight.backbone)
     assert torch.count_nonzero(state["layer.0.q_proj.lora_B.weight"]) > 0  # it trained
     torch.testing.assert_close(state["layer.0.q_proj.lora_A.weight"], state["layer.0.v_proj.lora_A.weight"], rtol=0, atol=0)
+    # every checkpoint also holds the adapter as a release checkpoint, which loads back to the same tensors
+    from geofeat.backbones import load_official_lora
+    from geofeat.train.checkpoints import RELEASE_FILE
+
+    release = latest_checkpoint(tmp_path / "a" / "run") / RELEASE_FILE
+    loaded = load_official_lora(_backbone(), release)
+    for name, value in lora_state_dict(loaded).items():
+        torch.testing.assert_close(value, state[name], rtol=0, atol=0)
     _trainer(tmp_path / "b", **(overrides | {"steps": 1})).fit()
     resumed = _trainer(tmp_path / "b", **overrides)
     resumed.fit()
