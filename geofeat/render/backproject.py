@@ -50,6 +50,7 @@ from scipy.spatial.distance import pdist
 
 from geofeat.checks import check_choice, check_integer
 from geofeat.errors import RenderError
+from geofeat.render.rasterizer import surface_points
 
 BACKPROJECT_MODES = ("ball", "face", "ball_last")
 #: Ball radius as a fraction of the shape's size (GeoLoRA / Diff3f ``tolerance``).
@@ -206,13 +207,9 @@ class Backprojector:
         return self._face_candidates
 
     def _surface_points(self, face_ids: torch.Tensor, bary: torch.Tensor) -> torch.Tensor:
-        """The surface point of each pixel, (M, 3) float64: its barycentrics in its face."""
+        """The surface point of each pixel, (M, 3) float64: its barycentrics in its face (`surface_points`)."""
         verts, corners = self._candidates(face_ids.device).verts, self._faces_on(face_ids.device)[face_ids]  # (M, 3)
-        bary = bary.double()
-        points = bary[:, 0:1] * verts.index_select(0, corners[:, 0])
-        points += bary[:, 1:2] * verts.index_select(0, corners[:, 1])
-        points += bary[:, 2:3] * verts.index_select(0, corners[:, 2])
-        return points
+        return surface_points(verts, corners, bary)
 
     def _plan_last(self, used: torch.Tensor, rows: torch.Tensor, cols: torch.Tensor, views: torch.Tensor) -> BackprojectionPlan:
         """``"ball_last"``: view after view, each vertex in reach takes its last candidate pixel's feature.

@@ -16,9 +16,11 @@ like their bit patterns; equal depths go to the lower face index). A last pass r
 for the winning face of every covered pixel, the barycentrics and depth in float64, so the
 result does not depend on how the work was chunked.
 
-Faces with any vertex at ``z <= RasterSettings.z_near`` are not drawn (there is no
-clipping); with the official camera layout every point of the shape is at least
-0.15 bounding-box diagonals in front of the camera, so nothing is lost there.
+Faces with any vertex at ``z <= z_near`` are not drawn (there is no clipping). By default the
+near plane follows the scene's own extent, ``RELATIVE_Z_NEAR`` times the farthest vertex depth
+of the views being drawn, so a mesh at any scale is drawn alike; with the official camera
+layout every point of the shape is at least 0.15 bounding-box diagonals in front of the
+camera, so nothing is lost there.
 """
 
 from __future__ import annotations
@@ -37,6 +39,8 @@ from geofeat.render.cameras import Cameras, as_tensor
 log = logging.getLogger(__name__)
 
 _EMPTY_KEY = torch.iinfo(torch.int64).max
+#: The default near plane, as a fraction of the largest vertex depth of the views drawn.
+RELATIVE_Z_NEAR = 1e-6
 _FACE_BITS = 32
 
 
@@ -73,8 +77,10 @@ class RasterSettings:
     cull_backfaces : bool
         Skip faces whose front side (counter-clockwise corners, right-hand normal) points away
         from the camera. GeoLoRA culls (``cull_backfaces=True``); Diff3f does not.
-    z_near : float
-        Faces with a vertex at camera depth ``<= z_near`` (world units) are not drawn.
+    z_near : float or None
+        Faces with a vertex at camera depth ``<= z_near`` (world units) are not drawn. None
+        (default): ``RELATIVE_Z_NEAR`` times the largest vertex depth of the views drawn
+        together, so that the near plane scales with the scene.
     max_candidates : int
         At most this many (face, pixel) candidates, and covered pixels in the final pass, are
         held at once: the memory bound (about 300 bytes each on CPU, so about 150 MiB at the
@@ -84,13 +90,13 @@ class RasterSettings:
     """
 
     cull_backfaces: bool = True
-    z_near: float = 1e-6
+    z_near: float | None = None
     max_candidates: int = 1 << 19
     views_per_batch: int = 8
 
     def __post_init__(self) -> None:
-        if not (np.isfinite(self.z_near) and self.z_near >= 0):
-            raise RenderError(f"z_near must be a finite number >= 0; found {self.z_near!r}.")
+        if self.z_near is not None and not (np.isfinite(self.z_near) and self.z_near >= 0):
+            raise RenderError(f"z_near must be None or a finite number >= 0; found {self.z_near!r}.")
         for name in ("max_candidates", "views_per_batch"):
             value = getattr(self, name)
             if not isinstance(value, (int, np.integer)) or value < 1:
@@ -237,7 +243,8 @@ def _drawable_primitives(
     x, y, z = corners.unbind(-1)  # each (n, F, 3)
     area = (x[..., 1] - x[..., 0]) * (y[..., 2] - y[..., 0]) - (y[..., 1] - y[..., 0]) * (x[..., 2] - x[..., 0])
     # x right, y down: a counter-clockwise face seen from its front has negative signed area.
-    keep = (z.amin(dim=-1) > settings.z_near) & (area != 0) & torch.isfinite(area)
+    z_near = settings.z_near if settings.z_near is not None else RELATIVE_Z_NEAR * float(z.amax().clamp(min=0))
+    keep = (z.amin(dim=-1) > z_near) & (area != 0) & torch.isfinite(area)
     if settings.cull_backfaces:
         keep &= area < 0
     # bounding box of the pixel centres (c + 0.5) inside [min, max], clipped to the image
@@ -325,6 +332,32 @@ def _resolve(
     out.pix_to_face[pixel] = face
     out.bary[pixel] = (weights / inv_depth).float()
     out.depth[pixel] = (1.0 / inv_depth[:, 0]).float()
+
+
+def surface_points(verts: torch.Tensor, corners: torch.Tensor, bary: torch.Tensor) -> torch.Tensor:
+    """Points of faces given by barycentric coordinates, exact wherever the mesh sits.
+
+    ``v0 + b1 (v1 - v0) + b2 (v2 - v0)``: the barycentric combination written with edge
+    vectors only, so that the float32 barycentrics' rounding (their sum is 1 only to about
+    1e-7) scales with the face's size, not with the distance of the mesh from the origin
+    (``sum_k b_k v_k`` would move a point of a mesh placed at 1e6 by about 0.1).
+
+    Parameters
+    ----------
+    verts : torch.Tensor, shape (V, 3), float64
+    corners : torch.Tensor, shape (M, 3), int64
+        The three vertices of each point's face.
+    bary : torch.Tensor, shape (M, 3), float
+        The point's barycentric coordinates in that face (the rasterizer's).
+
+    Returns
+    -------
+    torch.Tensor, shape (M, 3), float64
+    """
+    bary = bary.to(torch.float64)
+    origin = verts.index_select(0, corners[:, 0])
+    points = origin + bary[:, 1:2] * (verts.index_select(0, corners[:, 1]) - origin)
+    return points + bary[:, 2:3] * (verts.index_select(0, corners[:, 2]) - origin)
 
 
 def _screen_barycentrics(xy: torch.Tensor, point: torch.Tensor) -> torch.Tensor:

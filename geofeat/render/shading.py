@@ -42,7 +42,7 @@ from geofeat.errors import RenderError
 from geofeat.geometry.normals import vertex_normals as geometry_normals
 from geofeat.mesh import Mesh
 from geofeat.render.cameras import Cameras, as_tensor
-from geofeat.render.rasterizer import Fragments, RasterSettings, mesh_tensors, rasterize
+from geofeat.render.rasterizer import Fragments, RasterSettings, mesh_tensors, rasterize, surface_points
 
 Color = tuple[float, float, float]
 _PIXELS_PER_CHUNK = 1 << 18
@@ -163,7 +163,7 @@ def shade_phong(
         corners = faces_t[pix_to_face[pixel]]  # (M, 3)
         bary = all_bary[pixel].to(torch.float64)[..., None]  # (M, 3, 1)
         shaded = _phong(
-            points=(bary * verts_t[corners]).sum(dim=1),
+            points=surface_points(verts_t, corners, bary[..., 0]),
             normals=(bary * normals[corners]).sum(dim=1),
             texels=(bary * colors[corners]).sum(dim=1),
             eye=cameras.position[pixel // n_pixels],  # (M, 3): the camera of each pixel's view
@@ -218,8 +218,9 @@ class _PhongTerms(NamedTuple):
 
 def _phong(points, normals, texels, eye, terms: _PhongTerms) -> torch.Tensor:
     """Colours (M, 3) of surface points lit by a point light at ``eye`` (3,) or (M, 3) and seen from it."""
-    normals = F.normalize(normals, dim=-1, eps=1e-6)
-    to_light = F.normalize(eye - points, dim=-1, eps=1e-6)
+    tiny = torch.finfo(points.dtype).tiny  # no absolute floor: a mesh at any scale is shaded alike
+    normals = F.normalize(normals, dim=-1, eps=tiny)
+    to_light = F.normalize(eye - points, dim=-1, eps=tiny)
     to_viewer = to_light  # the light sits at the camera
     cos_light = (normals * to_light).sum(dim=-1, keepdim=True)
     reflected = 2.0 * cos_light * normals - to_light

@@ -244,3 +244,31 @@ def test_auto_batch_size_on_cuda_fits_the_free_memory():
     free, _ = torch.cuda.mem_get_info()
     assert 1 <= views <= 49
     assert views == 49 or views * 512 * 512 * (8 * backbone.embed_dim + 64) <= BATCH_MEMORY_SHARE * free
+
+
+@pytest.mark.parametrize("offset, scale", [(1e6, 1.0), (-3e5, 1.0), (0.0, 1e-6), (0.0, 1e6), (0.0, 1e-12)])
+def test_features_do_not_depend_on_where_the_mesh_sits_or_its_size(backbone_folder, offset, scale):
+    """Cameras follow the mesh; the features must too, to float32 rounding (a near plane, a normalisation eps or
+    barycentric sums of world coordinates must not bring the mesh's position or scale in)."""
+    from geofeat.apps.demo import blob
+
+    mesh = blob(2, 0, "b")
+    params = {"weights": str(backbone_folder), "views": 4, "image_size": IMAGE_SIZE, "device": "cpu", "cache": False}
+    base = geofeat.compute(mesh, "dinov3", **params)
+    moved = geofeat.compute(geofeat.Mesh(mesh.verts * scale + offset, mesh.faces, "moved"), "dinov3", **params)
+    np.testing.assert_allclose(moved, base, rtol=0, atol=1e-6)
+
+
+def test_a_mesh_no_pixel_reaches_is_refused_not_given_zero_features(backbone_folder, caplog, tmp_path):
+    from geofeat.apps.demo import blob
+
+    mesh = blob(2, 0, "b")
+    params = {"weights": str(backbone_folder), "views": 4, "image_size": 16, "device": "cpu", "cache": False}
+    with pytest.raises(RenderError, match="no vertex of 'b' .* received a pixel in any of its 4 views of 16 x 16"):
+        geofeat.compute(mesh, "dinov3", **params)
+    zeros = geofeat.compute(mesh, "dinov3", fill="zero", **params)  # asked for: zeros, with a warning
+    assert not zeros.any() and "features are all zeros (fill='zero')" in caplog.text
+    store = geofeat.FeatureCache(tmp_path / "store")
+    with pytest.raises(RenderError):
+        geofeat.compute(mesh, "dinov3", cache=store, **{k: v for k, v in params.items() if k != "cache"})
+    assert list(store.entries()) == []  # nothing cached
