@@ -9,6 +9,7 @@ one the GeoLoRA trainer uses too.
 from __future__ import annotations
 
 import contextlib
+import logging
 import os
 import threading
 from dataclasses import replace
@@ -39,6 +40,9 @@ PRESET_VIEWS = {"default": 49, "reference": 49, "dsmk": 100}
 PRESET_IMAGE_SIZE = {"default": None, "reference": 512, "dsmk": 512}
 #: ``amp``: bfloat16 autocast of the backbone on, off, or on where it is safe and fast (CUDA, "default" preset).
 AMP_MODES = ("auto", "on", "off")
+
+
+log = logging.getLogger(__name__)
 
 
 class DinoFeatures(Descriptor):
@@ -229,10 +233,14 @@ class DinoFeatures(Descriptor):
             cameras, batch_size, rendered, ready = prepared
             if ready is not None:
                 torch.cuda.current_stream(self.backbone().device).wait_event(ready)
-        features, _ = multiview_features(
+        features, seen = multiview_features(
             mesh, cameras, self.backbone(), recipe=self._recipe(), fill=self.fill, batch_size=batch_size,
             autocast=self.autocast(), progress=True, rendered=rendered,
         )  # fmt: skip
+        if self.fill == "zero" and not bool(seen.any()):
+            log.warning(
+                "%s: no vertex of %r was seen in any view; its features are all zeros (fill='zero').", self.name, mesh.name
+            )
         return features.cpu().numpy().astype(np.float32, copy=False)
 
     def compute(self, mesh: Mesh) -> np.ndarray:

@@ -476,7 +476,23 @@ def multiview_features_many(
                 for segment, plan, features in zip(batch.segments, batch.plans, samples, strict=True):
                     accumulators[segment.shape].add_planned(plan, features)
         with timer("backproject"):
+            if fill == "nearest":
+                for mesh, camera, accumulator in zip(meshes, cameras, accumulators, strict=True):
+                    _check_seen(mesh, camera, recipe, accumulator)
             return [MultiviewFeatures(*accumulator.result_tensor(fill=fill)) for accumulator in accumulators]
+
+
+def _check_seen(mesh: Mesh, cameras: Cameras, recipe: FeatureRecipe, accumulator: VertexFeatureAccumulator) -> None:
+    """Refuse a mesh none of whose vertices got a pixel: its features would be all zeros, with nothing to fill from."""
+    if bool((accumulator.weights > 0).any()):
+        return
+    ball = f", ball radius {accumulator.radius:.3g}" if recipe.backproject != "face" else ""
+    raise RenderError(
+        f"no vertex of {mesh.name or 'the mesh'!r} ({mesh.n_vertices} vertices) received a pixel in any of its "
+        f"{len(cameras)} views of {cameras.height} x {cameras.width} pixels (back-projection {recipe.backproject!r}{ball}): "
+        "its features would be all zeros. Render larger images or more views, or back-project by face "
+        "(backproject='face'), which gives every pixel to its face's corners."
+    )
 
 
 def _progress_label(meshes: list[Mesh]) -> str:
