@@ -24,16 +24,19 @@ is replaced by the next save; any other folder that holds something is never ove
 
 from __future__ import annotations
 
+import glob
 import json
 import os
+import secrets
+import time
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from geofeat._version import __version__
 from geofeat.errors import GeofeatError, MissingDependencyError, StoreError
-from geofeat.files import atomic_folder
+from geofeat.files import atomic_folder, remove_dead_temporary_folders
 
 if TYPE_CHECKING:
     import torch
@@ -140,10 +143,12 @@ def save_pretrained(
         raise error(f"kind must be a non-empty string naming what the folder holds, got {kind!r}.")
     if not isinstance(config, Mapping):
         raise error(f"config must be a mapping of settings, got {type(config).__name__}.")
+    save_id = secrets.token_hex(16)
     envelope = {
         "kind": kind,
         "format_version": FORMAT_VERSION,
         "geofeat_version": __version__,
+        "save_id": save_id,
         "config": dict(config),
         "info": dict(info or {}),
     }
@@ -172,7 +177,7 @@ def save_pretrained(
     def write(tmp: Path) -> None:
         (tmp / CONFIG_FILE).write_text(text)
         if weights is not None:
-            st.save_file(weights, str(tmp / WEIGHTS_FILE), metadata={"kind": kind})
+            st.save_file(weights, str(tmp / WEIGHTS_FILE), metadata={"kind": kind, "save_id": save_id})
         for name, writer in extra_files.items():
             writer(tmp / name)
 
@@ -181,7 +186,7 @@ def save_pretrained(
 
 @dataclass(frozen=True)
 class Pretrained:
-    """A folder written by `save_pretrained`, as read by `from_pretrained` (the weights are read on demand).
+    """A folder written by `save_pretrained`, as read by `from_pretrained`: its config and weights of one save.
 
     Attributes
     ----------
@@ -195,6 +200,9 @@ class Pretrained:
         The geofeat that wrote the folder.
     error : type
         The `GeofeatError` subclass raised when the weights cannot be read.
+    weights : bytes or None
+        ``weights.safetensors`` as read with ``config.json`` (None: the folder has none);
+        `tensors` parses them.
     """
 
     folder: Path
@@ -203,6 +211,7 @@ class Pretrained:
     info: dict
     geofeat_version: str
     error: type[GeofeatError] = StoreError
+    weights: bytes | None = field(default=None, repr=False)
 
     @property
     def weights_path(self) -> Path:
@@ -210,11 +219,11 @@ class Pretrained:
         return self.folder / WEIGHTS_FILE
 
     def has_weights(self) -> bool:
-        """Whether the folder holds a weights file."""
-        return self.weights_path.is_file()
+        """Whether the folder held a weights file when it was read."""
+        return self.weights is not None
 
     def tensors(self, device: str | torch.device = "cpu") -> dict[str, torch.Tensor]:
-        """The tensors of ``weights.safetensors``, on ``device``.
+        """The tensors of ``weights.safetensors`` (read with the config), on ``device``.
 
         Raises
         ------
@@ -222,20 +231,40 @@ class Pretrained:
             Of the type given to `from_pretrained`: no weights file, or one that cannot be
             read (truncated, damaged, not safetensors).
         """
-        path = self.weights_path
-        if not path.is_file():
+        if self.weights is None:
             raise self.error(
                 f"{self.folder} holds no {WEIGHTS_FILE}; this {self.kind} was saved without weights, "
                 "or the file was removed. Save it again."
             )
         st = _require_safetensors()
         try:
-            return st.load_file(str(path), device=str(device))
-        except Exception as exc:  # safetensors raises its own SafetensorError, OSError and others
+            tensors = st.load(self.weights)
+        except Exception as exc:  # safetensors raises its own SafetensorError and others
             raise self.error(
-                f"could not read {path} as safetensors ({type(exc).__name__}: {exc}); the file is truncated or damaged "
-                "(an interrupted copy?). Copy or save the folder again."
+                f"could not read {self.weights_path} as safetensors ({type(exc).__name__}: {exc}); the file is truncated "
+                "or damaged (an interrupted copy?). Copy or save the folder again."
             ) from exc
+        return {name: value.to(device) for name, value in tensors.items()}
+
+
+#: Times `from_pretrained` reads a folder again that another process replaced while it read it.
+READ_ATTEMPTS = 5
+
+
+def _being_replaced(folder: Path) -> bool:
+    """Whether a save of ``folder`` has set its content aside or is writing its new content (`geofeat.files.atomic_folder`)."""
+    parent = folder.parent
+    return parent.is_dir() and any(parent.glob(f".{glob.escape(folder.name)}.old-*"))
+
+
+def _weights_save_id(weights: bytes) -> str | None:
+    """The ``save_id`` in a safetensors file's metadata (its JSON header), or None."""
+    try:
+        size = int.from_bytes(weights[:8], "little")
+        header = json.loads(weights[8 : 8 + size])
+        return header.get("__metadata__", {}).get("save_id")
+    except (ValueError, UnicodeDecodeError, AttributeError):
+        return None
 
 
 def from_pretrained(
@@ -245,7 +274,11 @@ def from_pretrained(
     *,
     older_layout_hint: str | None = None,
 ) -> Pretrained:
-    """Read the ``config.json`` of a folder written by `save_pretrained`, checking its kind.
+    """Read a folder written by `save_pretrained`: its ``config.json`` and weights, of one save, checking its kind.
+
+    Both files carry the save's ``save_id``; a reader that got them from two saves (another
+    process replaced the folder between the two reads) reads the folder again, up to
+    `READ_ATTEMPTS` times. Folders written before ``save_id`` existed are read as they are.
 
     Parameters
     ----------
@@ -271,6 +304,31 @@ def from_pretrained(
     folder = Path(folder)
     kinds = (kind,) if isinstance(kind, str) else tuple(kind)
     expected = " or ".join(repr(k) for k in kinds)
+    for attempt in range(READ_ATTEMPTS):
+        if not (folder / CONFIG_FILE).is_file() and _being_replaced(folder):
+            # a save is between its two renames, or one was killed there: restored when its writer is dead
+            remove_dead_temporary_folders(folder.parent, folder.name)
+            time.sleep(0.02 * (attempt + 1))
+            continue
+        saved, save_id = _read_folder(folder, kinds, expected, error, older_layout_hint)
+        weights_id = None if saved.weights is None else _weights_save_id(saved.weights)
+        if save_id is None or weights_id is None or weights_id == save_id:  # no id to compare: damage is tensors()'s to report
+            return saved
+    if not (folder / CONFIG_FILE).is_file() and _being_replaced(folder):
+        raise error(
+            f"{folder} is being replaced by another process's save (its previous content is set aside beside it); "
+            "load it again once the saving stops."
+        )
+    raise error(
+        f"{folder} was replaced while it was being read, {READ_ATTEMPTS} times in a row (another process keeps saving "
+        "it); its config and weights came from different saves. Load it again once the saving stops."
+    )
+
+
+def _read_folder(
+    folder: Path, kinds: tuple[str, ...], expected: str, error: type[GeofeatError], older_layout_hint: str | None
+) -> tuple[Pretrained, str | None]:
+    """One read of ``config.json`` and ``weights.safetensors``, checked; the config's ``save_id`` (None before it existed)."""
     if not folder.exists():
         raise error(f"{folder} does not exist; expected a folder written by save_pretrained holding a {expected}.")
     if not folder.is_dir():
@@ -307,4 +365,11 @@ def from_pretrained(
     config, info = data["config"], data.get("info", {})
     if not isinstance(config, dict) or not isinstance(info, dict):
         raise error(f"{path}: 'config' and 'info' must be JSON objects; the file is damaged: save the folder again.")
-    return Pretrained(folder, found, config, info, str(data.get("geofeat_version", "")), error)
+    try:
+        weights = (folder / WEIGHTS_FILE).read_bytes()
+    except FileNotFoundError:
+        weights = None
+    except OSError as exc:
+        raise error(f"could not read {folder / WEIGHTS_FILE}: {exc}.") from exc
+    saved = Pretrained(folder, found, config, info, str(data.get("geofeat_version", "")), error, weights)
+    return saved, data.get("save_id")

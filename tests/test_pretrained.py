@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import time
 
 import pytest
 import torch
@@ -18,6 +19,43 @@ def _tensors() -> dict[str, torch.Tensor]:
     return {"a.weight": torch.arange(6, dtype=torch.float32).reshape(2, 3), "b.bias": torch.tensor([1, 2], dtype=torch.int64)}
 
 
+def test_a_load_reads_one_save_or_fails_while_another_process_keeps_saving(tmp_path):
+    """The config and the weights of a load come from the same save, however saves and loads interleave."""
+    import multiprocessing
+
+    import torch
+
+    folder = save_pretrained(tmp_path / "m", "toy", {"value": 0}, {"w": torch.zeros(64)})
+    stop = multiprocessing.get_context("fork").Event()
+    writer = multiprocessing.get_context("fork").Process(target=_keep_saving, args=(folder, stop))
+    writer.start()
+    torn, failed, loads = 0, 0, 0
+    try:
+        deadline = time.monotonic() + 6.0
+        while time.monotonic() < deadline and loads < 400:
+            try:
+                saved = from_pretrained(folder, "toy", HeadError)
+            except HeadError as err:
+                failed += 1  # being replaced too often: refused, never mixed
+                assert "replaced" in str(err) or "being replaced" in str(err), err
+                continue
+            loads += 1
+            torn += int(saved.tensors()["w"][0].item() != saved.config["value"])
+    finally:
+        stop.set()
+        writer.join(30)
+    assert loads > 50 and torn == 0, (loads, torn, failed)
+
+
+def _keep_saving(folder, stop) -> None:
+    import torch
+
+    value = 0
+    while not stop.is_set():
+        value += 1
+        save_pretrained(folder, "toy", {"value": value}, {"w": torch.full((64,), float(value))}, durable=False)
+
+
 def test_round_trip(tmp_path):
     extra = {"state.txt": lambda path: path.write_text("hello")}
     folder = save_pretrained(
@@ -27,9 +65,14 @@ def test_round_trip(tmp_path):
     assert sorted(p.name for p in folder.iterdir()) == [CONFIG_FILE, "state.txt", WEIGHTS_FILE]
     assert sorted(p.name for p in tmp_path.iterdir()) == ["m"]  # no temporary folder left
     envelope = json.loads((folder / CONFIG_FILE).read_text())
+    save_id = envelope.pop("save_id")  # the save's token, in the weights' metadata too
     assert envelope == {
         "kind": "toy", "format_version": 1, "geofeat_version": __version__, "config": {"rank": 4, "targets": ["q"]}, "info": {"step": 3},
     }  # fmt: skip
+    assert (
+        len(save_id) == 32
+        and save_id != json.loads((save_pretrained(tmp_path / "n", "toy", {}) / CONFIG_FILE).read_text())["save_id"]
+    )
     saved = from_pretrained(folder, "toy", HeadError)
     assert isinstance(saved, Pretrained)
     assert (saved.folder, saved.kind, saved.config, saved.info, saved.geofeat_version) == (
