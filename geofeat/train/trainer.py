@@ -279,6 +279,7 @@ class GeoLoraTrainer:
                 f"{self.out} holds a run with other settings ({', '.join(f'{n}={getattr(saved, n)!r}' for n in changed)}); "
                 "resume it with the same settings or choose another out folder."
             )
+        self._check_same_shapes(state.get("shapes"), checkpoint)
         load_adapter(self.backbone, checkpoint)
         self._make_optimizer()
         self.optimizer.load_state_dict(state["optimizer"])
@@ -295,6 +296,41 @@ class GeoLoraTrainer:
                 saved_world, self.ranks.world_size, self._origin[1], self.ranks.world_size * self.config.shapes_per_rank,
             )  # fmt: skip
         return True
+
+    def _shape_records(self) -> list[list[str]]:
+        """``[name, content hash]`` of every training shape, in the run's order (saved with each checkpoint)."""
+        return [[mesh.name, mesh.hash] for mesh in self.shapes]
+
+    def _check_same_shapes(self, saved: list | None, checkpoint: Path) -> None:
+        """Refuse to resume on other training shapes than the checkpoint's run (names and contents compared).
+
+        Raises
+        ------
+        TrainingError
+            Shapes added, removed, reordered or changed since the checkpoint, named.
+        """
+        if saved is None:  # a checkpoint of an older geofeat: nothing to compare with
+            log.warning("%s records no training shapes; resuming without checking that they are the same", checkpoint)
+            return
+        mine = self._shape_records()
+        if [list(r) for r in saved] == mine:
+            return
+        before, now = dict((n, h) for n, h in saved), dict(mine)
+        changes = (
+            [f"{len(set(now) - set(before))} added ({', '.join(sorted(set(now) - set(before))[:3])})"]
+            if set(now) - set(before)
+            else []
+        )
+        if set(before) - set(now):
+            changes.append(f"{len(set(before) - set(now))} removed ({', '.join(sorted(set(before) - set(now))[:3])})")
+        edited = sorted(n for n in set(now) & set(before) if now[n] != before[n])
+        if edited:
+            changes.append(f"{len(edited)} changed in content ({', '.join(edited[:3])})")
+        raise TrainingError(
+            f"{self.out} was trained on other shapes than {self.config.data!r} holds now: "
+            + ("; ".join(changes) or "the same shapes in another order")
+            + f" (checkpoint {checkpoint.name}). Resume with the run's data, or start a new run in another out folder."
+        )
 
     def _make_optimizer(self) -> None:
         params = [p for p in self.backbone.model.parameters() if p.requires_grad]
@@ -313,6 +349,7 @@ class GeoLoraTrainer:
             "samples": self._sample_position(self.step),
             "world_size": self.ranks.world_size,
             "optimizer": self.optimizer.state_dict(),
+            "shapes": self._shape_records(),
         }
         return checkpoints.write_checkpoint(self.out, self.step, self.backbone, self._lora_settings(), state, extra)
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 import contextlib
 import csv
 import os
+import re
 import signal
 import time
 
@@ -14,6 +15,7 @@ import torch
 from shapes import bumpy
 from tiny_models import tiny_dinov3
 
+import geofeat
 from geofeat.backbones import DinoBackbone, lora_state_dict
 from geofeat.errors import TrainingError
 from geofeat.geometry.geodesic import geodesic_matrix
@@ -107,6 +109,23 @@ def test_resume_refuses_other_settings(tmp_path):
     _trainer(tmp_path, steps=2).fit()
     with pytest.raises(TrainingError, match="lr=0.0001"):
         _trainer(tmp_path, steps=4, lr=1e-3).fit()
+
+
+def test_resume_refuses_changed_training_shapes_and_says_what_changed(tmp_path):
+    _trainer(tmp_path, steps=2).fit()
+    config = _config(tmp_path, steps=4)
+    moved = bumpy(1, 2)
+    edited = geofeat.Mesh(moved.verts * 1.01, moved.faces, moved.name)  # the same name, other content
+    cases = {
+        "1 changed in content (bumpy1)": [bumpy(0, 2), edited],
+        "1 added (bumpy2)": [*_shapes(), bumpy(2, 2)],
+        "1 removed (bumpy1)": _shapes()[:1],
+        "the same shapes in another order": _shapes()[::-1],
+    }
+    for message, shapes in cases.items():
+        with pytest.raises(TrainingError, match=re.escape(message)):
+            GeoLoraTrainer(config, backbone=_backbone(), shapes=shapes).fit()
+    assert GeoLoraTrainer(config, backbone=_backbone(), shapes=_shapes()).fit().name == "step_0000004"
 
 
 def test_time_budget_stops_with_a_checkpoint(tmp_path):
