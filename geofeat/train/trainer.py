@@ -713,33 +713,34 @@ class GeoLoraTrainer:
             self.geodesics.ensure(mesh)
         distributed.barrier()  # (a rank that does not see the shared store computes what it lacks on first use)
         start = time.perf_counter()
-        with self._prefetching(), self._log_file() as (handle, writer):
+        # the deferred Ctrl-C is in place before the sample workers are forked: a Ctrl-C during their start (in
+        # logging's at-fork hook, say) is a request to stop like any other, never an exception swallowed there
+        with DeferredInterrupt() as interrupt, self._prefetching(), self._log_file() as (handle, writer):
             if not resumed and main:
                 self._validation_row(writer, 0.0)
                 checkpoints.sync_log(handle)
                 self.save_checkpoint()
             bar = progress_bar(total=config.steps, initial=self.step, desc="GeoLoRA", unit="step", show=self.progress)
-            with DeferredInterrupt() as interrupt:
-                while self.step < config.steps and not self._anywhere(interrupt.requested):
-                    record = self.train_step()
-                    elapsed = time.perf_counter() - start
-                    if main:
-                        self._log_row(writer, record, elapsed, None)
-                    bar.update(1)
-                    bar.set_postfix(loss=f"{record.loss:.4f}")
-                    out_of_time = self._anywhere(config.max_minutes is not None and elapsed > 60.0 * config.max_minutes)
-                    if main and config.validate_every and self.step % config.validate_every == 0 and self.step < config.steps:
-                        if not out_of_time:
-                            self._validation_row(writer, elapsed)
-                    if main and config.checkpoint_every and self.step % config.checkpoint_every == 0:
-                        checkpoints.sync_log(handle)
-                        self.save_checkpoint()
-                    if main:
-                        handle.flush()
-                    if out_of_time:
-                        log.info("time budget of %.1f minutes spent at step %d", config.max_minutes, self.step)
-                        break
-                interrupted = self._anywhere(interrupt.requested)
+            while self.step < config.steps and not self._anywhere(interrupt.requested):
+                record = self.train_step()
+                elapsed = time.perf_counter() - start
+                if main:
+                    self._log_row(writer, record, elapsed, None)
+                bar.update(1)
+                bar.set_postfix(loss=f"{record.loss:.4f}")
+                out_of_time = self._anywhere(config.max_minutes is not None and elapsed > 60.0 * config.max_minutes)
+                if main and config.validate_every and self.step % config.validate_every == 0 and self.step < config.steps:
+                    if not out_of_time:
+                        self._validation_row(writer, elapsed)
+                if main and config.checkpoint_every and self.step % config.checkpoint_every == 0:
+                    checkpoints.sync_log(handle)
+                    self.save_checkpoint()
+                if main:
+                    handle.flush()
+                if out_of_time:
+                    log.info("time budget of %.1f minutes spent at step %d", config.max_minutes, self.step)
+                    break
+            interrupted = self._anywhere(interrupt.requested)
             bar.close()
             if interrupted:
                 if main:
