@@ -288,7 +288,9 @@ def test_forked_workers_run_one_blas_and_one_torch_thread():
 
     from geofeat.evaluation.protocol import _worker_start
 
-    with ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("fork"), initializer=_worker_start) as pool:
+    with ProcessPoolExecutor(
+        1, mp_context=multiprocessing.get_context("fork"), initializer=_worker_start, initargs=(os.getpid(),)
+    ) as pool:
         blas, torch_threads = pool.submit(_thread_counts).result()
     assert blas and all(n == 1 for n in blas), blas  # numpy/scipy's BLAS pools, lowered after the fork
     assert torch_threads == 1
@@ -297,7 +299,7 @@ def test_forked_workers_run_one_blas_and_one_torch_thread():
 # A fresh interpreter: match and evaluate two pairs with the nn head in 2 forked workers, then
 # report whether torch was loaded, and the threads a worker's later torch import starts with.
 _TORCH_FREE_RUN = """
-import multiprocessing, sys
+import multiprocessing, os, sys
 from concurrent.futures import ProcessPoolExecutor
 from geofeat.adapters.heads import make_head
 from geofeat.datasets import load_dataset
@@ -311,7 +313,7 @@ def later_torch_threads():
     import torch
     return torch.get_num_threads()
 
-with ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("fork"), initializer=_worker_start) as pool:
+with ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("fork"), initializer=_worker_start, initargs=(os.getpid(),)) as pool:
     threads = pool.submit(later_torch_threads).result()
 print(len(records), loaded, threads)
 """

@@ -26,6 +26,7 @@ from geofeat.descriptors.cache import FeatureCache, cache_key
 from geofeat.descriptors.registry import as_descriptor
 from geofeat.errors import CacheError, GeofeatError
 from geofeat.mesh import Mesh, as_mesh
+from geofeat.processes import end_with_parent
 from geofeat.progress import progress_bar
 
 log = logging.getLogger(__name__)
@@ -372,7 +373,7 @@ def compute_each(
                 max_workers=min(n_jobs, len(items)),
                 mp_context=context,
                 initializer=_start_worker,
-                initargs=(descriptor, store, explicit),
+                initargs=(os.getpid(), descriptor, store, explicit),
             ) as pool,
         ):
             futures = [pool.submit(_worker_compute, index, item) for index, item in enumerate(items)]
@@ -532,8 +533,10 @@ def _compute_ready(
 _WORKER: tuple[Descriptor, FeatureCache | None, bool] | None = None
 
 
-def _start_worker(descriptor: Descriptor, store: FeatureCache | None, explicit: bool) -> None:
+def _start_worker(parent_pid: int, descriptor: Descriptor, store: FeatureCache | None, explicit: bool) -> None:
+    """In a spawned worker: ends with the parent (`end_with_parent`), keeps what every shape needs."""
     global _WORKER
+    end_with_parent(parent_pid)
     _WORKER = (descriptor, store, explicit)
 
 

@@ -38,6 +38,7 @@ from geofeat.evaluation import metrics
 from geofeat.geometry.geodesic import area_normalisation
 from geofeat.geometry.geodesic_memory import GeodesicEntries, evaluation_distances, memory_limit
 from geofeat.geometry.geodesic_store import GeodesicStore
+from geofeat.processes import end_with_parent
 from geofeat.progress import progress_bar
 
 log = logging.getLogger(__name__)
@@ -378,8 +379,8 @@ def _evaluate_group(indices: list[int]) -> list[_Evaluated]:
     return out
 
 
-def _worker_start() -> None:
-    """In a forked worker: one BLAS/torch thread, the cores go to the workers.
+def _worker_start(parent_pid: int) -> None:
+    """In a forked worker: ends with the parent (`end_with_parent`); one BLAS/torch thread, the cores go to the workers.
 
     The BLAS of numpy/scipy was started in the parent with its own thread count, so the
     environment variables come too late: `threadpoolctl` lowers it in place. Workers that
@@ -390,6 +391,7 @@ def _worker_start() -> None:
     """
     from threadpoolctl import threadpool_limits
 
+    end_with_parent(parent_pid)
     threadpool_limits(1)
     torch = sys.modules.get("torch")
     if torch is None:
@@ -448,7 +450,7 @@ def map_forked(function: Callable[[Task], Result], tasks: Sequence[Task], worker
     from concurrent.futures import ProcessPoolExecutor, as_completed
 
     context = multiprocessing.get_context("fork")
-    with ProcessPoolExecutor(workers, mp_context=context, initializer=_worker_start) as pool:
+    with ProcessPoolExecutor(workers, mp_context=context, initializer=_worker_start, initargs=(os.getpid(),)) as pool:
         futures = [pool.submit(function, task) for task in tasks]
         try:
             for future in as_completed(futures):

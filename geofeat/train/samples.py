@@ -37,6 +37,7 @@ Workers need shared memory (``/dev/shm``) for the samples in flight, about
 from __future__ import annotations
 
 import contextlib
+import functools
 import logging
 import multiprocessing
 import os
@@ -49,9 +50,10 @@ import numpy as np
 import torch
 from torch.utils.data import DataLoader, Dataset, Sampler
 
-from geofeat.errors import TrainingError
+from geofeat.errors import GeofeatError, TrainingError
 from geofeat.geometry.partial import make_partial
 from geofeat.mesh import Mesh
+from geofeat.processes import end_with_parent
 from geofeat.render.cameras import rotation_about_up
 from geofeat.train.config import TrainConfig
 from geofeat.train.shapes import TorchGeodesicStore
@@ -150,6 +152,24 @@ class PreparedSample(NamedTuple):
         )
 
 
+class SampleFailure(NamedTuple):
+    """What a worker process hands back for a sample it could not prepare: the error, to raise in the trainer.
+
+    Attributes
+    ----------
+    index : int
+        Global sample index.
+    error : type
+        The `GeofeatError` subclass raised in the worker.
+    message : str
+        Its message.
+    """
+
+    index: int
+    error: type[GeofeatError]
+    message: str
+
+
 def prepare_sample(
     config: TrainConfig,
     shapes: Sequence[Mesh],
@@ -229,8 +249,12 @@ class SampleDataset(Dataset):
         """`prepare_sample` of global sample ``index`` in this process, ``timer`` charged as it says."""
         return prepare_sample(self.config, self.shapes, int(index), self.store(), timer)
 
-    def __getitem__(self, index: int) -> PreparedSample:
-        return self.prepare(index)
+    def __getitem__(self, index: int) -> PreparedSample | SampleFailure:
+        """In a worker process: the sample, or its `SampleFailure` (raised by `SamplePrefetcher.take` as it was)."""
+        try:
+            return self.prepare(index)
+        except GeofeatError as err:
+            return SampleFailure(int(index), type(err), str(err))
 
     def __getstate__(self) -> dict:
         state = dict(self.__dict__)
@@ -286,8 +310,12 @@ def _identity(sample: PreparedSample) -> PreparedSample:
     return sample
 
 
-def _worker_start(_worker_id: int) -> None:
-    """In a worker process: Ctrl-C is for the trainer, which stops after its step (workers end when it closes them)."""
+def _worker_start(parent_pid: int, _worker_id: int) -> None:
+    """In a worker process: ends with the trainer (`end_with_parent`); Ctrl-C is for the trainer.
+
+    The trainer stops after its step on Ctrl-C and closes the workers then.
+    """
+    end_with_parent(parent_pid)
     signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
@@ -343,7 +371,7 @@ class SamplePrefetcher:
             num_workers=workers,
             collate_fn=_identity,
             pin_memory=pin_memory,
-            worker_init_fn=_worker_start,
+            worker_init_fn=functools.partial(_worker_start, os.getpid()),
             prefetch_factor=PREFETCH_PER_WORKER,
             persistent_workers=False,
             generator=torch.Generator().manual_seed(seed),
@@ -357,6 +385,8 @@ class SamplePrefetcher:
 
         Raises
         ------
+        GeofeatError
+            A worker could not prepare a sample: its error, with its message.
         TrainingError
             The loader handed out other samples than those of ``step``.
         """
@@ -368,6 +398,8 @@ class SamplePrefetcher:
                 sample = next(self._iterator)
             except StopIteration:
                 raise TrainingError(f"the sample loader ran out before sample {expected} of step {step}.") from None
+            if isinstance(sample, SampleFailure):
+                raise sample.error(sample.message)
             if sample.index != expected:
                 raise TrainingError(
                     f"the sample loader handed out sample {sample.index} where step {step} expected sample {expected}."
