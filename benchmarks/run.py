@@ -28,6 +28,10 @@ any number of workers. The targets' geodesic matrices are kept on disk in
 ``<geofeat cache>/geodesics`` (``$GEOFEAT_CACHE_DIR``, default ``~/.cache/geofeat``) and the
 descriptors in ``<geofeat cache>/features``, so a second run reads them back; the run ends
 by saying where both are and how large they are (``geofeat cache info``, ``geofeat cache clear``).
+
+Exit status 0: done; 1: a pair could not be read or matched once the run had started (one
+line says which and why); 2: bad input (unknown dataset, descriptor or option); 130:
+interrupted (Ctrl-C).
 """
 
 from __future__ import annotations
@@ -611,6 +615,18 @@ def main(argv=None) -> int:
     except geofeat.GeofeatError as err:
         sys.stderr.write(f"run.py: error: {err}\n")
         return 2
+    try:
+        return run_pairs(args, argv, dataset, head, params)
+    except geofeat.GeofeatError as err:  # a pair that cannot be read or matched, found after work started
+        sys.stderr.write(f"run.py: error: {err}\n")
+        return 1
+    except KeyboardInterrupt:
+        sys.stderr.write("run.py: interrupted; no results written (the caches keep the features and geodesics computed).\n")
+        return 130
+
+
+def run_pairs(args, argv, dataset, head, params) -> int:
+    """Train the head when it learns, match and score the pairs, write the results folder."""
     n_pairs = len(dataset) if args.limit is None else min(args.limit, len(dataset))
     if args.quick:
         n_pairs = min(n_pairs, QUICK_TEST_PAIRS)

@@ -31,6 +31,7 @@ from geofeat.errors import (
     SpectralError,
     StoreError,
     TrainingError,
+    UnknownSplitError,
     UnusablePair,
 )
 from geofeat.mesh import Mesh, load_mesh, normalize
@@ -59,6 +60,7 @@ __all__ = [
     "SpectralError",
     "StoreError",
     "TrainingError",
+    "UnknownSplitError",
     "UnusablePair",
     "__version__",
     "cache_dir",

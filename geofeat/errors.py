@@ -54,6 +54,7 @@ __all__ = [
     "SpectralError",
     "StoreError",
     "TrainingError",
+    "UnknownSplitError",
     "UnusablePair",
 ]
 
@@ -120,6 +121,10 @@ class BackboneError(GeofeatError, ValueError):
 
 class DatasetError(GeofeatError, ValueError):
     """A benchmark dataset cannot be used: folder layout, file contents or loader options are wrong."""
+
+
+class UnknownSplitError(DatasetError):
+    """A dataset was asked for a split it does not have (the message names those it has)."""
 
 
 class MetricError(GeofeatError, ValueError):

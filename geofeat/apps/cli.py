@@ -368,11 +368,18 @@ def _extract_command(args: argparse.Namespace) -> int:
     elif args.export_to or args.feature_folder:
         raise ExtractError("--export-to and --feature-folder need --export npy|h5.")
     manifest = args.manifest or default_manifest_path(args.descriptor, params, args.out)  # in the store, not in ./
-    with _quiet_if(args.no_progress):
-        result = extract(
-            shapes, args.descriptor, params, store=args.out, manifest=manifest, export=export,
-            device=args.device, prefetch=args.prefetch, progress=not args.no_progress,
-        )  # fmt: skip
+    try:
+        with _quiet_if(args.no_progress):
+            result = extract(
+                shapes, args.descriptor, params, store=args.out, manifest=manifest, export=export,
+                device=args.device, prefetch=args.prefetch, progress=not args.no_progress,
+            )  # fmt: skip
+    except KeyboardInterrupt:
+        sys.stderr.write(
+            "geofeat: interrupted. The features computed so far are kept in the store; the same command "
+            "computes only the others.\n"
+        )
+        return 130
     if distributed.is_main():
         _out(
             f"{result['n_shapes']} shapes: {result['n_computed']} computed, {result['n_present']} already in the store, "
@@ -614,6 +621,9 @@ def main(argv: list[str] | None = None) -> int:
     except GeofeatError as err:
         sys.stderr.write(f"geofeat: error: {err}\n")
         return 2
+    except KeyboardInterrupt:
+        sys.stderr.write("geofeat: interrupted.\n")
+        return 130
 
 
 if __name__ == "__main__":

@@ -26,7 +26,7 @@ import numpy as np
 
 from geofeat.datasets.records import ShapePair
 from geofeat.datasets.registry import dataset_description, dataset_options, load_dataset
-from geofeat.errors import DatasetError, GeofeatError
+from geofeat.errors import DatasetError, GeofeatError, UnknownSplitError
 from geofeat.progress import progress_bar
 from geofeat.registry import canonical_name
 
@@ -231,6 +231,8 @@ def _read_everything(report: DatasetCheck, name: str, root, split: str, progress
     """Open the dataset and fold every pair into ``report``."""
     try:
         dataset = load_dataset(name, root, split, **options)
+    except UnknownSplitError:
+        raise  # bad input, not a problem of the data
     except GeofeatError as err:
         report.problems.append(f"geofeat cannot open it: {err}")
         return

@@ -31,6 +31,7 @@ from geofeat.datasets.becos import (
     SETTINGS,
 )
 from geofeat.errors import DatasetError
+from geofeat.files import probe_writable
 
 log = logging.getLogger(__name__)
 
@@ -207,14 +208,21 @@ def requirement_modules(requirements: Path) -> list[str]:
     return modules
 
 
+def _check_output_folder(out: Path) -> None:
+    """Refuse an output folder that cannot be made or written (a file there or above it, a read-only place)."""
+    try:
+        probe_writable(out, prefix=".geofeat-write-check-")
+    except OSError as err:
+        raise DatasetError(f"cannot write into {out}: {err}. Pass a folder you can write to as --out.") from None
+
+
 def _check_python(python: str, generator: Path) -> None:
     """Refuse a Python that cannot import the generator's requirements (before hours of running)."""
     requirements = generator / "requirements.txt"
     modules = requirement_modules(requirements)
     if not modules:
-        log.info("%s lists no requirements; running the generator without checking its Python first.", requirements)
-        return
-    code = "import " + ", ".join(modules)
+        log.info("%s lists no requirements; checking only that %s runs.", requirements, python)
+    code = "import " + ", ".join(modules) if modules else "pass"
     try:
         result = subprocess.run([python, "-c", code], capture_output=True, text=True, timeout=300, cwd=generator)
     except (OSError, subprocess.TimeoutExpired) as err:
@@ -319,6 +327,7 @@ def prepare_becos(
     in_place = target.resolve() == produced.resolve()
     if not in_place and target.exists() and any(target.iterdir()):
         raise DatasetError(f"{target} already exists and is not empty; pass another output folder or remove it.")
+    _check_output_folder(out)
     python = python or _default_python(generator)
     _check_python(python, generator)
 

@@ -23,7 +23,7 @@ from typing import ClassVar, Protocol
 import numpy as np
 
 from geofeat.datasets.records import PROTOCOLS, ShapePair
-from geofeat.errors import DatasetError
+from geofeat.errors import DatasetError, UnknownSplitError
 from geofeat.lru import LRUCache
 from geofeat.mesh import Mesh, load_mesh
 
@@ -262,9 +262,9 @@ def locate_split(
 
 
 def check_split(split: str, allowed: Sequence[str], title: str) -> str:
-    """``split`` when it is one of ``allowed``, else a `DatasetError` listing them."""
+    """``split`` when it is one of ``allowed``, else an `UnknownSplitError` listing them."""
     if split not in allowed:
-        raise DatasetError(f"{title}: split must be one of {', '.join(map(repr, allowed))}; found {split!r}.")
+        raise UnknownSplitError(f"{title}: split must be one of {', '.join(map(repr, allowed))}; found {split!r}.")
     return split
 
 

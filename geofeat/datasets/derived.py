@@ -19,9 +19,10 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial import cKDTree
 
+from geofeat.datasets.base import check_split
 from geofeat.datasets.records import ShapePair
-from geofeat.errors import DatasetError
-from geofeat.geometry.partial import make_partial
+from geofeat.errors import DatasetError, MeshError
+from geofeat.geometry.partial import make_partial, partial_generator
 from geofeat.mesh import Mesh
 
 PARTIAL_KINDS = ("cuts", "holes", "ray")
@@ -131,6 +132,10 @@ class DerivedPartialBenchmark:
             raise DatasetError(f"kind must be one of {PARTIAL_KINDS}; found {self.kind!r}")
         if self.protocol not in ("p2f", "p2p"):
             raise DatasetError(f"protocol must be 'p2f' or 'p2p'; found {self.protocol!r}")
+        try:  # here, not in the first pair a worker makes
+            partial_generator(self.kind, self.partial_options)
+        except MeshError as err:
+            raise DatasetError(f"{self.name or 'derived benchmark'}: {err}") from None
         pairs = [(a, b) for a in self.indices for b in self.indices if a != b]
         order = np.random.default_rng(self.seed).permutation(len(pairs))
         self.pairs = [pairs[i] for i in order]
@@ -238,8 +243,7 @@ def synthetic_partial_benchmark(root, split: str, *, kind: str, protocol: str, s
     collection = SyntheticCollection(SyntheticHumans(SYNTHETIC_INDIVIDUALS, SYNTHETIC_POSES, seed=0))
     n_train = (SYNTHETIC_INDIVIDUALS - SYNTHETIC_TEST_INDIVIDUALS) * SYNTHETIC_POSES
     indices = {"train": range(n_train), "test": range(n_train, len(collection)), "all": range(len(collection))}
-    if split not in indices:
-        raise DatasetError(f"synthetic benchmarks have splits 'train', 'test' and 'all'; found {split!r}.")
+    check_split(split, list(indices), "synthetic benchmarks")
     name = f"synthetic_{kind if protocol == 'p2f' else 'p2p'}"
     return DerivedPartialBenchmark(collection, list(indices[split]), kind, protocol, seed, name, dict(partial_options))
 

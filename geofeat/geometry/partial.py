@@ -510,14 +510,25 @@ def make_partial(mesh: Mesh, kind: str, seed: Seed, **options: Any) -> PartialSh
     -------
     PartialShape
     """
+    return partial_generator(kind, options)(mesh, seed, **options)
+
+
+def partial_generator(kind: str, options: Mapping[str, Any] | None = None) -> Callable[..., PartialShape]:
+    """The generator of ``kind``, after checking that it takes every option in ``options``.
+
+    Raises
+    ------
+    MeshError
+        An unknown kind, or an option the generator does not take.
+    """
     if kind not in GENERATORS:
         raise MeshError(f"unknown partial-shape kind {kind!r}; expected one of {PARTIAL_KINDS}.")
     generator = GENERATORS[kind]
     accepted = [name for name, p in inspect.signature(generator).parameters.items() if p.kind is p.KEYWORD_ONLY]
-    unknown = sorted(set(options) - set(accepted))
+    unknown = sorted(set(options or ()) - set(accepted))
     if unknown:
         raise MeshError(f"unknown option(s) {unknown} for partial kind {kind!r}; it accepts {accepted}.")
-    return generator(mesh, seed, **options)
+    return generator
 
 
 def _first_accepted(mesh: Mesh, kind: str, draw: _Draw, keep_range: tuple[float, float], max_tries: int) -> PartialShape:

@@ -68,6 +68,7 @@ from geofeat.backbones.lora import LoraSettings, add_lora, load_adapter
 from geofeat.datasets.records import Match
 from geofeat.errors import TrainingError
 from geofeat.evaluation.protocol import evaluate_pair, summarize
+from geofeat.files import probe_writable
 from geofeat.mesh import Mesh
 from geofeat.progress import progress_bar
 from geofeat.render import make_cameras
@@ -181,6 +182,12 @@ class GeoLoraTrainer:
         self.ranks = distributed.group_rank_info()
         self.progress = config.progress and self.ranks.is_main
         self.out = Path(config.out)
+        try:  # before hours of loading: a file or a read-only place as the run folder
+            probe_writable(self.out, prefix=".geofeat-write-check-")
+        except OSError as err:
+            raise TrainingError(
+                f"cannot write the run folder {self.out}: {err}. Pass a folder you can write to as out."
+            ) from None
         self.shapes = shapes if shapes is not None else load_training_shapes(
             config.data, root=config.data_root, split=config.split, first=config.first,
             max_vertices=config.max_vertices, progress=self.progress,
