@@ -170,7 +170,9 @@ def check_state(module: torch.nn.Module, state: Mapping[str, torch.Tensor], what
     Raises
     ------
     HeadError
-        Naming every missing, unexpected and wrongly shaped key (with both shapes).
+        Naming every missing, unexpected and wrongly shaped key (with both shapes), every
+        key of another kind of number (integers or booleans for floating-point weights)
+        and every floating-point key holding NaN or infinite values.
     """
     problems = state_problems(module.state_dict(), state)
     if problems:
@@ -197,7 +199,8 @@ def state_problems(
     Returns
     -------
     list of str
-        ``"missing [...]"``, ``"unexpected [...]"``, ``"wrongly shaped [...]"`` where not empty.
+        ``"missing [...]"``, ``"unexpected [...]"``, ``"wrongly shaped [...]"``, ``"of another
+        kind of number [...]"`` and ``"holding NaN or infinite values [...]"``, where not empty.
     """
     names = names or {}
 
@@ -215,8 +218,30 @@ def state_problems(
         for k in state
         if k in expected and tuple(state[k].shape) != tuple(expected[k].shape)
     )
+    common = [k for k in state if k in expected]
+    mistyped = sorted(
+        f"{label(k)}: {state[k].dtype} instead of {expected[k].dtype}"
+        for k in common
+        if _number_kind(state[k].dtype) != _number_kind(expected[k].dtype)
+    )
+    not_finite = sorted(label(k) for k in common if state[k].is_floating_point() and not bool(state[k].isfinite().all()))
     return [
         f"{what} {items}"
-        for what, items in (("missing", missing), ("unexpected", unexpected), ("wrongly shaped", wrong))
+        for what, items in (
+            ("missing", missing),
+            ("unexpected", unexpected),
+            ("wrongly shaped", wrong),
+            ("of another kind of number", mistyped),
+            ("holding NaN or infinite values", not_finite),
+        )
         if items
     ]
+
+
+def _number_kind(dtype: torch.dtype) -> str:
+    """``"bool"``, ``"integer"``, ``"floating"`` or ``"complex"``: what a tensor may be loaded as (any width)."""
+    if dtype == torch.bool:
+        return "bool"
+    if dtype.is_complex:
+        return "complex"
+    return "floating" if dtype.is_floating_point else "integer"

@@ -114,10 +114,23 @@ def atomic_write(path: str | os.PathLike, write: Callable[[Path], None], *, dura
     -------
     pathlib.Path
         ``path``. On any failure (an interruption included) the temporary file is removed
-        and an existing ``path`` is left as it was.
+        and an existing ``path`` is left as it was. A folder removed while the file was
+        written (a cache being cleared) is made again and the file written once more.
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        return _write_and_rename(path, write, durable)
+    except FileNotFoundError:
+        if path.parent.is_dir():
+            raise
+    log.warning("%s was removed while %s was written in it; writing it again", path.parent, path.name)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    return _write_and_rename(path, write, durable)
+
+
+def _write_and_rename(path: Path, write: Callable[[Path], None], durable: bool) -> Path:
+    """One try of `atomic_write` in an existing folder."""
     handle, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     os.close(handle)
     try:

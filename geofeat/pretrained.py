@@ -257,6 +257,15 @@ def _being_replaced(folder: Path) -> bool:
     return parent.is_dir() and any(parent.glob(f".{glob.escape(folder.name)}.old-*"))
 
 
+def _saved_or_being_replaced(folder: Path) -> bool:
+    """Whether ``folder`` holds a config now or a save of it is under way.
+
+    Looked at config, set-aside, config: a save that moves from one state to the next between two looks is still
+    seen, unless a whole further save starts and stops between them.
+    """
+    return (folder / CONFIG_FILE).is_file() or _being_replaced(folder) or (folder / CONFIG_FILE).is_file()
+
+
 def _weights_save_id(weights: bytes) -> str | None:
     """The ``save_id`` in a safetensors file's metadata (its JSON header), or None."""
     try:
@@ -305,24 +314,38 @@ def from_pretrained(
     kinds = (kind,) if isinstance(kind, str) else tuple(kind)
     expected = " or ".join(repr(k) for k in kinds)
     for attempt in range(READ_ATTEMPTS):
-        if not (folder / CONFIG_FILE).is_file() and _being_replaced(folder):
-            # a save is between its two renames, or one was killed there: restored when its writer is dead
-            remove_dead_temporary_folders(folder.parent, folder.name)
-            time.sleep(0.02 * (attempt + 1))
-            continue
-        saved, save_id = _read_folder(folder, kinds, expected, error, older_layout_hint)
+        try:
+            saved, save_id = _read_folder(folder, kinds, expected, error, older_layout_hint)
+        except GeofeatError:
+            # a save between its two renames (or one killed there: restored when its writer is dead), or one that
+            # finished since the failed read: read again; anything else is the folder's own problem
+            if attempt + 1 < READ_ATTEMPTS and _saved_or_being_replaced(folder):
+                remove_dead_temporary_folders(folder.parent, folder.name)
+                time.sleep(0.02 * (attempt + 1))
+                continue
+            if _being_replaced(folder):
+                raise error(
+                    f"{folder} is being replaced by another process's save (its previous content is set aside beside "
+                    "it); load it again once the saving stops."
+                ) from None
+            raise
         weights_id = None if saved.weights is None else _weights_save_id(saved.weights)
         if save_id is None or weights_id is None or weights_id == save_id:  # no id to compare: damage is tensors()'s to report
             return saved
-    if not (folder / CONFIG_FILE).is_file() and _being_replaced(folder):
-        raise error(
-            f"{folder} is being replaced by another process's save (its previous content is set aside beside it); "
-            "load it again once the saving stops."
-        )
     raise error(
         f"{folder} was replaced while it was being read, {READ_ATTEMPTS} times in a row (another process keeps saving "
         "it); its config and weights came from different saves. Load it again once the saving stops."
     )
+
+
+def _refuse_run_folder(folder: Path, expected: str, error: type[GeofeatError]) -> None:
+    """A training run folder (config.json of its settings, ``checkpoints/step_N``) given where one save is expected."""
+    checkpoints = folder / "checkpoints"
+    if not checkpoints.is_dir():
+        return
+    saved = sorted(p for p in checkpoints.iterdir() if p.is_dir() and not p.name.startswith("."))
+    newest = f"the newest is {saved[-1]}" if saved else "it holds none yet"
+    raise error(f"{folder} is a training run folder, not a {expected}: pass one of its checkpoints/step_N folders ({newest}).")
 
 
 def _read_folder(
@@ -348,6 +371,7 @@ def _read_folder(
     except (OSError, ValueError) as exc:
         raise error(f"could not read {path} as JSON ({exc}); the file is damaged: copy or save the folder again.") from exc
     if not isinstance(data, dict) or not {"kind", "format_version", "config"} <= set(data):
+        _refuse_run_folder(folder, expected, error)
         keys = sorted(data) if isinstance(data, dict) else type(data).__name__
         raise error(
             f"{path} is not the config of a folder written by save_pretrained: expected the keys "
@@ -357,7 +381,12 @@ def _read_folder(
     if found not in kinds:
         raise error(f"{folder} holds a {found!r}, not a {expected}; load it with the function for a {found!r}.")
     version = data["format_version"]
-    if not isinstance(version, int) or version > FORMAT_VERSION:
+    if isinstance(version, bool) or not isinstance(version, int) or version < 1:  # bool: True is an int in Python
+        raise error(
+            f"{path}: format_version must be a whole number from 1 (this geofeat writes {FORMAT_VERSION}); found "
+            f"{version!r}. The file was edited or damaged: save the folder again."
+        )
+    if version > FORMAT_VERSION:
         raise error(
             f"{folder} was written in layout version {version!r} by geofeat {data.get('geofeat_version', '?')}; this "
             f"geofeat ({__version__}) reads layout version {FORMAT_VERSION} and earlier: upgrade geofeat."

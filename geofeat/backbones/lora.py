@@ -328,6 +328,12 @@ def _load_lora_tensors(backbone: DinoBackbone, tensors: Mapping[str, Tensor], so
                     raise BackboneError(
                         f"LoRA tensor {key} from {source} has shape {tuple(value.shape)}, expected {tuple(weight.shape)}"
                     )
+                if not value.is_floating_point() or not bool(value.isfinite().all()):
+                    problem = "NaN or infinite values" if value.is_floating_point() else f"dtype {value.dtype}"
+                    raise BackboneError(
+                        f"LoRA tensor {key} from {source} holds {problem}, not finite floating-point weights; the file "
+                        "is damaged or was written by a diverged training: use another checkpoint"
+                    )
                 weight.copy_(value.to(weight.device, weight.dtype))
 
 

@@ -177,6 +177,13 @@ class FeatureCache(EntryFolder):
 
         try:
             return atomic_write(path, write)  # the temporary file is removed on any failure
+        except FileNotFoundError as err:
+            if path.parent.is_dir():  # not a removed folder: a path that cannot be made
+                raise CacheError(f"cannot write the cache entry {path}: {err}. {_NOT_WRITABLE_HINT}") from err
+            raise CacheError(
+                f"cannot write the cache entry {path}: its folder was removed while it was written, twice (is "
+                "'geofeat cache clear' or another process emptying the cache?). Run again once it is done."
+            ) from err
         except OSError as err:
             raise CacheError(f"cannot write the cache entry {path}: {err}. {_NOT_WRITABLE_HINT}") from err
 
