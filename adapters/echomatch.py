@@ -80,7 +80,7 @@ Where we differ, on purpose:
   stays positive and Adam moves it by a ratio, not by an amount: with the reference's raw
   ``tau`` and Adam at lr 1e-2, steps of about 0.01 took the initial 0.1 below zero within
   ten steps (soft maps onto the *least* similar points) and the overlap network learnt
-  nothing on some runs (issue 12: which runs depended on the BLAS thread count). The
+  nothing on some runs (which runs depended on the BLAS thread count). The
   ``"reference"`` preset and the released checkpoints keep the raw ``tau``, clamped at
   ``1e-4`` from below (its gradient passed through);
 - the reflection is evaluated only at the neighbours (`sampled_reflection`, the values of

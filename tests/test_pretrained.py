@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import json
 import os
-import time
 
 import pytest
 import torch
@@ -17,43 +16,6 @@ from geofeat.pretrained import CONFIG_FILE, WEIGHTS_FILE, Pretrained, from_pretr
 
 def _tensors() -> dict[str, torch.Tensor]:
     return {"a.weight": torch.arange(6, dtype=torch.float32).reshape(2, 3), "b.bias": torch.tensor([1, 2], dtype=torch.int64)}
-
-
-def test_a_load_reads_one_save_or_fails_while_another_process_keeps_saving(tmp_path):
-    """The config and the weights of a load come from the same save, however saves and loads interleave."""
-    import multiprocessing
-
-    import torch
-
-    folder = save_pretrained(tmp_path / "m", "toy", {"value": 0}, {"w": torch.zeros(64)})
-    stop = multiprocessing.get_context("fork").Event()
-    writer = multiprocessing.get_context("fork").Process(target=_keep_saving, args=(folder, stop))
-    writer.start()
-    torn, failed, loads = 0, 0, 0
-    try:
-        deadline = time.monotonic() + 6.0
-        while time.monotonic() < deadline and loads < 400:
-            try:
-                saved = from_pretrained(folder, "toy", HeadError)
-            except HeadError as err:
-                failed += 1  # being replaced too often: refused, never mixed
-                assert "replaced" in str(err) or "being replaced" in str(err), err
-                continue
-            loads += 1
-            torn += int(saved.tensors()["w"][0].item() != saved.config["value"])
-    finally:
-        stop.set()
-        writer.join(30)
-    assert loads > 50 and torn == 0, (loads, torn, failed)
-
-
-def _keep_saving(folder, stop) -> None:
-    import torch
-
-    value = 0
-    while not stop.is_set():
-        value += 1
-        save_pretrained(folder, "toy", {"value": value}, {"w": torch.full((64,), float(value))}, durable=False)
 
 
 def test_round_trip(tmp_path):

@@ -1,11 +1,14 @@
-"""Robustness table (issue 12): odd, bad or hostile inputs and what each must give.
+"""Robustness table: odd, bad or hostile inputs and what each must give.
 
 Every row is one input and its expected outcome: an error type (a `GeofeatError`, with a
 message that says what was expected and how to fix it; or argparse's exit) or equality with
 a reference result computed the ordinary way. Rows cover bad mesh files, parameters at the
 boundary, non-finite features, read-only and odd cache stores, small point clouds, mesh-like
 inputs, damaged and pickle-only weights, concurrent cache writers and killed training runs (a cache
-writer killed in the middle of an entry: tests/test_cache.py).
+writer killed in the middle of an entry: tests/test_cache.py). The third pass covers faults
+that gave wrong results without a word: features of a mesh no view sees, or moved far from
+the origin; loads racing a save; resumes on changed data; Ctrl-C and kill -9 reaching worker
+processes; command lines that ended in a traceback; messages that gave the wrong advice.
 
 A read-only store is simulated (`read_only`): every call that would create, rename or delete
 something below the store raises ``OSError(EROFS)``, as a read-only mount does.
@@ -21,6 +24,7 @@ import json
 import logging
 import multiprocessing as mp
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -39,6 +43,7 @@ from cache_writers import N_SHARED_KEYS, write_shared_and_own_keys
 from shapes import REPO, bumpy, sphere
 
 import geofeat
+import geofeat.pretrained
 from geofeat import FeatureCache, Mesh
 from geofeat.apps.cli import main as cli_main
 from geofeat.backbones import load_backbone
@@ -970,6 +975,19 @@ def saved_head(ctx: Ctx, damage: str) -> Path:
     elif damage == "config-list":
         payload = json.loads(config.read_text())
         config.write_text(json.dumps(payload | {"config": list(payload["config"].items())}))
+    elif damage.startswith("format-"):
+        version = {"format-string": "1", "format-true": True, "format-negative": -5}[damage]
+        config.write_text(json.dumps(json.loads(config.read_text()) | {"format_version": version}))
+    elif damage in ("int64", "bool", "nan"):
+        from safetensors import safe_open
+        from safetensors.torch import save_file
+
+        with safe_open(weights, "pt") as handle:
+            metadata = handle.metadata()
+            state = {key: handle.get_tensor(key) for key in handle.keys()}  # noqa: SIM118 - safe_open is no mapping
+        key = next(k for k, v in sorted(state.items()) if v.is_floating_point() and v.numel() > 1)
+        state[key] = {"int64": state[key].long(), "bool": state[key] > 0, "nan": state[key].clone().fill_(float("nan"))}[damage]
+        save_file(state, weights, metadata=metadata)
     return folder
 
 
@@ -1281,7 +1299,358 @@ SECOND_PASS += [
     Row("extract-out-read-only-suggests-out", "R9", extract_into_read_only_out, reference=lambda c: (2, True, False)),
 ]
 
-ROWS = MESH_FILES + NON_FINITE + PARAMETERS + CACHE + ERRORS + KILLS + SECOND_PASS
+# ----------------------------------------------------------------------------- third pass: silent faults
+
+THIRD_PASS: list[Row] = []
+
+
+def dino_blob(ctx: Ctx, mesh: Mesh | None = None, **params) -> np.ndarray:
+    """DINOv3 features (a tiny random model) of the 162-vertex blob, or of ``mesh``, cached in ``ctx.tmp/store``."""
+    from geofeat.apps.demo import blob
+
+    settings = dict(weights=tiny_folder(ctx), views=4, device="cpu", image_size=64, cache=FeatureCache(ctx.tmp / "store"))
+    return geofeat.compute(blob(2, 0, "b") if mesh is None else mesh, "dinov3", **(settings | params))
+
+
+def zeros_with_warning(ctx: Ctx) -> tuple[bool, bool]:
+    """fill="zero" where no vertex is seen: (the features are all zeros, a warning says so)."""
+    with ctx.caplog.at_level(logging.WARNING, logger="geofeat"):
+        features = dino_blob(ctx, image_size=16, fill="zero")
+    return bool(np.all(features == 0)), "no vertex of 'b' was seen" in ctx.caplog.text
+
+
+def moved_features_agree(ctx: Ctx) -> list[float]:
+    """Largest difference between the features of the blob and of the same blob moved by 1e6 or scaled by 1e-6 and 1e6."""
+    from geofeat.apps.demo import blob
+
+    mesh = blob(2, 0, "b")
+    base = dino_blob(ctx, cache=False)
+    moved = [
+        Mesh(mesh.verts + 1e6, mesh.faces, "moved"),
+        Mesh(mesh.verts * 1e-6, mesh.faces, "small"),
+        Mesh(mesh.verts * 1e6, mesh.faces, "large"),
+    ]
+    return [float(np.abs(dino_blob(ctx, m, cache=False) - base).max()) < 1e-4 for m in moved]
+
+
+def store_entries(ctx: Ctx, _=None) -> None:
+    assert FeatureCache(ctx.tmp / "store").entries() == [], "nothing may be cached"
+
+
+THIRD_PASS += [
+    Row(
+        "dino-no-vertex-seen-refused",
+        "D1",
+        lambda c: dino_blob(c, image_size=16),
+        geofeat.RenderError,
+        "no vertex of 'b' .* received a pixel in any of its 4 views",
+        check=store_entries,
+    ),
+    Row("dino-no-vertex-seen-fill-zero-warns", "D1", zeros_with_warning, reference=lambda c: (True, True)),
+    Row("dino-features-ignore-offset-and-scale", "D2", moved_features_agree, reference=lambda c: [True, True, True]),
+]
+
+
+def save_times(folder: Path, n: int) -> None:
+    for value in range(1, n + 1):
+        geofeat.pretrained.save_pretrained(folder, "toy", {"value": value}, {"w": torch.full((64,), float(value))}, durable=False)
+
+
+def torn_loads(ctx: Ctx) -> int:
+    """Loads whose config and weights came from different saves, while another process saves the folder 60 times."""
+    from geofeat.pretrained import from_pretrained, save_pretrained
+
+    folder = save_pretrained(ctx.tmp / "m", "toy", {"value": 0}, {"w": torch.zeros(64)})
+    writer = mp.get_context("fork").Process(target=save_times, args=(folder, 60))
+    writer.start()
+    torn = 0
+    try:
+        while writer.is_alive():
+            try:
+                saved = from_pretrained(folder, "toy", geofeat.HeadError)
+            except geofeat.HeadError as err:  # replaced too often while read: refused, never mixed
+                assert "replaced" in str(err), err
+                continue
+            torn += int(saved.tensors()["w"][0].item() != saved.config["value"])
+    finally:
+        writer.join(60)
+    assert writer.exitcode == 0 and from_pretrained(folder, "toy", geofeat.HeadError).config["value"] == 60
+    return torn
+
+
+def resume_on_changed_shapes(ctx: Ctx):
+    """A run of two shapes resumed with the second shape's content edited."""
+    from tiny_models import tiny_dinov3
+
+    from geofeat.backbones import DinoBackbone
+    from geofeat.train.trainer import GeoLoraTrainer
+
+    trainer(ctx, steps=2).fit()
+    edited = bumpy(1, 2)
+    shapes = [bumpy(0, 2), Mesh(edited.verts * 1.01, edited.faces, edited.name)]
+    GeoLoraTrainer(train_config(ctx, steps=4), backbone=DinoBackbone(tiny_dinov3(), kind="dinov3"), shapes=shapes).fit()
+
+
+#: One Ctrl-C to this process from inside the next fork's at-fork hook (a hook cannot be removed: it stays, disarmed).
+CTRL_C_AT_NEXT_FORK = {"armed": False}
+
+
+def ctrl_c_in_fork_hook() -> None:
+    if CTRL_C_AT_NEXT_FORK["armed"]:
+        CTRL_C_AT_NEXT_FORK["armed"] = False
+        os.kill(os.getpid(), signal.SIGINT)
+
+
+os.register_at_fork(before=ctrl_c_in_fork_hook)
+
+
+def ctrl_c_while_workers_start(ctx: Ctx) -> str:
+    """A Ctrl-C landing in an at-fork hook while the sample workers start: the run stops before its first step."""
+    from geofeat.train.checkpoints import latest_checkpoint
+
+    run = trainer(ctx, steps=30, checkpoint_every=0, workers=2)
+    CTRL_C_AT_NEXT_FORK["armed"] = True
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            run.fit()
+    finally:
+        CTRL_C_AT_NEXT_FORK["armed"] = False
+    return latest_checkpoint(ctx.tmp / "run").name
+
+
+THIRD_PASS += [
+    Row("load-during-60-saves-never-torn", "D3", torn_loads, reference=lambda c: 0),
+    Row(
+        "resume-refuses-changed-shape", "D4", resume_on_changed_shapes, TrainingError, re.escape("1 changed in content (bumpy1)")
+    ),
+    Row("ctrl-c-at-worker-start-stops", "D5", ctrl_c_while_workers_start, reference=lambda c: "step_0000000"),
+]
+
+#: Starts a pool whose workers stay busy, prints their process ids, then waits to be killed.
+POOL_SCRIPT = textwrap.dedent(
+    """
+    import sys, threading, time
+    sys.path.insert(0, sys.argv[2])
+    import psutil
+
+    def slow(task):
+        time.sleep(600)
+
+    def start(which):
+        if which == "samples":
+            from shapes import bumpy
+            from geofeat.train.config import TrainConfig
+            from geofeat.train.samples import SampleDataset, SamplePrefetcher
+            config = TrainConfig(data="unused", out=sys.argv[3] + "/run", device="cpu", progress=False)
+            dataset = SampleDataset(config, [bumpy(s, 3) for s in (0, 1)], sys.argv[3] + "/geodesics")
+            return SamplePrefetcher(dataset, lambda step: range(step, step + 1), 0, 100, workers=2)
+        if which == "evaluation":
+            from geofeat.evaluation.protocol import map_forked
+            results = map_forked(slow, list(range(8)), workers=2)
+            threading.Thread(target=lambda: list(results), daemon=True).start()
+        if which == "compute":
+            from shapes import bumpy
+            from geofeat.descriptors.compute import compute_many
+            meshes = [bumpy(s, 4) for s in range(200)]
+            threading.Thread(target=lambda: compute_many(meshes, "hks", n_jobs=2, cache=False), daemon=True).start()
+
+    if __name__ == "__main__":
+        pool = start(sys.argv[1])
+        while len(psutil.Process().children()) < 2:
+            time.sleep(0.1)
+        time.sleep(3)  # the workers have started and hold their pipes
+        print(" ".join(str(child.pid) for child in psutil.Process().children(recursive=True)), flush=True)
+        time.sleep(600)
+    """
+)
+
+
+def workers_left_after_kill(which: str):
+    """Kill -9 a process running a pool of geofeat: the ids of its workers still running 30 s later."""
+
+    def run(ctx: Ctx) -> list[int]:
+        import psutil
+
+        script = ctx.tmp / "pool.py"
+        script.write_text(POOL_SCRIPT)
+        parent = subprocess.Popen(
+            [sys.executable, str(script), which, str(TESTS), str(ctx.tmp)], cwd=REPO, stdout=subprocess.PIPE, text=True
+        )
+        try:
+            workers = [psutil.Process(int(pid)) for pid in parent.stdout.readline().split()]
+        finally:
+            parent.kill()
+            parent.wait()
+        assert workers, "the pool started no worker"
+        _, alive = psutil.wait_procs(workers, timeout=30)
+        for process in alive:  # do not leave them behind this test
+            process.kill()
+        return [p.pid for p in alive]
+
+    return run
+
+
+THIRD_PASS += [
+    Row("sample-workers-end-with-trainer", "D6", workers_left_after_kill("samples"), reference=lambda c: []),
+    Row("evaluation-workers-end-with-parent", "D6", workers_left_after_kill("evaluation"), reference=lambda c: []),
+    Row("compute-workers-end-with-parent", "D6", workers_left_after_kill("compute"), reference=lambda c: []),
+]
+
+
+def one_line_exit(run: Callable[[Ctx], tuple[int, str]], expected: str):
+    """(exit code, the error is one line holding ``expected``, no traceback) of a command line."""
+
+    def check(ctx: Ctx) -> tuple[int, bool]:
+        code, err = run(ctx)
+        lines = err.strip().splitlines()
+        return code, len(lines) == 1 and expected in lines[0] and "Traceback" not in err
+
+    return check
+
+
+def train_into_file(ctx: Ctx) -> tuple[int, str]:
+    (ctx.tmp / "FILE").write_text("")
+    root = mesh_tree(ctx, ["a.off"])
+    code, _, err = cli(["train-geolora", "--data", str(root), "--out", str(ctx.tmp / "FILE"), "--weights", str(tiny_folder(ctx))])
+    return code, err
+
+
+def fake_generator(ctx: Ctx) -> Path:
+    """A folder that looks like the BeCoS generator (main.py, a configuration naming its setting)."""
+    generator = ctx.tmp / "generator"
+    (generator / "config").mkdir(parents=True)
+    (generator / "main.py").write_text("")
+    (generator / "config" / "demo_config.yaml").write_text("setting: partial_full\n")
+    return generator
+
+
+def prepare_becos(*extra: str):
+    def run(ctx: Ctx) -> tuple[int, str]:
+        (ctx.tmp / "FILE").write_text("")
+        given = [arg.format(tmp=ctx.tmp) for arg in extra]
+        code, _, err = cli(["data", "prepare", "becos", "--generator", str(fake_generator(ctx)), *given])
+        return code, err
+
+    return run
+
+
+def run_py_pairs_on_derived(ctx: Ctx) -> tuple[int, str]:
+    import contextlib
+    import io
+
+    err = io.StringIO()
+    with contextlib.redirect_stderr(err):
+        code = run_py().main(["--dataset", "synthetic_cuts", "--pairs", "combinations", "--out", str(ctx.tmp / "out")])
+    return code, err.getvalue()
+
+
+def extract_interrupted(ctx: Ctx) -> tuple[int, str]:
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    ctx.monkeypatch.setattr("geofeat.apps.extract.extract", interrupted)
+    code, _, err = cli(["extract", "--descriptor", "hks", "--data", str(mesh_tree(ctx, ["a.off"])), "--no-progress"])
+    return code, err
+
+
+THIRD_PASS += [
+    Row(
+        "train-out-is-a-file", "D7", one_line_exit(train_into_file, "cannot write the run folder"), reference=lambda c: (2, True)
+    ),
+    Row(
+        "prepare-out-is-a-file",
+        "D7",
+        one_line_exit(prepare_becos("--out", "{tmp}/FILE"), "cannot write into"),
+        reference=lambda c: (2, True),
+    ),
+    Row(
+        "prepare-python-missing",
+        "D7",
+        one_line_exit(prepare_becos("--out", "{tmp}/out", "--python", "/nonexistent/python"), "cannot run '/nonexistent/python'"),
+        reference=lambda c: (2, True),
+    ),
+    Row(
+        "run-py-option-a-derived-benchmark-lacks",
+        "D7",
+        one_line_exit(run_py_pairs_on_derived, "unknown option(s) ['pairs']"),
+        reference=lambda c: (2, True),
+    ),
+    Row("extract-ctrl-c", "D7", one_line_exit(extract_interrupted, "interrupted"), reference=lambda c: (130, True)),
+]
+
+
+def cache_cleared_while_writing(ctx: Ctx) -> tuple[bool, bool]:
+    """The store's folder removed while an entry is written (a cache clear): (the entry is kept, a warning says so)."""
+    import shutil
+
+    from geofeat.descriptors import cache as cache_module
+
+    store, real = FeatureCache(ctx.tmp / "store"), cache_module.h5py.File
+    calls = []
+
+    def clear_first(path, *args, **kwargs):
+        if not calls:
+            calls.append(path)
+            shutil.rmtree(ctx.tmp / "store")
+        return real(path, *args, **kwargs)
+
+    ctx.monkeypatch.setattr(cache_module.h5py, "File", clear_first)
+    with ctx.caplog.at_level(logging.WARNING, logger="geofeat"):
+        store.put("a" * 64, np.ones((3, 2), np.float32))
+    ctx.monkeypatch.undo()
+    return bool(np.array_equal(store.get("a" * 64), np.ones((3, 2)))), "was removed while" in ctx.caplog.text
+
+
+def failing_sample_worker(ctx: Ctx):
+    """A sample that a worker process cannot prepare: the trainer raises the worker's error with its own message."""
+    from geofeat.train import samples
+
+    def no_partial(*args, **kwargs):
+        raise geofeat.MeshError("no partial shape in 20 tries")
+
+    ctx.monkeypatch.setattr(samples, "make_partial", no_partial)  # the workers are forked: they see it too
+    trainer(ctx, steps=2, workers=2).fit()
+
+
+def run_folder_as_checkpoint(ctx: Ctx):
+    """A training run folder (its settings as config.json, checkpoints/step_N) given as a GeoLoRA checkpoint."""
+    run = ctx.tmp / "run"
+    (run / "checkpoints" / "step_0000002").mkdir(parents=True)
+    train_config(ctx).save(run / "config.json")
+    geofeat.compute(bumpy(0, 1), "geolora", checkpoint=run, weights=tiny_folder(ctx), device="cpu", cache=False)
+
+
+def swap_killed_between_renames(ctx: Ctx) -> int:
+    """A folder a killed save left set aside (its new content not yet in place): a load restores and reads it."""
+    from geofeat.pretrained import from_pretrained, save_pretrained
+
+    folder = save_pretrained(ctx.tmp / "m", "toy", {"value": 7}, {"w": torch.full((4,), 7.0)})
+    dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
+    folder.rename(folder.parent / f".m.old-{int(dead.stdout)}-0123abcd")
+    return from_pretrained(folder, "toy", geofeat.HeadError).config["value"]
+
+
+THIRD_PASS += [
+    Row("cache-cleared-while-writing", "D8", cache_cleared_while_writing, reference=lambda c: (True, True)),
+    Row("head-format-version-string", "D8", load_saved_head("format-string"), GeofeatError, "must be a whole number from 1"),
+    Row("head-format-version-true", "D8", load_saved_head("format-true"), GeofeatError, "must be a whole number from 1"),
+    Row("head-format-version-negative", "D8", load_saved_head("format-negative"), GeofeatError, "must be a whole number"),
+    Row("sample-worker-error-message", "D8", failing_sample_worker, geofeat.MeshError, "^no partial shape in 20 tries$"),
+    Row("run-folder-as-checkpoint", "D8", run_folder_as_checkpoint, GeofeatError, "is a training run folder.*step_0000002"),
+    Row("swap-killed-between-renames", "D8", swap_killed_between_renames, reference=lambda c: 7),
+    Row(
+        "data-check-unknown-split-exit-2",
+        "D8",
+        one_line_exit(lambda c: cli(["data", "check", "synthetic_cuts", "--split", "bogus"])[::2], "split must be one of"),
+        reference=lambda c: (2, True),
+    ),
+    Row("head-weights-int64", "D9", load_saved_head("int64"), GeofeatError, "of another kind of number .*int64 instead of"),
+    Row("head-weights-bool", "D9", load_saved_head("bool"), GeofeatError, "of another kind of number .*bool instead of"),
+    Row("head-weights-nan", "D9", load_saved_head("nan"), GeofeatError, "holding NaN or infinite values"),
+]
+
+
+ROWS = MESH_FILES + NON_FINITE + PARAMETERS + CACHE + ERRORS + KILLS + SECOND_PASS + THIRD_PASS
 
 
 def run_py():
@@ -1310,5 +1679,6 @@ def test_input(row: Row, tmp_path, monkeypatch, caplog, isolated_cache, capsys):
 
 
 def test_every_item_has_rows():
-    assert {r.item for r in ROWS} == {"3", "4", "5", "6", "7", "8", "R1", "R2", "R3", "R4", "R5", "R6", "R7", "R8", "R9"}
+    first_and_second = {"3", "4", "5", "6", "7", "8", "R1", "R2", "R3", "R4", "R5", "R6", "R7", "R8", "R9"}
+    assert {r.item for r in ROWS} == first_and_second | {f"D{i}" for i in range(1, 10)}
     assert len({r.id for r in ROWS}) == len(ROWS)

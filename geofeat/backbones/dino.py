@@ -212,7 +212,7 @@ def sample_patch_features(grid: torch.Tensor, pixels: torch.Tensor, out_size: tu
 
     # index_select, not grid[view, y, x]: the backward of advanced indexing (index_put with
     # accumulate) adds in an order that changes from run to run with several CPU threads, which
-    # made training steps irreproducible (issue 12); index_select's backward does not.
+    # made training steps irreproducible; index_select's backward does not.
     def tap(y: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
         return flat.index_select(0, (view * h + y) * w + x)
 

@@ -74,7 +74,7 @@ def trained(p2p):
     """A small head overfitted on the pair, with the IoU of its overlaps before and after.
 
     The overlap loss starts to fall only after 50 to 70 epochs (once the soft maps are sharp):
-    200 epochs end well past that on every seed and thread count tried (issue 12), where 100
+    200 epochs end well past that on every seed and thread count tried, where 100
     stopped inside it and the IoU depended on the trajectory.
     """
     settings = {**SMALL, "epochs": 200, "lr": 1e-2, "overlap_width": 16, "overlap_blocks": 2, "w_nce_cross": 1.0}

@@ -28,7 +28,7 @@ def test_sampling_equals_upsampling(grid_hw, out_hw):
 
 
 def test_sampling_gradient_is_the_same_on_every_run_with_two_threads():
-    """Many pixels read the same patch: their gradients must add up in a fixed order (issue 12)."""
+    """Many pixels read the same patch: their gradients must add up in a fixed order."""
     gen = torch.Generator().manual_seed(0)
     grid = torch.randn(4, 8, 8, 64, generator=gen, requires_grad=True)
     pixels = torch.stack([torch.randint(0, n, (60_000,), generator=gen) for n in (4, 128, 128)], dim=1)

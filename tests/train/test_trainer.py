@@ -152,32 +152,6 @@ def test_ctrl_c_finishes_the_step_and_saves(tmp_path):
     assert resumed.fit().name == "step_0000003"
 
 
-#: One Ctrl-C to this process from inside the next fork's at-fork hook (`os.register_at_fork` hooks cannot be removed,
-#: so the hook stays registered and does nothing once it has fired).
-_CTRL_C_AT_NEXT_FORK = {"armed": False}
-
-
-def _ctrl_c_in_fork_hook() -> None:
-    if _CTRL_C_AT_NEXT_FORK["armed"]:
-        _CTRL_C_AT_NEXT_FORK["armed"] = False
-        os.kill(os.getpid(), signal.SIGINT)
-
-
-os.register_at_fork(before=_ctrl_c_in_fork_hook)
-
-
-def test_ctrl_c_while_the_sample_workers_start_stops_the_run(tmp_path):
-    """A Ctrl-C that lands while the workers are forked (where an exception is swallowed) still stops training."""
-    trainer = _trainer(tmp_path, steps=30, checkpoint_every=0, workers=2)
-    _CTRL_C_AT_NEXT_FORK["armed"] = True
-    try:
-        with pytest.raises(KeyboardInterrupt):
-            trainer.fit()
-    finally:
-        _CTRL_C_AT_NEXT_FORK["armed"] = False
-    assert latest_checkpoint(tmp_path / "run").name == "step_0000000"  # stopped before its first step
-
-
 def test_validation_is_logged(tmp_path):
     trainer = _trainer(tmp_path, steps=2, validate_every=1, val_dataset="synthetic_cuts", val_pairs=1)
     trainer.fit()
