@@ -35,6 +35,10 @@ finely a region happens to be meshed).
 
 The visibility test of RAY (`visible_faces`) and `shape_centre` live in
 `geofeat.geometry.visibility` and are importable from here as well.
+
+`geofeat.geometry.partial_reference` makes CUTS and HOLES exactly as GeoLoRA's code does
+(a cut splits triangles, the ground truth is the nearest source vertex), draw for draw; its
+records have ``exact=False`` (see `PartialShape`).
 """
 
 from __future__ import annotations
@@ -83,17 +87,28 @@ _Draw = Callable[[], tuple[np.ndarray, dict[str, Any]]]
 
 @dataclass(frozen=True, eq=False)
 class PartialShape:
-    """A partial shape cut from a source mesh, with its exact map back to the source.
+    """A partial shape cut from a source mesh, with its map back to the source.
+
+    Two kinds of record, told apart by ``exact``:
+
+    * ``exact=True`` (`cut_partial`, `holes_partial`, `ray_partial`): the partial vertices
+      are source vertices, ``mesh.verts == source.verts[vertex_map]``, in increasing source
+      index, and the faces are source faces re-indexed (same corner order).
+    * ``exact=False`` (the reference generators of `geofeat.geometry.partial_reference`,
+      equal to GeoLoRA's own code): the partial vertices may be new points (where a plane
+      cut a triangle) and ``vertex_map`` is the ground truth GeoLoRA trains with, the
+      nearest source vertex of each partial vertex; it may repeat and need not increase.
 
     Attributes
     ----------
     mesh : Mesh
-        The partial shape. Its vertices are source vertices in increasing source index,
-        its faces are source faces re-indexed (same corner order).
+        The partial shape.
     vertex_map : numpy.ndarray, shape (V_p,), int64
-        For each partial vertex, its index in the source mesh; strictly increasing.
+        For each partial vertex a source vertex: itself (strictly increasing) when
+        ``exact``, else its nearest source vertex.
     face_map : numpy.ndarray, shape (F_p,), int64
-        For each partial face, its index in the source mesh's faces.
+        For each partial face the source face it is (``exact``) or lies in (a cut triangle
+        lies in the source face it was cut from).
     kind : {"cuts", "holes", "ray"}
         How the shape was made.
     info : Mapping[str, Any]
@@ -101,7 +116,9 @@ class PartialShape:
         (``V_p / V``) and per kind ``"plane_point"``, ``"plane_normal"`` (cuts);
         ``"centres"`` (source vertex indices), ``"radius"`` (in sqrt-area units),
         ``"radius_abs"`` (in the mesh's units) (holes); ``"eye"``, ``"target"``,
-        ``"direction"`` (ray).
+        ``"direction"`` (ray). The reference generators document their own keys.
+    exact : bool
+        True when the partial vertices are source vertices (see above); default True.
     """
 
     mesh: Mesh
@@ -109,13 +126,19 @@ class PartialShape:
     face_map: np.ndarray
     kind: str
     info: Mapping[str, Any] = field(default_factory=dict)
+    exact: bool = True
 
     def __post_init__(self) -> None:
         if self.kind not in PARTIAL_KINDS:
             raise MeshError(f"unknown partial-shape kind {self.kind!r}; expected one of {PARTIAL_KINDS}.")
+        if not isinstance(self.exact, bool):
+            raise MeshError(f"exact must be True or False; found {self.exact!r}.")
         vertex_map = _read_only_index_array(self.vertex_map, "vertex_map", self.mesh.n_vertices)
-        if vertex_map.size > 1 and np.any(np.diff(vertex_map) <= 0):
-            raise MeshError("vertex_map must be strictly increasing (partial vertices in source order).")
+        if self.exact and vertex_map.size > 1 and np.any(np.diff(vertex_map) <= 0):
+            raise MeshError(
+                "vertex_map must be strictly increasing (partial vertices in source order) when exact=True; "
+                "a nearest-vertex ground truth, which may repeat, needs exact=False."
+            )
         n_faces = 0 if self.mesh.faces is None else len(self.mesh.faces)
         face_map = _read_only_index_array(self.face_map, "face_map", n_faces)
         info = {key: _read_only(value) for key, value in dict(self.info).items()}
@@ -134,7 +157,17 @@ class PartialShape:
         Returns
         -------
         numpy.ndarray, shape (n_source_vertices,), int64
+
+        Raises
+        ------
+        MeshError
+            When ``exact`` is False: a nearest-vertex map may repeat and has no inverse.
         """
+        if not self.exact:
+            raise MeshError(
+                f"this {self.kind!r} partial shape is not exact (its vertex_map gives nearest source vertices, "
+                "which may repeat), so no source vertex has a partial vertex of its own; there is no inverse map."
+            )
         if self.vertex_map.size and self.vertex_map[-1] >= n_source_vertices:
             raise MeshError(
                 f"the source mesh has at least {self.vertex_map[-1] + 1} vertices (vertex_map refers to "
