@@ -93,7 +93,8 @@ class PartialShape:
     vertex_map : numpy.ndarray, shape (V_p,), int64
         For each partial vertex, its index in the source mesh; strictly increasing.
     face_map : numpy.ndarray, shape (F_p,), int64
-        For each partial face, its index in the source mesh's faces.
+        For each partial face, its index in the source mesh's faces; -1 for a face that is
+        not a source face (a hole filled by `geofeat.geometry.raycast.ray_partial_reference`).
     kind : {"cuts", "holes", "ray"}
         How the shape was made.
     info : Mapping[str, Any]
@@ -117,7 +118,7 @@ class PartialShape:
         if vertex_map.size > 1 and np.any(np.diff(vertex_map) <= 0):
             raise MeshError("vertex_map must be strictly increasing (partial vertices in source order).")
         n_faces = 0 if self.mesh.faces is None else len(self.mesh.faces)
-        face_map = _read_only_index_array(self.face_map, "face_map", n_faces)
+        face_map = _read_only_index_array(self.face_map, "face_map", n_faces, lowest=-1)
         info = {key: _read_only(value) for key, value in dict(self.info).items()}
         object.__setattr__(self, "vertex_map", vertex_map)
         object.__setattr__(self, "face_map", face_map)
@@ -145,12 +146,12 @@ class PartialShape:
         return inverse
 
 
-def _read_only_index_array(values, name: str, length: int) -> np.ndarray:
+def _read_only_index_array(values, name: str, length: int, lowest: int = 0) -> np.ndarray:
     arr = np.asarray(values)
     if arr.ndim != 1 or arr.shape[0] != length or (arr.size and arr.dtype.kind not in "iu"):
         raise MeshError(f"{name} must be an integer array of shape ({length},); found dtype {arr.dtype}, shape {arr.shape}.")
-    if arr.size and arr.min() < 0:
-        raise MeshError(f"{name} holds source indices, which are >= 0; found {arr.min()}.")
+    if arr.size and arr.min() < lowest:
+        raise MeshError(f"{name} holds source indices, which are >= {lowest}; found {arr.min()}.")
     arr = np.array(arr, dtype=np.int64, copy=True)
     arr.flags.writeable = False
     return arr
