@@ -108,7 +108,8 @@ class PartialShape:
         ``exact``, else its nearest source vertex.
     face_map : numpy.ndarray, shape (F_p,), int64
         For each partial face the source face it is (``exact``) or lies in (a cut triangle
-        lies in the source face it was cut from).
+        lies in the source face it was cut from); -1, only when not ``exact``, for a face
+        that lies in no source face (a hole filled by the reference RAY).
     kind : {"cuts", "holes", "ray"}
         How the shape was made.
     info : Mapping[str, Any]
@@ -140,7 +141,7 @@ class PartialShape:
                 "a nearest-vertex ground truth, which may repeat, needs exact=False."
             )
         n_faces = 0 if self.mesh.faces is None else len(self.mesh.faces)
-        face_map = _read_only_index_array(self.face_map, "face_map", n_faces)
+        face_map = _read_only_index_array(self.face_map, "face_map", n_faces, lowest=0 if self.exact else -1)
         info = {key: _read_only(value) for key, value in dict(self.info).items()}
         object.__setattr__(self, "vertex_map", vertex_map)
         object.__setattr__(self, "face_map", face_map)
@@ -178,12 +179,12 @@ class PartialShape:
         return inverse
 
 
-def _read_only_index_array(values, name: str, length: int) -> np.ndarray:
+def _read_only_index_array(values, name: str, length: int, lowest: int = 0) -> np.ndarray:
     arr = np.asarray(values)
     if arr.ndim != 1 or arr.shape[0] != length or (arr.size and arr.dtype.kind not in "iu"):
         raise MeshError(f"{name} must be an integer array of shape ({length},); found dtype {arr.dtype}, shape {arr.shape}.")
-    if arr.size and arr.min() < 0:
-        raise MeshError(f"{name} holds source indices, which are >= 0; found {arr.min()}.")
+    if arr.size and arr.min() < lowest:
+        raise MeshError(f"{name} holds source indices, which are >= {lowest}; found {arr.min()}.")
     arr = np.array(arr, dtype=np.int64, copy=True)
     arr.flags.writeable = False
     return arr
