@@ -105,6 +105,7 @@ OFFICIAL_RAY_SCALE = 0.8
 OFFICIAL_RAY_SCALE_DIAGONAL = 2.0
 
 _FAR = np.inf
+_Z_NEAR = 1e-6  # world units: nearer faces go to the exact ray-triangle test
 _ZERO_NORMAL = 1e-13  # trimesh.tol.zero: a filled triangle with a shorter normal is dropped
 
 
@@ -255,7 +256,7 @@ def first_hits(verts: np.ndarray, faces: np.ndarray, cameras: Cameras) -> RayHit
     view = cameras[0].to("cpu")
     verts = np.asarray(verts, dtype=np.float64)
     faces = np.asarray(faces, dtype=np.int64)
-    settings = RasterSettings(cull_backfaces=False)
+    settings = RasterSettings(cull_backfaces=False, z_near=_Z_NEAR)
     fragments = rasterize(verts, faces, view, settings)
     face = fragments.pix_to_face[0].numpy().copy()
     depth = fragments.depth[0].numpy().astype(np.float64)

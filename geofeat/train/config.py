@@ -19,12 +19,15 @@ from geofeat.errors import TrainingError
 from geofeat.geometry.partial import PARTIAL_KINDS
 from geofeat.jsonconfig import JsonConfig
 
-__all__ = ["LOSSES", "RESUMABLE_CHANGES", "TrainConfig"]
+__all__ = ["LOSSES", "PARTIAL_GENERATORS", "RESUMABLE_CHANGES", "TrainConfig"]
 
 LOSSES = ("geodesic", "plain")
 AMP_MODES = ("auto", "on", "off")
 #: Feature recipes a run can train with (`geofeat.render.multiview.RECIPES`).
 TRAIN_PRESETS = ("default", "reference")
+#: Partial-shape generators of training: geofeat's (`geofeat.geometry.partial`) or GeoLoRA's own
+#: (`geofeat.geometry.partial_reference`, equal draw by draw).
+PARTIAL_GENERATORS = ("geofeat", "reference")
 #: Fields that may differ between a run and its resumption (they do not change what is learned).
 RESUMABLE_CHANGES = frozenset(
     {"steps", "max_minutes", "progress", "device", "workers", "checkpoint_every", "validate_every", "val_pairs", "geodesic_cache"}
@@ -87,6 +90,12 @@ class TrainConfig(JsonConfig):
         the shapes of the batch of each shape's mean partial loss.
     partial_kinds : tuple of str
         Generators drawn from uniformly (``"cuts"``, ``"holes"``, ``"ray"``).
+    partial_generators : {"geofeat", "reference"} or None
+        Whose CUTS, HOLES and RAY make the partial shapes (`PARTIAL_GENERATORS`):
+        ``"reference"`` makes every sample as GeoLoRA's training loop does (the full shape
+        divided by the square root of its area, triangles cut by the plane, the official ray
+        caster, nearest-vertex ground truth, a try again below 10 vertices; see
+        `geofeat.train.samples`). None: the preset's (`TrainConfig.generators`).
     loss : {"geodesic", "plain"}
         Geodesic-weighted PointInfoNCE or the plain one (ablation).
     temperature, offset : float
@@ -142,6 +151,7 @@ class TrainConfig(JsonConfig):
     partials_per_shape: int = 2
     shapes_per_rank: int = 1
     partial_kinds: tuple[str, ...] = PARTIAL_KINDS
+    partial_generators: str | None = None
     loss: str = "geodesic"
     temperature: float = 0.1
     offset: float = 0.5
@@ -171,7 +181,7 @@ class TrainConfig(JsonConfig):
         for name in ("data", "out", "split", "camera_layout", "preset", "loss", "amp", "device", "val_split"):
             if not isinstance(getattr(self, name), str):
                 problems.append(f"{name} must be a string, found {type(getattr(self, name)).__name__} {getattr(self, name)!r}")
-        for name in ("data_root", "weights", "backproject", "val_dataset", "geodesic_cache"):
+        for name in ("data_root", "weights", "backproject", "partial_generators", "val_dataset", "geodesic_cache"):
             if getattr(self, name) is not None and not isinstance(getattr(self, name), str):
                 problems.append(
                     f"{name} must be a string or None, found {type(getattr(self, name)).__name__} {getattr(self, name)!r}"
@@ -198,6 +208,8 @@ class TrainConfig(JsonConfig):
         unknown_kinds = sorted(set(self.partial_kinds) - set(PARTIAL_KINDS))
         if unknown_kinds or not self.partial_kinds:
             problems.append(f"partial_kinds must be a non-empty subset of {PARTIAL_KINDS}, found {list(self.partial_kinds)}")
+        if self.partial_generators is not None and self.partial_generators not in PARTIAL_GENERATORS:
+            problems.append(f"partial_generators must be one of {PARTIAL_GENERATORS} or None, found {self.partial_generators!r}")
         positive = ("rank", "image_size", "views_full", "views_partial", "partials_per_shape", "shapes_per_rank")
         for name in (*positive, "max_vertices"):
             if not is_integer(getattr(self, name)) or getattr(self, name) < 1:
@@ -231,6 +243,12 @@ class TrainConfig(JsonConfig):
             Missing or unreadable file, or not a mapping.
         """
         return cls.load(path, **overrides)
+
+    def generators(self) -> str:
+        """The run's partial-shape generators: ``partial_generators``, or the preset's (its own name)."""
+        if self.partial_generators is not None:
+            return self.partial_generators
+        return "reference" if self.preset == "reference" else "geofeat"
 
     def changes_from(self, other: TrainConfig) -> list[str]:
         """Names of the settings that differ from ``other``."""

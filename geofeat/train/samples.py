@@ -15,6 +15,9 @@ so any process can make any sample and get the same arrays to the bit:
   ``rng.integers(2**63 - 1)`` (`geofeat.geometry.partial.make_partial` of the turned full
   shape) and its own angle ``rng.uniform(0, 360)`` (`rotate_about_up`, degrees,
   counter-clockwise seen from +y);
+- under ``config.generators() == "reference"`` the sample is made as GeoLoRA's training loop
+  makes it (`reference_partials`): the draws come from a legacy ``RandomState`` and a torch
+  generator, both seeded from ``rng.integers(2**32)``;
 - the geodesic matrix is read from the float16 `geofeat.train.shapes.TorchGeodesicStore`
   (computed and stored when missing) and handed out as stored, float16 on the CPU: the
   device widens it to float32, so the copy to the device moves half the bytes.
@@ -66,6 +69,7 @@ __all__ = [
     "SampleDataset",
     "SamplePrefetcher",
     "prepare_sample",
+    "reference_partials",
     "resolve_workers",
     "rotate_about_up",
     "shape_index",
@@ -204,6 +208,10 @@ def prepare_sample(
     mesh = shapes[which]
     with timer("geodesics"):
         dist = geodesics.load_stored(mesh)
+    if config.generators() == "reference":
+        with timer("partial"):
+            full, partials = reference_partials(mesh, dist, config, int(rng.integers(2**32)))
+        return PreparedSample(index, which, full, partials, dist)
     with timer("partial"):
         full = rotate_about_up(mesh, rng.uniform(0.0, 360.0))
         partials = []
@@ -213,6 +221,55 @@ def prepare_sample(
             turned = rotate_about_up(partial.mesh, rng.uniform(0.0, 360.0))
             partials.append((turned, torch.tensor(partial.vertex_map, dtype=torch.int64)))
     return PreparedSample(index, which, full, partials, dist)
+
+
+def reference_partials(mesh: Mesh, geodesics: torch.Tensor, config: TrainConfig, seed: int) -> tuple[Mesh, list]:
+    """The full shape and partial shapes of one sample as GeoLoRA's training loop makes them.
+
+    The full shape is divided by the square root of its area (the official loop's vertices
+    are, once its geodesic matrix is computed) and turned about the up axis by an angle
+    ``random_state.uniform(0, 2 pi)``, as ``vertices @ R_y(angle)`` turns it; each of the
+    ``config.partials_per_shape`` partial shapes is
+    `geofeat.geometry.partial_reference.training_partial_reference` of it, turned again by its
+    own angle. A partial shape not made in its tries is left out (with a warning).
+
+    Parameters
+    ----------
+    mesh : Mesh
+        The full shape as loaded (V vertices).
+    geodesics : torch.Tensor, shape (V, V), float16
+        Its geodesic matrix over the square root of its area (the store's).
+    config : TrainConfig
+        Reads ``partials_per_shape`` and ``partial_kinds``.
+    seed : int
+        Seeds the legacy ``numpy.random.RandomState`` of every draw but HOLES' and the torch
+        generator of HOLES' draws.
+
+    Returns
+    -------
+    full : Mesh
+        Turned, then scaled (float32 positions, as the official loop's).
+    partials : list of (Mesh, torch.Tensor)
+        Each partial shape, turned, with its ground truth (V_p,) int64: the nearest full vertex.
+    """
+    from geofeat.geometry.partial_reference import training_partial_reference
+    from geofeat.topology import triangle_areas
+
+    random_state = np.random.RandomState(seed)
+    generator = torch.Generator().manual_seed(seed)
+    turned = rotate_about_up(mesh, -np.degrees(random_state.uniform(0.0, 2 * np.pi))).verts.astype(np.float32)
+    turned /= np.float32(np.sqrt(triangle_areas(turned, mesh.faces).sum()))
+    full = Mesh(turned, mesh.faces, mesh.name)
+    dist = geodesics.float().numpy()
+    partials = []
+    for _ in range(config.partials_per_shape):
+        partial = training_partial_reference(full, config.partial_kinds, dist, random_state, generator)
+        if partial is None:
+            log.warning("no partial shape of %s with 10 vertices or more in its tries: left out", mesh.name)
+            continue
+        turned = rotate_about_up(partial.mesh, -np.degrees(random_state.uniform(0.0, 2 * np.pi)))
+        partials.append((turned, torch.tensor(partial.vertex_map, dtype=torch.int64)))
+    return full, partials
 
 
 class SampleDataset(Dataset):
