@@ -53,11 +53,15 @@ def test_every_option_of_every_command_has_a_plain_text_help():
 
 def test_train_flags_take_their_help_from_the_settings_docstring():
     train = dict(_parsers(build_parser()))["geofeat train-geolora"]
-    helps = {action.dest: action.help for action in train._actions}
+    helps = {}
+    for action in train._actions:  # --data's own help, not its --dataset alias's
+        helps.setdefault(action.dest, action.help)
     assert helps["rank"].startswith("LoRA rank") and helps["rank"].endswith("(default 16)")
     assert "checkpoints/step_NNNNNNN/" in helps["out"] and "``" not in helps["out"]
     assert helps["camera_layout"] == "one of official, uniform (default official)"
     assert "required" in helps["data"]
+    args = build_parser().parse_args(["train-geolora", "--dataset", "becos", "--data-root", "/data", "--preset", "reference"])
+    assert (args.data, args.data_root, args.preset) == ("becos", "/data", "reference")
     doc = """Settings.
 
     Parameters

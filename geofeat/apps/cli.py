@@ -517,6 +517,11 @@ def build_parser() -> argparse.ArgumentParser:
     )
     train.add_argument("--config", help="Settings file (.json, .yaml); keys are the flag names with underscores")
     _add_train_flags(train)
+    train.add_argument(
+        "--dataset", dest="data", metavar="NAME", default=None,
+        help="the same as --data with a dataset name: faust_r, scape_r, or an official training set (faust, becos, "
+        "becos_without_shrec16, smal) under --data-root",
+    )  # fmt: skip
     train.set_defaults(func=_train_command)
     ext = sub.add_parser(
         "extract",

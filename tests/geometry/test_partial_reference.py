@@ -13,6 +13,7 @@ from geofeat.geometry.partial_reference import (
     holes_partial_reference,
     largest_component_by_face_count,
     nearest_source_vertices,
+    training_partial_reference,
 )
 
 # Normals for the lopsided mesh below (plane through its bounding-box centre x = 5, y = 0.5).
@@ -218,3 +219,37 @@ def test_nearest_source_vertices_first_index_among_equals():
     source = np.array([[0, 0, 0], [1, 0, 0], [1, 0, 0], [0, 2, 0]], dtype=np.float32)
     partial = np.array([[1, 0, 0], [0.1, 0, 0], [0, 1.9, 0]], dtype=np.float32)
     assert nearest_source_vertices(partial, source).tolist() == [1, 0, 3]
+
+
+# --- the training loop's draw ------------------------------------------------------------------
+
+
+class _Answers(np.random.RandomState):
+    """A RandomState whose ``randint`` answers from a list (the generator choice of each try)."""
+
+    def __init__(self, choices):
+        super().__init__(0)
+        self.choices = list(choices)
+
+    def randint(self, low, high=None, size=None, dtype=int):
+        assert (low, size) == (0, None)
+        return self.choices.pop(0)
+
+
+def test_training_draw_chooses_in_the_official_order_and_tries_again_below_ten_vertices(lopsided):
+    flat = np.zeros((len(lopsided.verts), len(lopsided.verts)), dtype=np.float32) + 5.0
+    # kinds given in another order are taken in the official one (ray, cuts, holes): index 1 of (cuts, holes) is holes
+    holes_everywhere = np.zeros_like(flat)  # every vertex within any radius of every centre: no face, a failed try
+    state = _Answers([1, 1, 0])
+    partial = training_partial_reference(lopsided, ("holes", "cuts"), holes_everywhere, state, torch.Generator().manual_seed(0))
+    assert partial.kind == "cuts" and partial.info["tries"] == 3 and not partial.exact
+    assert partial.mesh.n_vertices >= 10 and state.choices == []
+    with pytest.raises(MeshError, match="non-empty subset"):
+        training_partial_reference(lopsided, ("cuts", "spin"), flat, _Answers([0]))
+
+
+def test_training_draw_gives_up_after_ten_tries():
+    verts, faces = plate(3, 3, (0.0, 1.0), (0.0, 1.0), 0)  # 9 vertices: never the 10 the loop wants
+    state = _Answers([0] * 10)
+    assert training_partial_reference(Mesh(verts, faces, name="small"), ("cuts",), np.zeros((9, 9)), state) is None
+    assert state.choices == []  # ten tries, each drew its generator

@@ -95,6 +95,44 @@ def test_prepared_sample_follows_the_documented_draws(tmp_path, index):
     np.testing.assert_allclose(stored, geodesic_matrix(shapes[which], normalize=True), rtol=2e-3, atol=1e-4)
 
 
+def test_reference_samples_follow_the_official_loop(tmp_path):
+    from geofeat.geometry.partial_reference import training_partial_reference
+    from geofeat.topology import triangle_areas
+
+    config = _config(tmp_path, preset="reference", seed=2)
+    assert config.generators() == "reference"
+    shapes = _shapes()
+    store = TorchGeodesicStore(tmp_path / "geodesics")
+    sample = prepare_sample(config, shapes, 1, store)
+    # the rule, written out: one seed from default_rng([seed, g]) for a legacy RandomState and a torch generator
+    shape = shapes[sample.shape_index]
+    seed = int(np.random.default_rng([2, 1]).integers(2**32))
+    state, generator = np.random.RandomState(seed), torch.Generator().manual_seed(seed)
+    turned = _turned(shape.verts, -math.degrees(state.uniform(0.0, 2 * math.pi))).astype(np.float32)
+    full = turned / np.float32(np.sqrt(triangle_areas(turned, shape.faces).sum()))  # as the official loop sees it
+    np.testing.assert_allclose(sample.full.verts, full, rtol=0, atol=1e-6)
+    np.testing.assert_allclose(triangle_areas(sample.full.verts, sample.full.faces).sum(), 1.0, rtol=1e-5)
+    assert len(sample.partials) == 2
+    dist = sample.geodesics.float().numpy()
+    for mesh, gt in sample.partials:
+        partial = training_partial_reference(sample.full, config.partial_kinds, dist, state, generator)
+        np.testing.assert_array_equal(mesh.verts, _turned(partial.mesh.verts, -math.degrees(state.uniform(0.0, 2 * math.pi))))
+        assert gt.dtype == torch.int64 and np.array_equal(gt.numpy(), partial.vertex_map) and not partial.exact
+        nearest = np.linalg.norm(partial.mesh.verts[:, None] - sample.full.verts[None], axis=2).argmin(axis=1)
+        assert np.array_equal(gt.numpy(), nearest)  # the official ground truth: the nearest full vertex
+    again = prepare_sample(config, shapes, 1, store)
+    assert again.full.hash == sample.full.hash
+    assert [m.hash for m, _ in again.partials] == [m.hash for m, _ in sample.partials]
+
+
+def test_partial_generators_setting(tmp_path):
+    assert _config(tmp_path).generators() == "geofeat"
+    assert _config(tmp_path, preset="reference", partial_generators="geofeat").generators() == "geofeat"
+    assert _config(tmp_path, partial_generators="reference").generators() == "reference"
+    with pytest.raises(TrainingError, match="partial_generators must be one of"):
+        _config(tmp_path, partial_generators="open3d")
+
+
 def test_the_dataset_prepares_the_same_sample_in_a_worker_process(tmp_path):
     config = _config(tmp_path)
     dataset = SampleDataset(config, _shapes(), tmp_path / "geodesics")
