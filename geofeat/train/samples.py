@@ -260,7 +260,7 @@ def reference_partials(mesh: Mesh, geodesics: torch.Tensor, config: TrainConfig,
     turned = rotate_about_up(mesh, -np.degrees(random_state.uniform(0.0, 2 * np.pi))).verts.astype(np.float32)
     turned /= np.float32(np.sqrt(triangle_areas(turned, mesh.faces).sum()))
     full = Mesh(turned, mesh.faces, mesh.name)
-    dist = geodesics.float().numpy()
+    dist = geodesics.numpy()  # float16 as stored, no copy: HOLES reads the rows of its centres
     partials = []
     for _ in range(config.partials_per_shape):
         partial = training_partial_reference(full, config.partial_kinds, dist, random_state, generator)
