@@ -6,9 +6,12 @@ them by position in the file.
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
 import hashlib
 import logging
 import os
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
@@ -20,6 +23,23 @@ from geofeat.errors import MeshError
 from geofeat.topology import edge_counts, triangle_areas, vertex_components
 
 log = logging.getLogger(__name__)
+
+_REPORTS_QUIET = contextvars.ContextVar("geofeat_mesh_reports_quiet", default=False)
+
+
+@contextlib.contextmanager
+def quiet_reports() -> Iterator[None]:
+    """Meshes made inside the block do not log the problems of `Mesh.report`.
+
+    For meshes derived in bulk whose problems are expected, such as the partial shapes of
+    training samples (a plane cut can leave non-manifold edges); `Mesh.report` still lists them.
+    """
+    token = _REPORTS_QUIET.set(True)
+    try:
+        yield
+    finally:
+        _REPORTS_QUIET.reset(token)
+
 
 #: File types `load_mesh` reads (and the ones ``geofeat extract --data`` and training folders look for).
 MESH_SUFFIXES = (".off", ".obj", ".ply")
@@ -62,8 +82,9 @@ class Mesh:
         object.__setattr__(self, "faces", faces)
         object.__setattr__(self, "name", str(self.name))
         object.__setattr__(self, "_hash", _content_hash(verts, faces))
-        for problem in self.report():
-            log.warning("mesh %r: %s", self.name or "<unnamed>", problem)
+        if not _REPORTS_QUIET.get():
+            for problem in self.report():
+                log.warning("mesh %r: %s", self.name or "<unnamed>", problem)
 
     @property
     def n_vertices(self) -> int:

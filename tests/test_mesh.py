@@ -166,6 +166,19 @@ def test_problems_are_reported_and_handled(caplog):
     assert feats.shape == (len(verts), 8) and np.isfinite(feats).all()
 
 
+def test_quiet_reports_silences_the_report_of_meshes_made_in_the_block(caplog):
+    from geofeat.mesh import quiet_reports
+
+    base = sphere(1)
+    two = Mesh(np.vstack([base.verts, base.verts + 5.0]), np.vstack([base.faces, base.faces + base.n_vertices]))
+    with caplog.at_level(logging.WARNING, logger="geofeat"):
+        with quiet_reports():
+            quiet = Mesh(two.verts, two.faces, name="quiet")
+        Mesh(two.verts, two.faces, name="loud")
+    assert "'quiet'" not in caplog.text and "mesh 'loud': 2 connected components" in caplog.text
+    assert any("components" in problem for problem in quiet.report())  # still listed on request
+
+
 def test_hash_depends_on_arrays_only_and_arrays_are_frozen():
     a = sphere(1)
     b = Mesh(a.verts.copy(), a.faces.copy(), name="other name")

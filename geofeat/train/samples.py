@@ -55,7 +55,7 @@ from torch.utils.data import DataLoader, Dataset, Sampler
 
 from geofeat.errors import GeofeatError, TrainingError
 from geofeat.geometry.partial import make_partial
-from geofeat.mesh import Mesh
+from geofeat.mesh import Mesh, quiet_reports
 from geofeat.processes import end_with_parent
 from geofeat.render.cameras import rotation_about_up
 from geofeat.train.config import TrainConfig
@@ -209,10 +209,10 @@ def prepare_sample(
     with timer("geodesics"):
         dist = geodesics.load_stored(mesh)
     if config.generators() == "reference":
-        with timer("partial"):
+        with timer("partial"), quiet_reports():
             full, partials = reference_partials(mesh, dist, config, int(rng.integers(2**32)))
         return PreparedSample(index, which, full, partials, dist)
-    with timer("partial"):
+    with timer("partial"), quiet_reports():
         full = rotate_about_up(mesh, rng.uniform(0.0, 360.0))
         partials = []
         for _ in range(config.partials_per_shape):
