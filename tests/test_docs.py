@@ -20,8 +20,8 @@ DOCS = REPO / "docs"
 RUNNABLE = re.compile(r"^<!-- runnable -->[ \t]*\n```python[ \t]*\n(.*?)^```[ \t]*$", flags=re.S | re.M)
 MARKER = "<!-- runnable -->"
 MARKER_LINE = re.compile(r"^<!-- runnable -->[ \t]*$", flags=re.M)
-#: ``--8<-- "path"`` lines of pymdownx.snippets (paths relative to the repository root).
-INCLUDE = re.compile(r'^\s*--8<--\s+"([^"]+)"\s*$', flags=re.M)
+#: ``--8<-- "path"`` (or ``"path:FROM:TO"``) lines of pymdownx.snippets (paths relative to the repository root).
+INCLUDE = re.compile(r'^\s*--8<--\s+"([^":]+)(?::[-0-9:,]*)?"\s*$', flags=re.M)  # a line range may follow
 #: Markdown images ``![alt](path)`` and HTML ``<img src="path">``.
 IMAGE = re.compile(r'!\[[^\]]*\]\(([^)\s]+)(?:\s+"[^"]*")?\)|<img\s[^>]*src="([^"]+)"')
 #: Seven or more hex digits with at least one letter and one digit: what a commit hash looks like.
