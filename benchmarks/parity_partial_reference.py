@@ -16,7 +16,12 @@ has three commands, which this script calls:
   ``np.random`` and torch with ``SEED + i`` before call i, ``stream`` seeds once. For every
   call it writes what was drawn (``d{i}_normals``; ``d{i}_m``, ``d{i}_centres``), the input of
   every ``keep_largest_component`` call (``d{i}_raw{k}_verts/faces``: the raw clip of try k, or
-  the selection), the result ``d{i}_verts/faces`` and ``d{i}_gt`` (``get_gt_corres`` on the CPU).
+  the selection), the result ``d{i}_verts/faces`` and ``d{i}_gt`` (``get_gt_corres`` on the CPU),
+  and the seconds of each generator call and of each ``get_gt_corres`` call (``draw_seconds``,
+  ``draw_seconds_gt``).
+
+The shapes are those of ``parity_ray_reference.py``: FAUST_r tr_reg_080, PSMAL cuts_0_horse_01
+(PSMAL holds partial shapes only) and BeCoS-TOSCA 0_michael0.
 
 Per method and shape, every seeded draw is made on both sides from the same seed and compared:
 identical means the same vertices (to 1e-6), the same triangles (up to face order and the
@@ -24,7 +29,8 @@ cyclic order of corners) and the same ground truth; every raw clip of the offici
 also compared with `clip_plane` (vertex and face order included). Then ``--free`` draws from
 one seeded stream on each side (different seeds) give the distributions of the kept fraction,
 the boundary length over the square root of the area and the number of components before the
-largest is kept.
+largest is kept. Time per partial shape: the median over the seeded draws, of the
+official generator, of its ground truth and of geofeat's draw (both in one call).
 
     python benchmarks/parity_partial_reference.py --official-python /work/ref/venv/bin/python \\
         --harness /work/ref/partial_harness.py --out benchmarks/results/partial_reference/parity
@@ -64,13 +70,13 @@ FREE_SEED_OFFICIAL, FREE_SEED_OURS = 7, 8
 def default_shapes(data: str, ext: str) -> list[tuple[str, str, str]]:
     """(label, kind of shape, path) of the three shapes."""
     return [
-        ("FAUST_r tr_reg_080", "human, full, 5,000 vertices", f"{data}/FAUST_r/off/tr_reg_080.off"),
+        ("FAUST_r tr_reg_080", "human, full", f"{data}/FAUST_r/off/tr_reg_080.off"),
         (
-            "PSMAL cuts_12_hippo_05",
-            "SMAL hippo, a PARTIALSMAL shape with few boundary edges (69), 3,438 vertices",
-            f"{ext}/PSMAL/PARTIALSMAL/test/shapes/cuts_12_hippo_05.off",
+            "PSMAL cuts_0_horse_01",
+            "SMAL horse, a PARTIALSMAL shape (PSMAL holds no full shapes; 49 boundary edges)",
+            f"{ext}/PSMAL/PARTIALSMAL/test/shapes/cuts_0_horse_01.off",
         ),
-        ("BeCoS-TOSCA michael0", "TOSCA human, full, 9,237 vertices", f"{ext}/BeCoS/partial_full/test/0/0_michael0.off"),
+        ("BeCoS-TOSCA 0_michael0", "TOSCA human, full (20 boundary edges)", f"{ext}/BeCoS/partial_full/test/0/0_michael0.off"),
     ]
 
 
@@ -101,6 +107,8 @@ def compare(ours, verts, faces, gt) -> tuple[str, bool]:
 
     Categories: ``identical``; ``repeated triangles`` (identical once the official shape's
     repeated triangles are dropped); ``vertex count``, ``positions``, ``faces``, ``ground truth``.
+    Same order: the vertices in the official order and the faces too, corners included (for
+    ``repeated triangles``: the official faces with each repeat dropped, the first kept).
     """
     mine = ours.mesh.verts
     verts = np.asarray(verts, dtype=np.float64)
@@ -113,18 +121,17 @@ def compare(ours, verts, faces, gt) -> tuple[str, bool]:
         dist, match = cKDTree(verts).query(mine)
         if dist.max() > TOLERANCE or np.unique(match).size != len(match):
             return "positions", False
-    category = "identical"
-    same = np.array_equal(canonical_faces(match[ours.mesh.faces]), canonical_faces(faces))
-    if not same:
-        deduped = first_of_each_triangle(faces)
-        if len(deduped) < len(faces) and np.array_equal(canonical_faces(match[ours.mesh.faces]), canonical_faces(deduped)):
+    category, expected = "identical", faces
+    if not np.array_equal(canonical_faces(match[ours.mesh.faces]), canonical_faces(faces)):
+        expected = first_of_each_triangle(faces)
+        if len(expected) < len(faces) and np.array_equal(canonical_faces(match[ours.mesh.faces]), canonical_faces(expected)):
             category = "repeated triangles"
         else:
             return "faces", False
     if not np.array_equal(ours.vertex_map, np.asarray(gt)[match]):
         return "ground truth", False
-    in_order = in_order and category == "identical" and np.array_equal(ours.mesh.faces, faces)
-    return category, in_order
+    # in order: the same vertex order and the same faces in the same order (the repeats dropped)
+    return category, in_order and np.array_equal(ours.mesh.faces, expected)
 
 
 def clip_parity(record, n: int, verts: np.ndarray, faces: np.ndarray) -> dict:
@@ -198,10 +205,13 @@ def run_shape(args, label: str, path: str, work: Path) -> dict:
     verts, faces, dist = data["verts"], data["faces"], data["dist"]
     mesh = Mesh(verts, faces, name=stem)
     result = {"path": path, "vertices": int(len(verts)), "faces": int(len(faces))}
-    result["duplicate_positions"] = int(len(verts) - len(np.unique(verts, axis=0)))
+    _, position = np.unique(verts, axis=0, return_inverse=True)
+    result["duplicate_positions"] = int(len(verts) - position.max() - 1)
+    # faces whose three corners lie at the positions of another face's corners: the clip merges them into one triangle
+    result["coinciding_faces"] = int(len(faces) - len(np.unique(np.sort(position.reshape(-1)[faces], axis=1), axis=0)))
     for method in METHODS:
-        seeded = work / f"{stem}_{method}_seeded.npz"
-        free = work / f"{stem}_{method}_free.npz"
+        seeded = work / f"{stem}_{method}_seeded{SEEDED_BASE}x{args.draws}.npz"
+        free = work / f"{stem}_{method}_stream{FREE_SEED_OFFICIAL}x{args.free}.npz"
         if not seeded.is_file():
             harness(args, "run", prepared, method, "seeded", SEEDED_BASE, args.draws, seeded)
         if not free.is_file():
@@ -210,10 +220,12 @@ def run_shape(args, label: str, path: str, work: Path) -> dict:
         categories: dict[str, list[int]] = {}
         in_order = draw_mismatch = 0
         repeated: list[int] = []  # repeated triangles of the official shape, per draw that has some
-        start = time.perf_counter()
+        seconds = []  # geofeat's draws alone (the partial shape and its ground truth), not the comparison
         for i in range(args.draws):
             seed = SEEDED_BASE + i
+            start = time.perf_counter()
             ours = geofeat_draw(method, mesh, dist, np.random.RandomState(seed), torch.Generator().manual_seed(seed))
+            seconds.append(time.perf_counter() - start)
             if not draws_match(method, ours, record, i):
                 draw_mismatch += 1
                 categories.setdefault("draw", []).append(i)
@@ -223,15 +235,13 @@ def run_shape(args, label: str, path: str, work: Path) -> dict:
             in_order += int(ordered)
             if category == "repeated triangles":
                 repeated.append(ours.info["repeated_faces"])
-        seconds = time.perf_counter() - start
         entry = {
             "draws": args.draws,
             "identical": len(categories.get("identical", [])),
-            "identical_in_order": in_order,
+            "in_official_order": in_order,
             "repeated_triangles_per_draw": {"min": min(repeated), "max": max(repeated)} if repeated else None,
             "differing": {key: value for key, value in categories.items() if key != "identical"},
-            "geofeat_seconds_per_draw": seconds / args.draws,
-            "official_seconds_per_draw_without_ground_truth": float(record["seconds"]) / args.draws,
+            "seconds_per_draw": draw_times(record, seconds),
         }
         if method == "cuts":
             entry["clip"] = clip_parity(record, args.draws, verts, faces)
@@ -241,6 +251,20 @@ def run_shape(args, label: str, path: str, work: Path) -> dict:
         result[method] = entry
         print(f"{label} {method}: {entry['identical']} / {args.draws} identical, differing {entry['differing']}", flush=True)
     return result
+
+
+def draw_times(record, geofeat_seconds: list[float]) -> dict:
+    """Mean and median seconds per draw: the official generator, its ground truth, both, and geofeat's draw."""
+    official, official_gt = record["draw_seconds"], record["draw_seconds_gt"]
+    out = {}
+    for key, values in {
+        "official_generator": official,
+        "official_ground_truth": official_gt,
+        "official_total": official + official_gt,
+        "geofeat": np.asarray(geofeat_seconds),
+    }.items():
+        out[key] = {"mean": float(np.mean(values)), "median": float(np.median(values))}
+    return out
 
 
 def free_draws(args, method: str, mesh: Mesh, dist: np.ndarray, record, full_faces: np.ndarray) -> dict:
@@ -272,16 +296,22 @@ def free_draws(args, method: str, mesh: Mesh, dist: np.ndarray, record, full_fac
 
 def tables(result: dict) -> str:
     lines = [
+        "# Reference CUTS and HOLES partial shapes against the official generators",
+        "",
+        f"{result['date']}; {result['machine']}.",
+        "",
         "geofeat's reference CUTS and HOLES (`geofeat.geometry.partial_reference`) beside GeoLoRA's "
         "`generate_random_cut` / `generate_random_holes` / `get_gt_corres`, run unmodified with open3d "
         f"0.20 in its own environment. {result['draws']} seeded draws per method and shape (seed "
         f"{SEEDED_BASE} + i on both sides); identical: vertices within {TOLERANCE:g}, the same triangles "
-        "up to face order and cyclic corner order, the same ground truth. Both sides get the float32 vertices "
+        "up to face order and cyclic corner order, the same ground truth; in the official order: besides, the "
+        "vertices in the official order and the faces in the official order, corners included (with repeated "
+        "triangles: the official faces with each repeat dropped). Both sides get the float32 vertices "
         "the official dataset passes on (divided in place by the square root of the area) and its float32 "
-        "geodesic matrix. `python benchmarks/parity_partial_reference.py`; "
-        f"{result['date']}, {result['machine']}.",
+        f"geodesic matrix (the shapes of `parity_ray_reference.py`). Official environment: {result['official']}. "
+        f"`python benchmarks/parity_partial_reference.py`, {result['seconds'] / 60:.0f} minutes in all.",
         "",
-        "| method | shape | draws | identical | of which in the same order | differing (kind: count) |",
+        "| method | shape | draws | identical | in the official order | differing (kind: count) |",
         "|---|---|---|---|---|---|",
     ]
     for shape in result["shapes"]:
@@ -292,13 +322,13 @@ def tables(result: dict) -> str:
                 counts = entry["repeated_triangles_per_draw"]
                 differing += f" ({counts['min']} to {counts['max']} repeated triangles a shape)"
             lines.append(
-                f"| {method} | {shape['label']} | {entry['draws']} | {entry['identical']} | {entry['identical_in_order']} | {differing} |"
+                f"| {method} | {shape['label']} | {entry['draws']} | {entry['identical']} | {entry['in_official_order']} | {differing} |"
             )
     lines += [
         "",
         "Kinds of difference: *repeated triangles*: the official shape holds a triangle twice (the clip merges "
-        "vertices at equal positions, so two source faces that coincide become one triangle twice; the PSMAL "
-        "hippo has 16 such face pairs along 15 doubled vertices); a geofeat `Mesh` holds each triangle once, so "
+        "vertices at equal positions, so two source faces whose corners lie at the same positions become one "
+        "triangle twice; see the coinciding faces of each shape below); a geofeat `Mesh` holds each triangle once, so "
         "the reference drops the repeat; vertices, the other triangles and the ground truth are the same. "
         "*draw*: the two sides drew different normals or centres; *vertex count*, *positions*, *faces*, "
         "*ground truth*: the first check that failed.",
@@ -333,15 +363,47 @@ def tables(result: dict) -> str:
                     for d in (row["official"], row["geofeat"])
                 ]
                 lines.append(f"| {method} | {shape['label']} | {key} | {cells[0]} | {cells[1]} | {row['ks_pvalue']:.2f} |")
+    lines += [
+        "",
+        "Time per partial shape, the median over the seeded draws (means in the JSON), one CPU thread (`OMP_NUM_THREADS=1`), on 2 cores shared "
+        f"with other jobs (load average {result['load_average'][0]:.1f} at the start, {result['load_average'][1]:.1f} "
+        "at the end): the two sides ran at different moments, so the ratios carry the noise of that load. Official: "
+        "`generate_random_cut` / `generate_random_holes` (Open3D) and `get_gt_corres` (torch, CPU) timed apart; "
+        "geofeat: `cut_partial_reference` / `draw_holes` + `holes_partial_reference`, which make the ground truth too "
+        "(the same `torch.cdist` and `min`, which take most of the time on both sides).",
+        "",
+        "| method | shape | official generator | official ground truth | official total | geofeat (with ground truth) | geofeat / official |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for shape in result["shapes"]:
+        for method in METHODS:
+            entry = shape[method]
+            times = {key: value["median"] for key, value in entry["seconds_per_draw"].items()}
+            cells = [
+                f"{times[key] * 1e3:.1f} ms"
+                for key in ("official_generator", "official_ground_truth", "official_total", "geofeat")
+            ]
+            lines.append(
+                f"| {method} | {shape['label']} | {' | '.join(cells)} | {times['geofeat'] / times['official_total']:.2f} |"
+            )
     lines += ["", "Shapes:", ""]
     for shape in result["shapes"]:
         lines.append(
             f"- {shape['label']}: {shape['kind']} ({shape['vertices']} vertices, {shape['faces']} faces, "
-            f"{shape['duplicate_positions']} vertices at a position another vertex has); cuts retried in "
+            f"{shape['duplicate_positions']} vertices at a position another vertex has, {shape['coinciding_faces']} "
+            "faces with their corners at the positions of another face's corners); cuts retried in "
             f"{len(shape['cuts']['retried_draws'])} and fell back to the whole mesh in "
             f"{len(shape['cuts']['whole_mesh_draws'])} of the seeded draws."
         )
     return "\n".join(lines)
+
+
+def official_versions(args) -> str:
+    """The versions of the official environment's libraries, as one string."""
+    names = ("open3d", "libigl", "torch", "numpy")
+    code = f"from importlib.metadata import version; print(', '.join(n + ' ' + version(n) for n in {names!r}))"
+    env = {key: value for key, value in os.environ.items() if key != "PYTHONPATH"}
+    return subprocess.run([args.official_python, "-c", code], check=True, capture_output=True, text=True, env=env).stdout.strip()
 
 
 def main() -> None:
@@ -361,14 +423,18 @@ def main() -> None:
     work = Path(args.work) if args.work else Path(tempfile.mkdtemp(prefix="parity_partial_"))
     work.mkdir(parents=True, exist_ok=True)
     shapes = []
+    missing = [path for _, _, path in default_shapes(args.data, args.data_ext) if not Path(path).is_file()]
+    if missing:
+        raise SystemExit(f"shapes not found: {missing}; pass --data / --data-ext")
+    load_before, start = os.getloadavg()[0], time.perf_counter()
     for label, kind, path in default_shapes(args.data, args.data_ext):
-        if not Path(path).is_file():
-            raise SystemExit(f"{path} not found; pass --data / --data-ext")
         shapes.append({"label": label, "kind": kind, **run_shape(args, label, path, work)})
     result = {
         "draws": args.draws,
         "free": args.free,
-        "official": "vikiehm/geo-lora utils/shape_dataset.py at ed2a541, open3d 0.20.0, libigl 2.5.1, torch CPU",
+        "official": f"vikiehm/geo-lora utils/shape_dataset.py at ed2a541, {official_versions(args)}",
+        "seconds": time.perf_counter() - start,
+        "load_average": [load_before, os.getloadavg()[0]],
         "harness": args.harness,
         "shapes": shapes,
         "date": datetime.date.today().isoformat(),
