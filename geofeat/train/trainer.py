@@ -506,6 +506,10 @@ class GeoLoraTrainer:
     def _sample_loss(self, sample: PreparedSample, timer: _Timer) -> tuple[torch.Tensor | None, int]:
         """The mean loss of the partial shapes of a prepared sample and their number (None, 0: none usable).
 
+        A partial shape without a loss (no vertex seen on both shapes) is left out; under
+        ``preset="reference"`` it leaves the whole sample out, as the official loop skips a
+        step whose loss is NaN.
+
         The sample's CPU tensors go to the device here (asynchronously when pinned), the
         geodesic matrix widened there from float16 to float32.
         """
@@ -520,7 +524,10 @@ class GeoLoraTrainer:
             with timer("loss"):
                 try:
                     losses.append(self._loss(feat_partial, feat_full, gt, dist, seen_partial, seen_full))
-                except TrainingError as err:  # e.g. no partial vertex seen: as the release, skip
+                except TrainingError as err:  # e.g. no partial vertex seen
+                    if self.config.preset == "reference":  # the official loop skips the step (its loss is NaN)
+                        log.warning("step %d: skipped sample %d of %s: %s", self.step, sample.index, sample.full.name, err)
+                        return None, 0
                     log.warning(
                         "step %d, sample %d: skipped a partial shape of %s: %s", self.step, sample.index, sample.full.name, err
                     )

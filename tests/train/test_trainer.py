@@ -251,3 +251,21 @@ def test_reference_preset_trains_one_shared_a_per_block_and_resumes_exactly(tmp_
     resumed.fit()
     for name, value in lora_state_dict(resumed.backbone).items():
         torch.testing.assert_close(value, state[name], rtol=0, atol=1e-6)
+
+
+@pytest.mark.parametrize(("preset", "used"), [("default", 1), ("reference", 0)])
+def test_a_partial_shape_without_a_loss_is_left_out_or_skips_the_sample(tmp_path, monkeypatch, preset, used):
+    """geofeat leaves out the partial shape; the reference preset, like the official loop, the whole sample."""
+    trainer = _trainer(tmp_path, preset=preset, partials_per_shape=2, image_size=32)
+    real_loss, calls = trainer._loss, []
+
+    def second_fails(*args):
+        calls.append(1)
+        if len(calls) == 2:
+            raise TrainingError("no partial vertex was seen")
+        return real_loss(*args)
+
+    monkeypatch.setattr(trainer, "_loss", second_fails)
+    sample = trainer._samples.prepare(0)
+    loss, count = trainer._sample_loss(sample, lambda phase: contextlib.nullcontext())
+    assert count == used and (loss is None) == (used == 0)
