@@ -113,8 +113,8 @@ def register_reference_ray() -> None:
 
     Pair ``i`` (the same (A, B) as in ``faust_r_ray``, same seed) cuts A as GeoLoRA's training
     loop does: A divided by the square root of its area, one RAY draw (eye from
-    `geofeat.geometry.raycast.official_ray_eye`, a try again below 10 vertices;
-    `geofeat.geometry.partial_reference.training_partial_reference`), scaled back; the ground
+    `geofeat.render.raycast.official_ray_eye`, a try again below 10 vertices;
+    `geofeat.train.samples.training_partial_reference`), scaled back; the ground
     truth of a partial vertex is its nearest vertex of A, carried to B by the template maps.
     """
     from geofeat.datasets.derived import (
@@ -127,9 +127,9 @@ def register_reference_ray() -> None:
     )
     from geofeat.datasets.records import ShapePair
     from geofeat.datasets.registry import FaustRemeshed, register_dataset
-    from geofeat.geometry.partial_reference import training_partial_reference
     from geofeat.mesh import Mesh
     from geofeat.topology import triangle_areas
+    from geofeat.train.samples import training_partial_reference
 
     class ReferenceRayPairs(DerivedPartialBenchmark):
         def __getitem__(self, i: int) -> ShapePair:

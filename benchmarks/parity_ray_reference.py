@@ -7,7 +7,7 @@ For each shape, a seeded stream of ``numpy.random`` draws is replayed on both si
   ``utils/ray_caster.py`` ``cam_generator("low", 1)`` and ``RayCaster.get_partial_shape``
   (kept outside this repository; it writes, per draw, the camera, the hit triangles, the
   partial shape, its ground truth and open3d's per-ray triangle ids and ``t_hit``);
-- geofeat: `geofeat.geometry.raycast.official_ray_eye` and `ray_partial_reference`.
+- geofeat: `geofeat.render.raycast.official_ray_eye` and `ray_partial_reference`.
 
 Both sides get the same float32 vertices (the harness writes the arrays it used). A draw
 is *identical* when the partial vertices agree to 1e-6, the faces agree up to their order
@@ -37,9 +37,9 @@ from common import DEFAULT_DATA, machine, write_results
 
 import geofeat
 from geofeat.geometry.partial import ray_partial
-from geofeat.geometry.raycast import first_hits, official_ray_eye, pinhole_camera, ray_partial_reference
 from geofeat.geometry.visibility import visible_faces
 from geofeat.render.rasterizer import RasterSettings
+from geofeat.render.raycast import first_hits, official_ray_eye, pinhole_camera, ray_partial_reference
 from geofeat.topology import face_components
 
 SHAPES = {

@@ -40,9 +40,9 @@ Where the results differ from the official code's, on purpose:
 * where the official code stops with an error, a cut try with nothing on the kept side
   counts as rejected and holes that leave no face raise `MeshError`.
 
-RAY is `geofeat.geometry.raycast.ray_partial_reference`. `training_partial_reference` makes
-one partial shape as GeoLoRA's training loop does (``generate_partial_shape``): a generator
-drawn uniformly, tried again until the partial shape has at least 10 vertices.
+RAY is `geofeat.render.raycast.ray_partial_reference` (it casts rays with geofeat's
+rasterizer); `geofeat.train.samples.training_partial_reference` draws one of the three as
+GeoLoRA's training loop does.
 
 ``benchmarks/parity_partial_reference.py`` and ``benchmarks/parity_ray_reference.py`` compare
 both sides draw by draw.
@@ -62,7 +62,6 @@ from geofeat.topology import face_components
 
 __all__ = [
     "CUT_MAX_TRIES",
-    "TRAINING_KINDS",
     "HolesDraw",
     "cut_partial_reference",
     "draw_cut_normal",
@@ -70,17 +69,10 @@ __all__ = [
     "holes_partial_reference",
     "largest_component_by_face_count",
     "nearest_source_vertices",
-    "training_partial_reference",
 ]
 
 #: Tries of the official CUTS loop before it falls back to the whole mesh.
 CUT_MAX_TRIES = 10
-#: The generators of GeoLoRA's training loop in its order (``random_view``, ``random_cut``, ``random_holes``).
-TRAINING_KINDS = ("ray", "cuts", "holes")
-#: Tries of the training loop for one partial shape ...
-TRAINING_TRIES = 10
-#: ... until it has at least this many vertices.
-TRAINING_MIN_VERTICES = 10
 #: Official HOLES draw: ``torch.randint(HOLES_MIN, HOLES_MAX)`` holes (high end excluded) ...
 HOLES_MIN, HOLES_MAX = 4, 13
 #: ... and a radius ``(RADIUS_MAX - RADIUS_MIN) * torch.rand(1) + RADIUS_MIN``.
@@ -377,59 +369,3 @@ def _reference_shape(
     partial = Mesh(verts, faces[once], name=f"{mesh.name}-{kind}-reference")
     info = {**info, "repeated_faces": int(len(faces) - first.size)}
     return PartialShape(partial, vertex_map, np.asarray(face_map, dtype=np.int64)[once], kind, info, exact=False)
-
-
-def training_partial_reference(
-    full: Mesh, kinds, geodesics: np.ndarray, random_state: np.random.RandomState, generator=None
-) -> PartialShape | None:
-    """One partial shape of ``full`` as GeoLoRA's training loop makes it, or None.
-
-    Each try draws a generator uniformly (``random_state.randint(len(kinds))``) and makes a
-    partial shape with it: RAY from `geofeat.geometry.raycast.official_ray_eye`, CUTS with
-    normals from ``random_state``, HOLES from `draw_holes` with ``generator``. The first with
-    at least `TRAINING_MIN_VERTICES` vertices is returned; after `TRAINING_TRIES` tries
-    without one, None (the official loop gives up there too). A try whose generator finds
-    no partial shape at all (no ray hits, every face in a hole) counts as a failed try.
-
-    Parameters
-    ----------
-    full : Mesh
-        The full shape as the training loop sees it: turned, and divided by the square root
-        of its area (the official loop works on those vertices; RAY depends on the scale).
-    kinds : sequence of {"ray", "cuts", "holes"}
-        The generators to draw from, taken in the order of `TRAINING_KINDS`.
-    geodesics : numpy.ndarray, shape (V, V)
-        Geodesic matrix of ``full`` over the square root of its area (read by HOLES only).
-    random_state : numpy.random.RandomState
-        The legacy NumPy stream (the official loop's global ``np.random``).
-    generator : torch.Generator, optional
-        CPU stream of the HOLES draws (None: torch's default, as the official loop).
-
-    Returns
-    -------
-    PartialShape or None
-        ``exact=False`` (``vertex_map`` is the nearest full vertex of each partial vertex);
-        ``info["tries"]`` is replaced by the tries of this loop.
-    """
-    from geofeat.geometry.raycast import official_ray_eye, ray_partial_reference
-
-    unknown = sorted(set(kinds) - set(TRAINING_KINDS))
-    if unknown or not kinds:
-        raise MeshError(f"kinds must be a non-empty subset of {TRAINING_KINDS}; found {list(kinds)}.")
-    ordered = [kind for kind in TRAINING_KINDS if kind in kinds]
-    for attempt in range(1, TRAINING_TRIES + 1):
-        kind = ordered[random_state.randint(0, len(ordered))]
-        try:
-            if kind == "ray":
-                partial = ray_partial_reference(full, official_ray_eye(random_state))
-            elif kind == "cuts":
-                partial = cut_partial_reference(full, random_state)
-            else:
-                drawn = draw_holes(full.n_vertices, generator)
-                partial = holes_partial_reference(full, drawn.centres, drawn.radius, geodesics)
-        except MeshError:
-            continue
-        if partial.mesh.n_vertices >= TRAINING_MIN_VERTICES:
-            info = {**partial.info, "tries": attempt}
-            return PartialShape(partial.mesh, partial.vertex_map, partial.face_map, partial.kind, info, exact=False)
-    return None

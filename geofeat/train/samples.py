@@ -53,11 +53,14 @@ import numpy as np
 import torch
 from torch.utils.data import DataLoader, Dataset, Sampler
 
-from geofeat.errors import GeofeatError, TrainingError
-from geofeat.geometry.partial import make_partial
+from geofeat.errors import GeofeatError, MeshError, TrainingError
+from geofeat.geometry.partial import PartialShape, make_partial
+from geofeat.geometry.partial_reference import cut_partial_reference, draw_holes, holes_partial_reference
 from geofeat.mesh import Mesh, quiet_reports
 from geofeat.processes import end_with_parent
 from geofeat.render.cameras import rotation_about_up
+from geofeat.render.raycast import official_ray_eye, ray_partial_reference
+from geofeat.topology import triangle_areas
 from geofeat.train.config import TrainConfig
 from geofeat.train.shapes import TorchGeodesicStore
 
@@ -70,6 +73,7 @@ __all__ = [
     "SamplePrefetcher",
     "prepare_sample",
     "reference_partials",
+    "training_partial_reference",
     "resolve_workers",
     "rotate_about_up",
     "shape_index",
@@ -79,6 +83,13 @@ __all__ = [
 PREFETCH_PER_WORKER = 2
 #: Most workers ``workers="auto"`` starts per rank on CUDA.
 AUTO_WORKERS = 4
+
+#: The generators of GeoLoRA's training loop in its order (``random_view``, ``random_cut``, ``random_holes``).
+TRAINING_KINDS = ("ray", "cuts", "holes")
+#: Tries of the training loop for one partial shape ...
+TRAINING_TRIES = 10
+#: ... until it has at least this many vertices.
+TRAINING_MIN_VERTICES = 10
 
 #: ``timer(phase)``: a context manager charging the seconds of its block to ``phase``.
 Timer = Callable[[str], contextlib.AbstractContextManager]
@@ -226,12 +237,11 @@ def prepare_sample(
 def reference_partials(mesh: Mesh, geodesics: torch.Tensor, config: TrainConfig, seed: int) -> tuple[Mesh, list]:
     """The full shape and partial shapes of one sample as GeoLoRA's training loop makes them.
 
-    The full shape is divided by the square root of its area (the official loop's vertices
-    are, once its geodesic matrix is computed) and turned about the up axis by an angle
-    ``random_state.uniform(0, 2 pi)``, as ``vertices @ R_y(angle)`` turns it; each of the
-    ``config.partials_per_shape`` partial shapes is
-    `geofeat.geometry.partial_reference.training_partial_reference` of it, turned again by its
-    own angle. A partial shape not made in its tries is left out (with a warning).
+    The full shape is turned about the up axis by an angle ``random_state.uniform(0, 2 pi)``,
+    as ``vertices @ R_y(angle)`` turns it, and divided by the square root of its area (the
+    official loop's vertices are, once its geodesic matrix is computed); each of the
+    ``config.partials_per_shape`` partial shapes is `training_partial_reference` of it,
+    turned again by its own angle. A partial shape not made in its tries is left out (with a warning).
 
     Parameters
     ----------
@@ -252,9 +262,6 @@ def reference_partials(mesh: Mesh, geodesics: torch.Tensor, config: TrainConfig,
     partials : list of (Mesh, torch.Tensor)
         Each partial shape, turned, with its ground truth (V_p,) int64: the nearest full vertex.
     """
-    from geofeat.geometry.partial_reference import training_partial_reference
-    from geofeat.topology import triangle_areas
-
     random_state = np.random.RandomState(seed)
     generator = torch.Generator().manual_seed(seed)
     turned = rotate_about_up(mesh, -np.degrees(random_state.uniform(0.0, 2 * np.pi))).verts.astype(np.float32)
@@ -270,6 +277,60 @@ def reference_partials(mesh: Mesh, geodesics: torch.Tensor, config: TrainConfig,
         turned = rotate_about_up(partial.mesh, -np.degrees(random_state.uniform(0.0, 2 * np.pi)))
         partials.append((turned, torch.tensor(partial.vertex_map, dtype=torch.int64)))
     return full, partials
+
+
+def training_partial_reference(
+    full: Mesh, kinds, geodesics: np.ndarray, random_state: np.random.RandomState, generator=None
+) -> PartialShape | None:
+    """One partial shape of ``full`` as GeoLoRA's training loop makes it, or None.
+
+    Each try draws a generator uniformly (``random_state.randint(len(kinds))``) and makes a
+    partial shape with it: RAY from `geofeat.render.raycast.official_ray_eye`, CUTS with
+    normals from ``random_state``, HOLES from `draw_holes` with ``generator``. The first with
+    at least `TRAINING_MIN_VERTICES` vertices is returned; after `TRAINING_TRIES` tries
+    without one, None (the official loop gives up there too). A try whose generator finds
+    no partial shape at all (no ray hits, every face in a hole) counts as a failed try.
+
+    Parameters
+    ----------
+    full : Mesh
+        The full shape as the training loop sees it: turned, and divided by the square root
+        of its area (the official loop works on those vertices; RAY depends on the scale).
+    kinds : sequence of {"ray", "cuts", "holes"}
+        The generators to draw from, taken in the order of `TRAINING_KINDS`.
+    geodesics : numpy.ndarray, shape (V, V)
+        Geodesic matrix of ``full`` over the square root of its area (read by HOLES only).
+    random_state : numpy.random.RandomState
+        The legacy NumPy stream (the official loop's global ``np.random``).
+    generator : torch.Generator, optional
+        CPU stream of the HOLES draws (None: torch's default, as the official loop).
+
+    Returns
+    -------
+    PartialShape or None
+        ``exact=False`` (``vertex_map`` is the nearest full vertex of each partial vertex);
+        ``info["tries"]`` is replaced by the tries of this loop.
+    """
+    unknown = sorted(set(kinds) - set(TRAINING_KINDS))
+    if unknown or not kinds:
+        raise TrainingError(f"kinds must be a non-empty subset of {TRAINING_KINDS}; found {list(kinds)}.")
+    ordered = [kind for kind in TRAINING_KINDS if kind in kinds]
+    for attempt in range(1, TRAINING_TRIES + 1):
+        kind = ordered[random_state.randint(0, len(ordered))]
+        try:
+            if kind == "ray":
+                partial = ray_partial_reference(full, official_ray_eye(random_state))
+            elif kind == "cuts":
+                partial = cut_partial_reference(full, random_state)
+            else:
+                drawn = draw_holes(full.n_vertices, generator)
+                partial = holes_partial_reference(full, drawn.centres, drawn.radius, geodesics)
+        except MeshError:
+            continue
+        if partial.mesh.n_vertices >= TRAINING_MIN_VERTICES:
+            info = {**partial.info, "tries": attempt}
+            return PartialShape(partial.mesh, partial.vertex_map, partial.face_map, partial.kind, info, exact=False)
+    return None
 
 
 class SampleDataset(Dataset):

@@ -3,7 +3,7 @@ import pytest
 import torch
 
 from geofeat import Mesh
-from geofeat.errors import MeshError
+from geofeat.errors import MeshError, TrainingError
 from geofeat.geometry.partial import PartialShape, cut_partial
 from geofeat.geometry.partial_reference import (
     CUT_MAX_TRIES,
@@ -13,8 +13,8 @@ from geofeat.geometry.partial_reference import (
     holes_partial_reference,
     largest_component_by_face_count,
     nearest_source_vertices,
-    training_partial_reference,
 )
+from geofeat.train.samples import training_partial_reference
 
 # Normals for the lopsided mesh below (plane through its bounding-box centre x = 5, y = 0.5).
 KEEPS_TOO_LITTLE = [1.0, 0.0, 0.0]  # the sparse strip's end: under a tenth of the vertices
@@ -244,7 +244,7 @@ def test_training_draw_chooses_in_the_official_order_and_tries_again_below_ten_v
     partial = training_partial_reference(lopsided, ("holes", "cuts"), holes_everywhere, state, torch.Generator().manual_seed(0))
     assert partial.kind == "cuts" and partial.info["tries"] == 3 and not partial.exact
     assert partial.mesh.n_vertices >= 10 and state.choices == []
-    with pytest.raises(MeshError, match="non-empty subset"):
+    with pytest.raises(TrainingError, match="non-empty subset"):
         training_partial_reference(lopsided, ("cuts", "spin"), flat, _Answers([0]))
 
 

@@ -96,8 +96,8 @@ def test_prepared_sample_follows_the_documented_draws(tmp_path, index):
 
 
 def test_reference_samples_follow_the_official_loop(tmp_path):
-    from geofeat.geometry.partial_reference import training_partial_reference
     from geofeat.topology import triangle_areas
+    from geofeat.train.samples import training_partial_reference
 
     config = _config(tmp_path, preset="reference", seed=2)
     assert config.generators() == "reference"

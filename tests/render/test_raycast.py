@@ -1,4 +1,4 @@
-"""The reference RAY partial shapes (geofeat.geometry.raycast): open3d's pinhole rays, first hits, trimesh's split.
+"""The reference RAY partial shapes (geofeat.render.raycast): open3d's pinhole rays, first hits, trimesh's split.
 
 Values marked "official" were produced by the official code (vikiehm/geo-lora ``utils/ray_caster.py``
 with open3d 0.20.0 and trimesh 4.5.0); open3d is not needed to run these tests.
@@ -12,7 +12,7 @@ import pytest
 import geofeat
 from geofeat import Mesh
 from geofeat.errors import MeshError, RenderError
-from geofeat.geometry.raycast import (
+from geofeat.render.raycast import (
     first_hits,
     official_components,
     official_filled_holes,
