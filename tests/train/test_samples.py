@@ -116,10 +116,13 @@ def test_reference_samples_follow_the_official_loop(tmp_path):
     dist = sample.geodesics.float().numpy()
     for mesh, gt in sample.partials:
         partial = training_partial_reference(sample.full, config.partial_kinds, dist, state, generator)
-        np.testing.assert_array_equal(mesh.verts, _turned(partial.mesh.verts, -math.degrees(state.uniform(0.0, 2 * math.pi))))
+        np.testing.assert_allclose(
+            mesh.verts, _turned(partial.mesh.verts, -math.degrees(state.uniform(0.0, 2 * math.pi))), atol=1e-6
+        )
         assert gt.dtype == torch.int64 and np.array_equal(gt.numpy(), partial.vertex_map) and not partial.exact
-        nearest = np.linalg.norm(partial.mesh.verts[:, None] - sample.full.verts[None], axis=2).argmin(axis=1)
-        assert np.array_equal(gt.numpy(), nearest)  # the official ground truth: the nearest full vertex
+        distance = np.linalg.norm(partial.mesh.verts[:, None] - sample.full.verts[None], axis=2)
+        # the official ground truth: the nearest full vertex (float32 distances: ties within rounding either way)
+        assert np.all(distance[np.arange(len(gt)), gt.numpy()] <= distance.min(axis=1) + 1e-5)
     again = prepare_sample(config, shapes, 1, store)
     assert again.full.hash == sample.full.hash
     assert [m.hash for m, _ in again.partials] == [m.hash for m, _ in sample.partials]
