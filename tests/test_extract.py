@@ -12,7 +12,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 import pytest
-from shapes import bumpy, free_port
+from shapes import bumpy, free_port, write_off
 
 import geofeat
 from geofeat import distributed
@@ -22,15 +22,6 @@ from geofeat.errors import ExtractError
 
 PARAMS = ["--param", "n_eig=12", "--param", "n_descr=8"]
 KW = {"n_eig": 12, "n_descr": 8}
-
-
-def write_off(mesh: geofeat.Mesh, path: Path) -> Path:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    lines = ["OFF", f"{mesh.n_vertices} {len(mesh.faces)} 0"]
-    lines += [" ".join(repr(float(c)) for c in v) for v in mesh.verts]
-    lines += ["3 " + " ".join(str(int(i)) for i in f) for f in mesh.faces]
-    path.write_text("\n".join(lines) + "\n")
-    return path
 
 
 @pytest.fixture(autouse=True)
@@ -45,9 +36,9 @@ def collection(tmp_path) -> Path:
     """Five small seeded meshes (162 vertices), two of them in a sub-folder."""
     root = tmp_path / "meshes"
     for seed in range(3):
-        write_off(bumpy(seed, subdivisions=2), root / f"shape_{seed}.off")
+        write_off(root / f"shape_{seed}.off", bumpy(seed, subdivisions=2))
     for seed in range(3, 5):
-        write_off(bumpy(seed, subdivisions=2), root / "more" / f"shape_{seed}.off")
+        write_off(root / "more" / f"shape_{seed}.off", bumpy(seed, subdivisions=2))
     return root
 
 
