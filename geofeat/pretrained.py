@@ -149,6 +149,7 @@ def save_pretrained(
         "format_version": FORMAT_VERSION,
         "geofeat_version": __version__,
         "save_id": save_id,
+        "has_weights": tensors is not None,
         "config": dict(config),
         "info": dict(info or {}),
     }
@@ -287,7 +288,8 @@ def from_pretrained(
 
     Both files carry the save's ``save_id``; a reader that got them from two saves (another
     process replaced the folder between the two reads) reads the folder again, up to
-    `READ_ATTEMPTS` times. Folders written before ``save_id`` existed are read as they are.
+    `READ_ATTEMPTS` times; so does one whose config says it has weights when the weights file
+    is gone. Folders written before ``save_id`` existed are read as they are.
 
     Parameters
     ----------
@@ -397,6 +399,11 @@ def _read_folder(
     try:
         weights = (folder / WEIGHTS_FILE).read_bytes()
     except FileNotFoundError:
+        if data.get("has_weights") is True:  # removed, or the folder was swapped between the two reads
+            raise error(
+                f"{folder} holds no {WEIGHTS_FILE}, though its {CONFIG_FILE} says it was saved with weights: the file "
+                "was removed (save the folder again), or another process replaced the folder while it was read."
+            ) from None
         weights = None
     except OSError as exc:
         raise error(f"could not read {folder / WEIGHTS_FILE}: {exc}.") from exc

@@ -29,7 +29,8 @@ def test_round_trip(tmp_path):
     envelope = json.loads((folder / CONFIG_FILE).read_text())
     save_id = envelope.pop("save_id")  # the save's token, in the weights' metadata too
     assert envelope == {
-        "kind": "toy", "format_version": 1, "geofeat_version": __version__, "config": {"rank": 4, "targets": ["q"]}, "info": {"step": 3},
+        "kind": "toy", "format_version": 1, "geofeat_version": __version__, "has_weights": True,
+        "config": {"rank": 4, "targets": ["q"]}, "info": {"step": 3},
     }  # fmt: skip
     assert (
         len(save_id) == 32
@@ -60,6 +61,13 @@ def test_no_tensors_no_weights_file(tmp_path):
     assert not saved.has_weights()
     with pytest.raises(HeadError, match="holds no weights.safetensors"):
         saved.tensors()
+
+
+def test_weights_removed_after_a_save_with_weights_fail_the_load(tmp_path):
+    folder = save_pretrained(tmp_path / "m", "toy", {"x": 1}, _tensors())
+    (folder / WEIGHTS_FILE).unlink()  # a reader between the swap's renames sees the same
+    with pytest.raises(HeadError, match="holds no weights.safetensors, though its config.json says it was saved with"):
+        from_pretrained(folder, "toy", HeadError)
 
 
 def test_kind_mismatch_names_both_kinds(tmp_path):
