@@ -507,7 +507,10 @@ def _compute_ready(
     stored: set[str],
     writer: ThreadPoolExecutor,
 ) -> Computed | _Writing:
-    """The outcome of a shape from `_read_ahead` (on the consumer's thread), or its features with the write handed to ``writer``."""
+    """The outcome of a shape from `_read_ahead` (on the consumer's thread), or its features with the write handed to ``writer``.
+
+    Without a store there is nothing to write, so a computed shape's outcome is returned at once.
+    """
     start = time.perf_counter()
     mesh = done.mesh
     mesh_hash = None if mesh is None else mesh.hash
@@ -523,6 +526,8 @@ def _compute_ready(
         features = descriptor(mesh) if done.prepared is _NOT_PREPARED else descriptor(mesh, done.prepared)
     except GeofeatError as err:
         return Computed(index, "failed", mesh_hash=mesh_hash, error=err, seconds=done.seconds + time.perf_counter() - start)
+    if store is None:  # nothing to write: the outcome now, not one shape later
+        return Computed(index, "computed", features, found.key, mesh_hash, seconds=done.seconds + time.perf_counter() - start)
     future = writer.submit(_store_entry, descriptor, mesh, store, found.key, explicit, features)
     return _Writing(
         index, features, found.key, mesh_hash, future, done.seconds + time.perf_counter() - start, time.perf_counter()
