@@ -8,13 +8,9 @@ of every geofeat registry (`geofeat.registry.Registry`): names are case-insensit
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
+from geofeat.adapters.base import Head
 from geofeat.errors import HeadError
 from geofeat.registry import LazyEntry, Registry
-
-if TYPE_CHECKING:
-    from .heads import Head
 
 __all__ = ["HEADS", "head_class", "register_head"]
 
@@ -50,10 +46,10 @@ def head_class(name: str) -> type[Head]:
     return HEADS.load(name)
 
 
-register_head("nn", "geofeat.adapters.heads:NearestNeighbourHead", summary="nearest neighbour in feature space")
-register_head("fmap", "geofeat.adapters.heads:FunctionalMapHead", summary="functional map from the input features")
+register_head("nn", "geofeat.adapters.matchers:NearestNeighbourHead", summary="nearest neighbour in feature space")
+register_head("fmap", "geofeat.adapters.matchers:FunctionalMapHead", summary="functional map from the input features")
 register_head(
     "ulrssm", "geofeat.adapters.ulrssm:ULRSSMHead", summary="ULRSSM: unsupervised DiffusionNet features, functional-map losses"
 )
-register_head("dpfm", "geofeat.adapters.dpfm:DPFMHead", summary="DPFM: supervised, overlap-aware functional maps")
-register_head("echomatch", "geofeat.adapters.echomatch:EchoMatchHead", summary="EchoMatch: overlap by correspondence reflection")
+register_head("dpfm", "geofeat.adapters.dpfm.head:DPFMHead", summary="DPFM: supervised, overlap-aware functional maps")
+register_head("echomatch", "geofeat.adapters.echomatch.head:EchoMatchHead", summary="EchoMatch: overlap by correspondence reflection")

@@ -18,8 +18,8 @@ from geofeat.datasets.records import ShapePair
 from geofeat.descriptors.base import Descriptor
 from geofeat.descriptors.compute import compute
 from geofeat.errors import HeadError, UnusablePair
-from geofeat.lru import LRUCache
 from geofeat.mesh import Mesh, normalize
+from geofeat.storage.lru import LRUCache
 
 __all__ = [
     "MESH_NORMALIZATIONS",

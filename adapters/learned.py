@@ -21,20 +21,19 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from geofeat.adapters.base import Head, HeadConfig
 from geofeat.checks import is_integer
 from geofeat.datasets.records import Match, ShapePair
 from geofeat.errors import HeadError, UnusablePair
-from geofeat.lru import LRUCache
 from geofeat.mesh import Mesh
-from geofeat.pretrained import CONFIG_FILE, Pretrained
-from geofeat.progress import progress_bar
-
-from .heads import Head, HeadConfig
+from geofeat.runtime.progress import progress_bar
+from geofeat.storage.lru import LRUCache
+from geofeat.storage.pretrained import CONFIG_FILE, Pretrained
 
 if TYPE_CHECKING:
     import torch
 
-    from .operators import SurfaceOperators
+    from geofeat.adapters.blocks.operators import SurfaceOperators
 
 log = logging.getLogger(__name__)
 
@@ -78,7 +77,7 @@ class LearnedHead(Head):
 
     def operators(self, mesh: Mesh) -> SurfaceOperators:
         """Surface operators of a mesh of a prepared pair, on the CPU."""
-        from .operators import surface_operators
+        from geofeat.adapters.blocks.operators import surface_operators
 
         c = self.config
         return surface_operators(mesh, c.n_eig, laplacian_kind=c.laplacian, construction=c.operators)
@@ -220,7 +219,7 @@ class LearnedHead(Head):
 
     def load_state(self, state: dict[str, torch.Tensor], in_channels: int, source: str) -> None:
         """Build the module for ``in_channels`` and load ``state`` exactly (see `release.check_state`)."""
-        from .release import check_state
+        from geofeat.adapters.release import check_state
 
         self.in_channels = int(in_channels)
         model = self.build_model(self.in_channels)

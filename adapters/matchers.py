@@ -1,22 +1,25 @@
-"""Training-free matchers: nearest neighbours in feature space and functional maps (+ ZoomOut).
+"""Training-free matchers and their heads: nearest neighbours in feature space (``nn``) and functional maps (+ ZoomOut, ``fmap``).
 
-Both take per-vertex features of any geofeat descriptor and return a complete point map
+`nn_match` and `fmap_match` take per-vertex features of any geofeat descriptor and return a complete point map
 ``map_yx`` (V_y,) int64 from the source ``y`` to the target ``x``, the convention of
 `geofeat.datasets.ShapePair`.
 """
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from geofeat.adapters.base import FEATURES_KEPT, Head, HeadConfig
+from geofeat.adapters.blocks import functional_maps as fm
+from geofeat.adapters.blocks.functional_maps import NearestNeighborIndex
+from geofeat.datasets.records import Match, ShapePair
 from geofeat.errors import FunctionalMapError
 from geofeat.geometry.spectral import spectral_basis
 from geofeat.mesh import Mesh
-
-from . import functional_maps as fm
-from .functional_maps import NearestNeighborIndex
+from geofeat.storage.lru import LRUCache
 
 if TYPE_CHECKING:
     import torch
@@ -125,3 +128,46 @@ def fmap_match(
         return fm.pointmap_from_fmap(c, basis_x, basis_y, device=device)
     c = fm.zoomout_refine(c, basis_x, basis_y, (k_final - k) // zoomout_step, zoomout_step, device=device)
     return fm.pointmap_from_fmap(c, basis_x, basis_y, device=device)
+
+
+class NearestNeighbourHead(Head):
+    """Nearest neighbour in feature space (training-free)."""
+
+    name = "nn"
+
+    def __init__(self, config: HeadConfig | None = None, **settings: Any):
+        super().__init__(config, **settings)
+        # a target is matched to several sources in a row: its search index is built once
+        self._indices: LRUCache[tuple[str, str, str], NearestNeighborIndex] = LRUCache(FEATURES_KEPT)
+
+    def match(self, pair: ShapePair) -> Match:
+        pair = self.prepare(pair)
+        index = self._indices.get_or_compute(self._features_key(pair.x), lambda: NearestNeighborIndex(self.features(pair.x)))
+        map_yx = nn_match(index, self.features(pair.y))
+        return Match(map_yx, np.ones(pair.y.n_vertices, dtype=bool))
+
+
+@dataclass
+class FunctionalMapConfig(HeadConfig):
+    """`HeadConfig` plus the functional-map size and ZoomOut (see `fmap_match`)."""
+
+    k: int = 30
+    zoomout: bool = False
+    k_final: int = 100
+
+
+class FunctionalMapHead(Head):
+    """A functional map from the input features, converted to a point map (training-free)."""
+
+    name = "fmap"
+    config_class = FunctionalMapConfig
+
+    def match(self, pair: ShapePair) -> Match:
+        c = self.config
+        pair = self.prepare(pair)
+        map_yx = fmap_match(
+            pair.x, pair.y, self.features(pair.x), self.features(pair.y), k=c.k, zoomout=c.zoomout, k_final=c.k_final,
+            n_eig=max(c.n_eig, c.k_final if c.zoomout else c.k),
+        )  # fmt: skip
+        return Match(map_yx, np.ones(pair.y.n_vertices, dtype=bool))
+

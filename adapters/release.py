@@ -1,7 +1,7 @@
 """Release checkpoints of the reference implementations: exact key mappings onto our modules.
 
 The authors of ULRSSM, DPFM and EchoMatch publish ``torch.save`` state dicts of their own
-modules. This module maps their DiffusionNet keys onto `geofeat.adapters.diffusion_net.DiffusionNet`
+modules. This module maps their DiffusionNet keys onto `geofeat.adapters.blocks.diffusion_net.DiffusionNet`
 and checks a mapped state dict against a module before loading it, so that a checkpoint
 with a renamed, missing, extra or wrongly shaped tensor is refused with the key named,
 never loaded partially.

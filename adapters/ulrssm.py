@@ -77,14 +77,9 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from geofeat.checks import canonical, check_boolean, check_number, is_boolean, is_integer
-from geofeat.datasets.records import Match, ShapePair
-from geofeat.errors import HeadError
-from geofeat.lru import LRUCache
-from geofeat.mesh import Mesh
-
-from .diffusion_net import GRADIENT_MIXINGS, DiffusionNet
-from .fmap_layers import (
+from geofeat.adapters.base import HeadConfig, check_integers, check_numbers
+from geofeat.adapters.blocks.diffusion_net import GRADIENT_MIXINGS, DiffusionNet
+from geofeat.adapters.blocks.fmap_layers import (
     coupling_loss,
     fmap_bijectivity_loss,
     fmap_orthogonality_loss,
@@ -96,11 +91,15 @@ from .fmap_layers import (
     soft_pointmap,
     soft_pointmaps,
 )
-from .functional_maps import nearest_neighbors
-from .heads import HeadConfig, check_integers, check_numbers
-from .learned import LearnedHead
-from .operators import SurfaceOperators
-from .release import ReleaseState, diffusionnet_state
+from geofeat.adapters.blocks.functional_maps import nearest_neighbors
+from geofeat.adapters.blocks.operators import SurfaceOperators
+from geofeat.adapters.learned import LearnedHead
+from geofeat.adapters.release import ReleaseState, diffusionnet_state
+from geofeat.checks import canonical, check_boolean, check_number, is_boolean, is_integer
+from geofeat.datasets.records import Match, ShapePair
+from geofeat.errors import HeadError
+from geofeat.mesh import Mesh
+from geofeat.storage.lru import LRUCache
 
 log = logging.getLogger(__name__)
 
@@ -162,7 +161,7 @@ class ULRSSMConfig(HeadConfig):
         Adam learning rate of the test-time adaptation (reference 1e-3).
     gradient_mixing : {"complex", "ulrssm"}
         How DiffusionNet's gradient features mix the two gradient components (see
-        `geofeat.adapters.diffusion_net.SpatialGradientFeatures`): ``"ulrssm"`` is the
+        `geofeat.adapters.blocks.diffusion_net.SpatialGradientFeatures`): ``"ulrssm"`` is the
         variant of the reference code, which its released weights need.
     """
 

@@ -38,7 +38,8 @@ import geofeat
 from geofeat.datasets import SyntheticHumans
 from geofeat.geometry import spectral_basis
 from geofeat.geometry.partial import make_partial
-from geofeat.render import Cameras, make_cameras, multiview_features, orbit_cameras, render_phong
+from geofeat.multiview import multiview_features
+from geofeat.render import Cameras, make_cameras, orbit_cameras, render_phong
 
 ROOT = Path(__file__).resolve().parents[1]
 

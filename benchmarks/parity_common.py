@@ -19,7 +19,7 @@ from typing import NamedTuple
 import numpy as np
 import torch
 
-from geofeat.adapters.operators import SurfaceOperators, surface_operators
+from geofeat.adapters.blocks.operators import SurfaceOperators, surface_operators
 
 #: Top-level package names of the reference repositories.
 REFERENCE_PACKAGES = ("utils", "networks", "models", "losses", "datasets", "metrics", "diffusion_net", "model", "dpfm")

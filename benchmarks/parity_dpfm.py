@@ -43,11 +43,11 @@ from parity_common import (
 )
 from scipy.spatial import cKDTree
 
+from geofeat.adapters.blocks.operators import surface_operators
 from geofeat.adapters.dpfm import DPFMHead
-from geofeat.adapters.dpfm_losses import nce_loss, template_fmap, weighted_overlap_bce
-from geofeat.adapters.dpfm_sampling import ReferenceCandidates, reference_candidates, reference_sample_interpolation
+from geofeat.adapters.dpfm.losses import nce_loss, template_fmap, weighted_overlap_bce
+from geofeat.adapters.dpfm.sampling import ReferenceCandidates, reference_candidates, reference_sample_interpolation
 from geofeat.adapters.heads import load_head
-from geofeat.adapters.operators import surface_operators
 from geofeat.datasets import load_dataset
 
 HERE = Path(__file__).resolve().parent

@@ -58,7 +58,7 @@ import numpy as np
 import torch
 from parity_common import Stage, compare, markdown, reference_import, seconds_per_call
 
-import geofeat.adapters.echomatch as echomatch_module
+import geofeat.adapters.echomatch.head as echomatch_module
 from geofeat.adapters.echomatch import EchoMatchHead
 from geofeat.adapters.heads import make_head
 from geofeat.adapters.inputs import ground_truth_map, ground_truth_overlaps, normalized_mesh

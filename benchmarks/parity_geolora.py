@@ -54,10 +54,11 @@ from geofeat.backbones import load_backbone
 from geofeat.backbones.dino import grid_sample_patch_features, imagenet_normalized
 from geofeat.backbones.lora import load_official_lora
 from geofeat.geometry.partial import make_partial
-from geofeat.render import make_cameras, multiview_features
-from geofeat.render.backproject import VertexFeatureAccumulator
+from geofeat.multiview import multiview_features
+from geofeat.multiview.backproject import VertexFeatureAccumulator
+from geofeat.multiview.pipeline import RECIPES, backbone_input, corner_points
+from geofeat.render import make_cameras
 from geofeat.render.cameras import Cameras
-from geofeat.render.multiview import RECIPES, backbone_input, corner_points
 from geofeat.render.rasterizer import RasterSettings
 from geofeat.render.shading import render_phong
 

@@ -129,7 +129,7 @@ def ulrssm_stages(repo: Path, checkpoint: Path, data_root: Path, pair_names=DEFA
         with torch.no_grad():
             cxy_ref, cyx_ref, pyx_ref, terms_ref = reference_loss(feat_ref["x"], feat_ref["y"])
             terms_ours = head.loss_terms(pair, partial=False)
-        from geofeat.adapters.fmap_layers import regularized_fmap, soft_pointmap
+        from geofeat.adapters.blocks.fmap_layers import regularized_fmap, soft_pointmap
 
         with torch.no_grad():
             cxy_ours, cyx_ours = regularized_fmap(

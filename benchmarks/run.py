@@ -50,7 +50,9 @@ from pathlib import Path
 import numpy as np
 
 import geofeat
-from geofeat.adapters.heads import Head, Match, load_head, make_head
+from geofeat.adapters.base import Head
+from geofeat.adapters.heads import load_head, make_head
+from geofeat.datasets.records import Match
 from geofeat.checks import parse_key_values
 from geofeat.datasets import dataset_names, load_dataset
 from geofeat.datasets.records import ShapePair
@@ -58,8 +60,8 @@ from geofeat.descriptors.registry import make_descriptor
 from geofeat.evaluation.metrics import pck_curve
 from geofeat.evaluation.protocol import SUMMARY_COLUMNS, default_workers, evaluate_dataset, map_forked, summarize
 from geofeat.evaluation.report import PairPicture, markdown_table, plot_matches, plot_pairs, plot_pck
-from geofeat.files import atomic_write
 from geofeat.geometry.geodesic_store import GeodesicStore
+from geofeat.storage.files import atomic_write
 
 HERE = Path(__file__).resolve().parent
 REPO = HERE.parent

@@ -42,8 +42,9 @@ from common import DEFAULT_DATA, faust_test_shapes, machine, profile_summary_lin
 
 from geofeat.backbones import DinoBackbone
 from geofeat.evaluation.report import plot_mesh_colors
-from geofeat.render import make_cameras, multiview_features, render_phong
-from geofeat.render.multiview import CPU_BATCH_SIZE, auto_batch_size
+from geofeat.multiview import multiview_features
+from geofeat.multiview.pipeline import CPU_BATCH_SIZE, auto_batch_size
+from geofeat.render import make_cameras, render_phong
 
 HERE = Path(__file__).resolve().parent
 

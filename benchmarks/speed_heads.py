@@ -26,7 +26,7 @@ from common import DEFAULT_DATA, machine, write_results
 
 from geofeat.adapters.heads import make_head
 from geofeat.datasets import load_dataset
-from geofeat.devices import resolve_device
+from geofeat.runtime.devices import resolve_device
 
 HERE = Path(__file__).resolve().parent
 

@@ -28,8 +28,9 @@ import numpy as np
 from common import machine
 
 from geofeat.train.config import TrainConfig
+from geofeat.train.geodesics import TorchGeodesicStore
 from geofeat.train.samples import prepare_sample
-from geofeat.train.shapes import TorchGeodesicStore, load_training_shapes
+from geofeat.train.shapes import load_training_shapes
 
 HERE = Path(__file__).resolve().parent
 GENERATORS = ("geofeat", "reference")

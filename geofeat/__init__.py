@@ -7,7 +7,6 @@
 """
 
 from geofeat._version import __version__
-from geofeat.config import cache_dir, set_cache_dir
 from geofeat.descriptors import Descriptor, compute, compute_many, descriptors, make_descriptor
 from geofeat.descriptors.cache import FeatureCache
 from geofeat.errors import (
@@ -35,6 +34,7 @@ from geofeat.errors import (
     UnusablePair,
 )
 from geofeat.mesh import Mesh, load_mesh, normalize
+from geofeat.storage.cache_folder import cache_dir, set_cache_dir
 
 __all__ = [
     "BackboneError",

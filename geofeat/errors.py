@@ -12,7 +12,7 @@ type                      raised for
 ``DescriptorError``       descriptor names and parameters (the default of `geofeat.checks`)
 ``MissingDependencyError``  an optional dependency that is not installed
 ``DeviceError``           torch devices
-``StoreError``            stores of computed arrays on disk (`geofeat.entry_folder.EntryFolder`)
+``StoreError``            stores of computed arrays on disk (`geofeat.storage.entry_folder.EntryFolder`)
 ``CacheError``            the feature cache
 ``SpectralError``         the Laplace-Beltrami eigenproblem
 ``GeodesicMemoryError``   an all-pairs geodesic matrix that does not fit in memory
@@ -83,7 +83,7 @@ class DeviceError(GeofeatError, ValueError):
 
 
 class StoreError(GeofeatError, OSError):
-    """A store of computed arrays on disk (`geofeat.entry_folder.EntryFolder`) cannot be read, written or cleared."""
+    """A store of computed arrays on disk (`geofeat.storage.entry_folder.EntryFolder`) cannot be read, written or cleared."""
 
 
 class CacheError(StoreError):

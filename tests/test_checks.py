@@ -17,7 +17,7 @@ def test_expected_replaces_the_default_wording():
 
 
 def test_boundary_checks_accept_numpy_scalars_and_refuse_bools():
-    from geofeat.adapters.diffusion_net import DiffusionNet
+    from geofeat.adapters.blocks.diffusion_net import DiffusionNet
     from geofeat.backbones.lora import LoraSettings
     from geofeat.errors import BackboneError, DiffusionNetError
 

@@ -15,10 +15,10 @@ import pytest
 from shapes import bumpy, free_port, write_off
 
 import geofeat
-from geofeat import distributed
 from geofeat.apps.cli import main
 from geofeat.apps.extract import ExportSpec, ShapeSource, dataset_shapes, extract, folder_shapes, parse_params
 from geofeat.errors import ExtractError
+from geofeat.runtime import distributed
 
 PARAMS = ["--param", "n_eig=12", "--param", "n_descr=8"]
 KW = {"n_eig": 12, "n_descr": 8}

@@ -79,7 +79,7 @@ def test_missing_dependency_through_the_registry():
 
 
 def test_the_three_registries_share_it():
-    from geofeat.adapters.heads import head_class
+    from geofeat.adapters.head_registry import head_class
     from geofeat.datasets.registry import load_dataset
     from geofeat.descriptors.registry import descriptor_class
 

@@ -43,7 +43,7 @@ from cache_writers import N_SHARED_KEYS, write_shared_and_own_keys
 from shapes import REPO, bumpy, sphere
 
 import geofeat
-import geofeat.pretrained
+import geofeat.storage.pretrained
 from geofeat import FeatureCache, Mesh
 from geofeat.apps.cli import main as cli_main
 from geofeat.backbones import load_backbone
@@ -456,7 +456,7 @@ def cache_entry_is_synced(ctx: Ctx) -> bool:
 
 
 def atomic_write_is_synced(ctx: Ctx) -> bool:
-    from geofeat.files import atomic_write
+    from geofeat.storage.files import atomic_write
 
     events = fsync_log(ctx)
     target = atomic_write(ctx.tmp / "sub" / "a.txt", lambda p: p.write_text("content"))
@@ -1353,12 +1353,12 @@ THIRD_PASS += [
 
 def save_times(folder: Path, n: int) -> None:
     for value in range(1, n + 1):
-        geofeat.pretrained.save_pretrained(folder, "toy", {"value": value}, {"w": torch.full((64,), float(value))}, durable=False)
+        geofeat.storage.pretrained.save_pretrained(folder, "toy", {"value": value}, {"w": torch.full((64,), float(value))}, durable=False)
 
 
 def torn_loads(ctx: Ctx) -> int:
     """Loads whose config and weights came from different saves, while another process saves the folder 60 times."""
-    from geofeat.pretrained import from_pretrained, save_pretrained
+    from geofeat.storage.pretrained import from_pretrained, save_pretrained
 
     folder = save_pretrained(ctx.tmp / "m", "toy", {"value": 0}, {"w": torch.zeros(64)})
     writer = mp.get_context("fork").Process(target=save_times, args=(folder, 60))
@@ -1622,7 +1622,7 @@ def run_folder_as_checkpoint(ctx: Ctx):
 
 def swap_killed_between_renames(ctx: Ctx) -> int:
     """A folder a killed save left set aside (its new content not yet in place): a load restores and reads it."""
-    from geofeat.pretrained import from_pretrained, save_pretrained
+    from geofeat.storage.pretrained import from_pretrained, save_pretrained
 
     folder = save_pretrained(ctx.tmp / "m", "toy", {"value": 7}, {"w": torch.full((4,), 7.0)})
     dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)

@@ -66,8 +66,8 @@ def test_pyfm_snippet_gives_pyfm_own_wks_map(faust_dir, monkeypatch):
 
 def test_diffusionnet_snippet_feeds_a_diffusionnet(faust_mesh):
     """The example's tensors in, geofeat features out, accepted by a DiffusionNet as its input."""
-    from geofeat.adapters.diffusion_net import DiffusionNet
-    from geofeat.adapters.operators import surface_operators
+    from geofeat.adapters.blocks.diffusion_net import DiffusionNet
+    from geofeat.adapters.blocks.operators import surface_operators
 
     verts = torch.tensor(faust_mesh.verts, dtype=torch.float32)  # what the example's dataset holds
     faces = torch.tensor(faust_mesh.faces)

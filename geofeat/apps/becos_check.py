@@ -42,7 +42,7 @@ from geofeat.datasets.becos import (
 )
 from geofeat.errors import DatasetError, GeofeatError
 from geofeat.mesh import load_mesh
-from geofeat.progress import progress_bar
+from geofeat.runtime.progress import progress_bar
 
 log = logging.getLogger(__name__)
 

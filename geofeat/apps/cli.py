@@ -2,7 +2,7 @@
 
 Help texts are plain text (no markup): `build_parser` holds them, and the settings of
 ``train-geolora`` take theirs from the `geofeat.train.config.TrainConfig` docstring.
-Progress bars are drawn only when stderr is a terminal (`geofeat.progress`); ``--no-progress``
+Progress bars are drawn only when stderr is a terminal (`geofeat.runtime.progress`); ``--no-progress``
 hides them there too.
 """
 
@@ -21,9 +21,9 @@ import textwrap
 from pathlib import Path
 
 from geofeat.descriptors.cache import FeatureCache
-from geofeat.entry_folder import EntryFolder
 from geofeat.errors import ExtractError, GeofeatError, StoreError
-from geofeat.progress import hidden_progress
+from geofeat.runtime.progress import hidden_progress
+from geofeat.storage.entry_folder import EntryFolder
 
 #: What ``geofeat --help`` says about the command (plain text: argparse prints it as it is).
 DESCRIPTION = (
@@ -335,7 +335,7 @@ def _add_train_flags(parser: argparse.ArgumentParser) -> None:
 
 
 def _train_command(args: argparse.Namespace) -> int:
-    from geofeat import distributed
+    from geofeat.runtime import distributed
     from geofeat.train.config import TrainConfig
     from geofeat.train.trainer import GeoLoraTrainer
 
@@ -353,8 +353,8 @@ def _train_command(args: argparse.Namespace) -> int:
 
 
 def _extract_command(args: argparse.Namespace) -> int:
-    from geofeat import distributed
     from geofeat.apps.extract import ExportSpec, dataset_shapes, default_manifest_path, extract, folder_shapes, parse_params
+    from geofeat.runtime import distributed
 
     params = parse_params(args.param or [])
     if args.data is not None:

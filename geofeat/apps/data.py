@@ -27,8 +27,8 @@ import numpy as np
 from geofeat.datasets.records import ShapePair
 from geofeat.datasets.registry import dataset_description, dataset_options, load_dataset
 from geofeat.errors import DatasetError, GeofeatError, UnknownSplitError
-from geofeat.progress import progress_bar
 from geofeat.registry import canonical_name
+from geofeat.runtime.progress import progress_bar
 
 #: Meshes kept in memory while checking (loaders that take ``mesh_cache_size``).
 MESH_CACHE_SIZE = 64

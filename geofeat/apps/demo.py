@@ -15,7 +15,7 @@ from geofeat.descriptors.compute import compute
 from geofeat.descriptors.registry import make_descriptor
 from geofeat.geometry.spectral import clear_basis_cache
 from geofeat.mesh import Mesh
-from geofeat.progress import progress_bar
+from geofeat.runtime.progress import progress_bar
 
 
 @dataclass(frozen=True)
@@ -68,7 +68,7 @@ def run_demo(cache_dir, seed: int = 0, progress: bool = True) -> list[DemoRow]:
     seed : int
         Seed of the surface's waves and of the rotation.
     progress : bool
-        Show a progress bar over the descriptors (on a terminal only, see `geofeat.progress`).
+        Show a progress bar over the descriptors (on a terminal only, see `geofeat.runtime.progress`).
 
     Returns
     -------

@@ -39,7 +39,6 @@ import h5py
 import numpy as np
 import torch
 
-from geofeat import distributed
 from geofeat._version import __version__
 from geofeat.checks import check_integer, parse_key_values
 from geofeat.descriptors.base import Descriptor
@@ -47,8 +46,9 @@ from geofeat.descriptors.cache import MANIFEST_SUFFIX, FeatureCache
 from geofeat.descriptors.compute import Computed, compute_each, default_prefetch
 from geofeat.descriptors.registry import make_descriptor
 from geofeat.errors import ExtractError, GeofeatError
-from geofeat.files import atomic_write, probe_writable
 from geofeat.mesh import MESH_SUFFIXES, Mesh, load_mesh
+from geofeat.runtime import distributed
+from geofeat.storage.files import atomic_write, probe_writable
 
 log = logging.getLogger(__name__)
 
@@ -474,7 +474,7 @@ def extract(
         `geofeat.descriptors.compute.compute_each`, which also gives the memory it costs).
         The features and the records are the same whatever its value.
     progress : bool
-        Show a progress bar (rank 0's shard; on a terminal only, see `geofeat.progress`).
+        Show a progress bar (rank 0's shard; on a terminal only, see `geofeat.runtime.progress`).
     on_record : callable, optional
         Called with every record of this rank as it is made.
 

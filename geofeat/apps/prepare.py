@@ -31,7 +31,7 @@ from geofeat.datasets.becos import (
     SETTINGS,
 )
 from geofeat.errors import DatasetError
-from geofeat.files import probe_writable
+from geofeat.storage.files import probe_writable
 
 log = logging.getLogger(__name__)
 

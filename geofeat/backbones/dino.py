@@ -36,9 +36,9 @@ import torch.nn.functional as F
 
 from geofeat.backbones.convert import convert_official, require_transformers, unwrap_official_checkpoint
 from geofeat.checks import check_integer
-from geofeat.devices import resolve_device
 from geofeat.errors import BackboneError
-from geofeat.safe_load import is_unsafe_pickle_error, load_torch_file, unsafe_pickle_message
+from geofeat.runtime.devices import resolve_device
+from geofeat.storage.safe_load import is_unsafe_pickle_error, load_torch_file, unsafe_pickle_message
 
 if TYPE_CHECKING:
     from transformers import PreTrainedModel

@@ -10,7 +10,7 @@ One adapter (peft's ``"default"``) serves full and partial shapes alike (siamese
 The low-rank update of a projection ``W`` (out, in) is ``W + (alpha / rank) * B @ A`` with
 ``A`` (rank, in) and ``B`` (out, rank).
 
-Adapter folders are written by `geofeat.pretrained.save_pretrained` (kind ``"lora_adapter"``,
+Adapter folders are written by `geofeat.storage.pretrained.save_pretrained` (kind ``"lora_adapter"``,
 the layout of heads and trainer checkpoints too):
 
 ``weights.safetensors``
@@ -53,9 +53,9 @@ from torch import Tensor
 from geofeat.backbones.dino import DinoBackbone, state_dict_digest
 from geofeat.checks import check_integer, check_number
 from geofeat.errors import BackboneError, MissingDependencyError
-from geofeat.jsonconfig import JsonConfig
-from geofeat.pretrained import Pretrained, from_pretrained, save_pretrained
-from geofeat.safe_load import load_torch_file
+from geofeat.storage.jsonconfig import JsonConfig
+from geofeat.storage.pretrained import Pretrained, from_pretrained, save_pretrained
+from geofeat.storage.safe_load import load_torch_file
 
 logger = logging.getLogger(__name__)
 
@@ -77,7 +77,7 @@ __all__ = [
     "upgrade_adapter",
 ]
 
-#: The `geofeat.pretrained` kind of adapter folders (trainer checkpoints included).
+#: The `geofeat.storage.pretrained` kind of adapter folders (trainer checkpoints included).
 ADAPTER_KIND = "lora_adapter"
 #: Files of the older adapter layout, which `upgrade_adapter` rewrites.
 _OLD_CONFIG_FILE, _OLD_WEIGHTS_FILE = "adapter_config.json", "adapter.safetensors"
@@ -113,7 +113,7 @@ def _require_peft() -> Any:
 class LoraSettings(JsonConfig):
     """LoRA hyper-parameters, plus free-form training settings stored with the adapter.
 
-    A `geofeat.jsonconfig.JsonConfig`: `JsonConfig.save` / `JsonConfig.load` write and read it as a JSON file.
+    A `geofeat.storage.jsonconfig.JsonConfig`: `JsonConfig.save` / `JsonConfig.load` write and read it as a JSON file.
 
     Parameters
     ----------
@@ -348,14 +348,14 @@ def save_adapter(
     *,
     extra_files: Mapping[str, Any] | None = None,
 ) -> Path:
-    """Save the backbone's LoRA adapter as a `geofeat.pretrained` folder (``config.json`` + ``weights.safetensors``).
+    """Save the backbone's LoRA adapter as a `geofeat.storage.pretrained` folder (``config.json`` + ``weights.safetensors``).
 
     Parameters
     ----------
     backbone : DinoBackbone
         A backbone with LoRA (`add_lora`, `load_adapter` or `load_official_lora`).
     folder : str or os.PathLike
-        Created if needed; an adapter (or any folder written by `geofeat.pretrained.save_pretrained`)
+        Created if needed; an adapter (or any folder written by `geofeat.storage.pretrained.save_pretrained`)
         there is replaced whole and atomically; a folder holding other files is refused.
     settings : LoraSettings, optional
         Its ``training`` dict is stored; its rank, alpha and dropout must agree with the adapter
@@ -692,7 +692,7 @@ def save_official_lora(backbone: DinoBackbone, path: str | os.PathLike) -> Path:
     -------
     pathlib.Path
     """
-    from geofeat.files import atomic_write
+    from geofeat.storage.files import atomic_write
 
     state = official_lora_state_dict(backbone)
     return atomic_write(Path(path), lambda tmp: torch.save(state, tmp))

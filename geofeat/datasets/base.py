@@ -24,8 +24,8 @@ import numpy as np
 
 from geofeat.datasets.records import PROTOCOLS, ShapePair
 from geofeat.errors import DatasetError, UnknownSplitError
-from geofeat.lru import LRUCache
 from geofeat.mesh import Mesh, load_mesh
+from geofeat.storage.lru import LRUCache
 
 log = logging.getLogger(__name__)
 

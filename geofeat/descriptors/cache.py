@@ -6,7 +6,7 @@ Layout: ``<root>/<key[:2]>/<key>.h5`` holding the dataset ``features`` and attri
 Why one file per entry rather than one big HDF5 file: HDF5 is not crash-safe while a file
 is open for writing, and it cannot be written by several processes at once. A per-entry
 file is written under a temporary name in the same directory, flushed to disk, then
-renamed over its final name (`geofeat.files.atomic_write`: ``os.replace``, atomic on POSIX
+renamed over its final name (`geofeat.storage.files.atomic_write`: ``os.replace``, atomic on POSIX
 and Windows). Readers see the whole entry or none; a killed writer leaves at most a
 temporary file (``.<key>.h5.<random>.tmp`` beside the entry), which
 `FeatureCache.verify` and `FeatureCache.clear` sweep away; entries written before are
@@ -38,10 +38,10 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from geofeat import config
-from geofeat.entry_folder import EntryFolder, StoreInfo, array_crc32
 from geofeat.errors import CacheError
-from geofeat.files import atomic_write, probe_writable
+from geofeat.storage import cache_folder
+from geofeat.storage.entry_folder import EntryFolder, StoreInfo, array_crc32
+from geofeat.storage.files import atomic_write, probe_writable
 
 log = logging.getLogger(__name__)
 
@@ -52,7 +52,7 @@ CacheInfo = StoreInfo
 TMP_PREFIX = ".tmp-"
 #: File name of an entry: the 64 hex digits of its key and ``.h5``.
 _ENTRY_NAME = re.compile(r"[0-9a-f]{64}\.h5")
-#: Temporary file of an entry being written (`geofeat.files.atomic_write`): ``.<entry name>.<random>.tmp``.
+#: Temporary file of an entry being written (`geofeat.storage.files.atomic_write`): ``.<entry name>.<random>.tmp``.
 _ENTRY_TEMPORARY = re.compile(r"\.[0-9a-f]{64}\.h5\.[^/]+\.tmp")
 #: Ending of the manifests that ``geofeat extract`` writes at the top of the store: not entries, left alone.
 MANIFEST_SUFFIX = ".manifest.json"
@@ -68,7 +68,7 @@ def cache_key(mesh_hash: str, descriptor: str, params_json: str, version: str, w
 
 
 def _checksum(array: np.ndarray) -> str:
-    """The entry's checksum attribute: ``"crc32:"`` and `geofeat.entry_folder.array_crc32` in hex."""
+    """The entry's checksum attribute: ``"crc32:"`` and `geofeat.storage.entry_folder.array_crc32` in hex."""
     return f"crc32:{array_crc32(array):08x}"
 
 
@@ -91,14 +91,14 @@ class FeatureCache(EntryFolder):
     Parameters
     ----------
     root : str or PathLike, optional
-        Directory of the store; default ``geofeat.config.cache_dir() / "features"``.
+        Directory of the store; default ``geofeat.storage.cache_folder.cache_dir() / "features"``.
     """
 
     label = "the feature cache"
     error = CacheError
 
     def __init__(self, root: str | os.PathLike | None = None):
-        self.root = Path(root) if root is not None else config.cache_dir() / "features"
+        self.root = Path(root) if root is not None else cache_folder.cache_dir() / "features"
 
     def __repr__(self) -> str:
         return f"FeatureCache({str(self.root)!r})"

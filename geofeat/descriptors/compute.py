@@ -26,8 +26,8 @@ from geofeat.descriptors.cache import FeatureCache, cache_key
 from geofeat.descriptors.registry import as_descriptor
 from geofeat.errors import CacheError, GeofeatError
 from geofeat.mesh import Mesh, as_mesh
-from geofeat.processes import end_with_parent
-from geofeat.progress import progress_bar
+from geofeat.runtime.processes import end_with_parent
+from geofeat.runtime.progress import progress_bar
 
 log = logging.getLogger(__name__)
 

@@ -22,10 +22,9 @@ from geofeat.checks import check_boolean, check_choice, check_integer
 from geofeat.descriptors.base import Descriptor
 from geofeat.errors import DescriptorError
 from geofeat.mesh import Mesh
-from geofeat.render import make_cameras, multiview_features
-from geofeat.render.backproject import BACKPROJECT_MODES
-from geofeat.render.cameras import CAMERA_LAYOUTS, Cameras
-from geofeat.render.multiview import (
+from geofeat.multiview import multiview_features
+from geofeat.multiview.backproject import BACKPROJECT_MODES
+from geofeat.multiview.pipeline import (
     FILL_MODES,
     RECIPES,
     FeatureRecipe,
@@ -33,6 +32,8 @@ from geofeat.render.multiview import (
     auto_batch_size,
     render_batches,
 )
+from geofeat.render import make_cameras
+from geofeat.render.cameras import CAMERA_LAYOUTS, Cameras
 
 #: Views and render size of each preset when ``views`` / ``image_size`` are not given
 #: (``image_size`` None under "default": the kind's own, 448 for DINOv2 and 512 for DINOv3).
@@ -53,7 +54,7 @@ class DinoFeatures(Descriptor):
     preset : str
         ``"default"`` (geofeat's recipe), ``"reference"`` (the official GeoLoRA code's, stage
         by stage) or, for ``dinov2``, ``"dsmk"`` (DeepShapeMatchingKit's); see
-        `geofeat.render.multiview.RECIPES`. The parameters below that are None take the
+        `geofeat.multiview.pipeline.RECIPES`. The parameters below that are None take the
         preset's value; the others override it.
     weights : str or None
         A Hugging Face model folder, an official Meta checkpoint (``.pth``) or a Hub id; None
@@ -77,7 +78,7 @@ class DinoFeatures(Descriptor):
     batch_size : int or None
         Views rendered and encoded together; None: as many as the GPU's free memory allows
         (all 49 views at 512 x 512 of a ViT-B on a large GPU), 4 on the CPU
-        (`geofeat.render.multiview.auto_batch_size`). It does not change the features.
+        (`geofeat.multiview.pipeline.auto_batch_size`). It does not change the features.
     amp : {"auto", "on", "off"}
         Run the backbone under bfloat16 autocast (``"on"``) or in float32 (``"off"``);
         ``"auto"``: bfloat16 on CUDA under the ``"default"`` preset, float32 on the CPU and
@@ -94,7 +95,7 @@ class DinoFeatures(Descriptor):
     kind: ClassVar[str] = ""
     default_image_size: ClassVar[int] = 0
     presets: ClassVar[tuple[str, ...]] = ("default", "reference")
-    # 2: patch features sampled at the foreground pixels (geofeat.render.multiview) instead of
+    # 2: patch features sampled at the foreground pixels (geofeat.multiview.pipeline) instead of
     # read from upsampled whole images; equal up to float32 rounding (see README).
     # 3: presets (the "reference" recipe of the official GeoLoRA code).
     # 4: amp (bfloat16 backbone) in the key; batch_size out of it (it does not change the features).
@@ -173,7 +174,7 @@ class DinoFeatures(Descriptor):
         """Whether the backbone runs under bfloat16 autocast (see ``amp``)."""
         if self.amp != "auto":
             return self.amp == "on"
-        from geofeat.devices import resolve_device
+        from geofeat.runtime.devices import resolve_device
 
         return self.preset == "default" and resolve_device(self.device).type == "cuda"
 

@@ -38,8 +38,8 @@ from geofeat.evaluation import metrics
 from geofeat.geometry.geodesic import area_normalisation
 from geofeat.geometry.geodesic_memory import GeodesicEntries, evaluation_distances, memory_limit
 from geofeat.geometry.geodesic_store import GeodesicStore
-from geofeat.processes import end_with_parent
-from geofeat.progress import progress_bar
+from geofeat.runtime.processes import end_with_parent
+from geofeat.runtime.progress import progress_bar
 
 log = logging.getLogger(__name__)
 

@@ -32,10 +32,10 @@ import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components, dijkstra
 
 from geofeat.errors import GeodesicMemoryError, MeshError
-from geofeat.lru import LRUCache
 from geofeat.mesh import Mesh
-from geofeat.progress import progress_bar
-from geofeat.sizes import format_size
+from geofeat.runtime.progress import progress_bar
+from geofeat.storage.lru import LRUCache
+from geofeat.storage.sizes import format_size
 from geofeat.topology import unique_edges, vertex_components
 
 log = logging.getLogger(__name__)

@@ -28,7 +28,7 @@ from geofeat.geometry.geodesic import (
 )
 from geofeat.geometry.geodesic_store import GeodesicStore
 from geofeat.mesh import Mesh
-from geofeat.sizes import format_size, parse_size
+from geofeat.storage.sizes import format_size, parse_size
 
 __all__ = ["MEMORY_ENV", "MEMORY_FRACTION", "GeodesicEntries", "available_memory", "evaluation_distances", "memory_limit"]
 
@@ -76,7 +76,7 @@ def memory_limit(limit: int | str | None = None) -> tuple[int | None, str]:
     Parameters
     ----------
     limit : int or str, optional
-        Bytes (or ``"4G"``, see `geofeat.sizes.parse_size`). Default: ``$GEOFEAT_GEODESIC_MEMORY``, else
+        Bytes (or ``"4G"``, see `geofeat.storage.sizes.parse_size`). Default: ``$GEOFEAT_GEODESIC_MEMORY``, else
         `MEMORY_FRACTION` of `available_memory`.
 
     Returns

@@ -15,13 +15,13 @@ from pathlib import Path
 
 import numpy as np
 
-from geofeat.config import cache_dir
-from geofeat.entry_folder import EntryFolder, array_crc32
 from geofeat.errors import MeshError, StoreError
-from geofeat.files import atomic_write, probe_writable
 from geofeat.geometry.geodesic import geodesic_matrix
 from geofeat.mesh import Mesh
-from geofeat.sizes import format_size, parse_size
+from geofeat.storage.cache_folder import cache_dir
+from geofeat.storage.entry_folder import EntryFolder, array_crc32
+from geofeat.storage.files import atomic_write, probe_writable
+from geofeat.storage.sizes import format_size, parse_size
 
 __all__ = ["STORE_DTYPES", "STORE_LIMIT", "STORE_LIMIT_ENV", "STORE_VERSION", "GeodesicStore"]
 
@@ -40,7 +40,7 @@ STORE_DTYPES = ("float32", "float16")
 #: File name of an entry (any precision and layout version): mesh hash, dtype, version, CRC-32.
 _ENTRY_PATTERN = r"[0-9a-f]{64}-(float32|float16)-v[0-9]+-([0-9a-f]{8})\.npy"
 _STORE_ENTRY = re.compile(_ENTRY_PATTERN)
-#: Temporary file of an entry being written (`geofeat.files.atomic_write`): ``.<entry name>.<random>.tmp``.
+#: Temporary file of an entry being written (`geofeat.storage.files.atomic_write`): ``.<entry name>.<random>.tmp``.
 _STORE_TEMPORARY = re.compile(rf"\.{_ENTRY_PATTERN}\.[^/]+\.tmp")
 
 
@@ -58,7 +58,7 @@ class GeodesicStore(EntryFolder):
 
     An entry is named ``<mesh hash>-<dtype>-v<version>-<crc>.npy``: a plain NumPy file whose
     name carries the CRC-32 of its array (dtype, shape and bytes). It is written through a
-    temporary file and renamed (`geofeat.files.atomic_write`), so a reader sees a whole
+    temporary file and renamed (`geofeat.storage.files.atomic_write`), so a reader sees a whole
     entry or none, with several processes too. Every read checks shape, dtype and checksum;
     a damaged entry (truncated, overwritten, bit rot) is logged, deleted and recomputed,
     never returned. Writes are not ``fsync``-ed: an entry that a power cut left empty or
@@ -74,7 +74,7 @@ class GeodesicStore(EntryFolder):
     Parameters
     ----------
     folder : str or os.PathLike, optional
-        Default ``<geofeat cache>/geodesics`` (`geofeat.config.cache_dir`: ``$GEOFEAT_CACHE_DIR``
+        Default ``<geofeat cache>/geodesics`` (`geofeat.storage.cache_folder.cache_dir`: ``$GEOFEAT_CACHE_DIR``
         or `geofeat.set_cache_dir` move it).
     dtype : {"float32", "float16"}
         ``"float32"``: exactly the matrix of `geodesic_matrix` (evaluation; 4 V^2 bytes, 100 MB
@@ -83,7 +83,7 @@ class GeodesicStore(EntryFolder):
     connected : bool
         Refuse meshes in several pieces (`MeshError`): their matrices hold ``inf``.
     limit : int or str, optional
-        Most bytes the folder's entries may take together (``"4G"``, see `geofeat.sizes.parse_size`).
+        Most bytes the folder's entries may take together (``"4G"``, see `geofeat.storage.sizes.parse_size`).
         Default ``$GEOFEAT_GEODESIC_STORE_LIMIT``, else `STORE_LIMIT` (4 GiB). Before a new
         entry is written, the least recently used entries (by modification time, which
         every read refreshes) are deleted until it fits. An entry larger than the limit, or
@@ -122,7 +122,7 @@ class GeodesicStore(EntryFolder):
 
     @property
     def root(self) -> Path:
-        """The folder (`geofeat.entry_folder.EntryFolder`'s name for it)."""
+        """The folder (`geofeat.storage.entry_folder.EntryFolder`'s name for it)."""
         return self.folder
 
     def _scan(self) -> tuple[list[Path], list[Path], list[Path]]:

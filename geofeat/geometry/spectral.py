@@ -15,9 +15,9 @@ from scipy.spatial import cKDTree
 from geofeat.checks import check_integer
 from geofeat.errors import SpectralError
 from geofeat.geometry.laplacian import laplacian
-from geofeat.lru import LRUCache
 from geofeat.mesh import Mesh
-from geofeat.progress import progress_bar
+from geofeat.runtime.progress import progress_bar
+from geofeat.storage.lru import LRUCache
 
 log = logging.getLogger(__name__)
 

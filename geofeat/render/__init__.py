@@ -7,8 +7,8 @@
 (torch.Size([9, 224, 224, 3]), torch.Size([9, 224, 224]))
 
 The rasterizer and the shader run on ``cameras.device`` (CPU or CUDA) with no compiled code.
-`pyrender_depth` needs the ``gl`` extra and is imported lazily. `multiview_features` is the
-one render -> backbone -> back-projection path of the DINO descriptors and the GeoLoRA trainer.
+`pyrender_depth` needs the ``gl`` extra and is imported lazily. The features lifted from these
+renders to the vertices are `geofeat.multiview`'s.
 """
 
 from geofeat.render.cameras import (
@@ -25,7 +25,6 @@ from geofeat.render.cameras import (
     official_grid_cameras,
     orbit_cameras,
 )
-from geofeat.render.multiview import MultiviewFeatures, multiview_features
 from geofeat.render.pyrender_backend import gl_platform, pyrender_depth
 from geofeat.render.rasterizer import Fragments, MeshRasterizer, RasterSettings, rasterize
 from geofeat.render.shading import PhongSettings, Rendering, render_phong, shade_phong, vertex_normals
@@ -37,7 +36,6 @@ __all__ = [
     "Cameras",
     "Fragments",
     "MeshRasterizer",
-    "MultiviewFeatures",
     "PhongSettings",
     "ProjectedPoints",
     "RasterSettings",
@@ -47,7 +45,6 @@ __all__ = [
     "gl_platform",
     "look_at_rotation",
     "make_cameras",
-    "multiview_features",
     "official_grid_angles",
     "official_grid_cameras",
     "orbit_cameras",

@@ -70,9 +70,9 @@ from typing import NamedTuple
 import numpy as np
 import torch
 
-from geofeat.devices import resolve_device
 from geofeat.errors import RenderError
 from geofeat.mesh import Mesh
+from geofeat.runtime.devices import resolve_device
 
 #: Camera distance as a multiple of the bounding-box diagonal (GeoLoRA / Diff3f ``scaling_factor``).
 OFFICIAL_DISTANCE_FACTOR = 0.65

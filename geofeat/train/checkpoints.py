@@ -2,12 +2,12 @@
 
 A run folder (``config.out``) holds ``config.json`` (the `TrainConfig`), ``log.csv`` (one row
 per step) and ``checkpoints/step_NNNNNNN/``. A checkpoint is one LoRA adapter folder of
-`geofeat.pretrained` (``config.json`` of kind ``"lora_adapter"`` + ``weights.safetensors``,
+`geofeat.storage.pretrained` (``config.json`` of kind ``"lora_adapter"`` + ``weights.safetensors``,
 what `geofeat.backbones.lora.load_adapter` and the ``geolora`` descriptor load) with one extra
 file, ``trainer_state.pt`` (step, sample position, rank count, optimizer state), and for the
 ``reference`` preset's adapters a second one, ``geolora_release.pth``: the adapter in the
 layout of the official release, which the official code loads. It is written
-whole into a temporary sibling folder, ``fsync``-ed and renamed (`geofeat.files.atomic_folder`),
+whole into a temporary sibling folder, ``fsync``-ed and renamed (`geofeat.storage.files.atomic_folder`),
 so an interruption never leaves a half-written one; the log rows up to a checkpoint's step
 are on disk before the checkpoint is.
 
@@ -39,9 +39,9 @@ import torch
 from geofeat.backbones import DinoBackbone
 from geofeat.backbones.lora import ADAPTER_KIND, LoraSettings, official_lora_state_dict, save_adapter
 from geofeat.errors import DamagedCheckpointError, TrainingError
-from geofeat.files import atomic_write, remove_dead_temporary_folders
-from geofeat.pretrained import CONFIG_FILE, from_pretrained
-from geofeat.safe_load import load_torch_file
+from geofeat.storage.files import atomic_write, remove_dead_temporary_folders
+from geofeat.storage.pretrained import CONFIG_FILE, from_pretrained
+from geofeat.storage.safe_load import load_torch_file
 
 log = logging.getLogger(__name__)
 
@@ -100,7 +100,7 @@ def latest_checkpoint(run: str | os.PathLike) -> Path | None:
 def remove_stale_temporary_folders(run: str | os.PathLike) -> list[Path]:
     """Delete the temporary folders of checkpoint saves whose process is gone.
 
-    `geofeat.files.remove_dead_temporary_folders` on ``<run>/checkpoints``: the folders
+    `geofeat.storage.files.remove_dead_temporary_folders` on ``<run>/checkpoints``: the folders
     ``.step_NNNNNNN.tmp-<pid>-...`` of killed saves (and those of the older trainer,
     ``.step_NNNNNNN.tmp-<pid>``).
 

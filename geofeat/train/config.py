@@ -17,13 +17,13 @@ from typing import Any, ClassVar
 from geofeat.checks import canonical, is_boolean, is_finite_number, is_integer
 from geofeat.errors import TrainingError
 from geofeat.geometry.partial import PARTIAL_KINDS
-from geofeat.jsonconfig import JsonConfig
+from geofeat.storage.jsonconfig import JsonConfig
 
 __all__ = ["LOSSES", "PARTIAL_GENERATORS", "RESUMABLE_CHANGES", "TrainConfig"]
 
 LOSSES = ("geodesic", "plain")
 AMP_MODES = ("auto", "on", "off")
-#: Feature recipes a run can train with (`geofeat.render.multiview.RECIPES`).
+#: Feature recipes a run can train with (`geofeat.multiview.pipeline.RECIPES`).
 TRAIN_PRESETS = ("default", "reference")
 #: Partial-shape generators of training: geofeat's (`geofeat.geometry.partial`) or GeoLoRA's own
 #: (`geofeat.geometry.partial_reference`, equal draw by draw).
@@ -38,7 +38,7 @@ RESUMABLE_CHANGES = frozenset(
 class TrainConfig(JsonConfig):
     """Every setting of ``geofeat train-geolora``.
 
-    ``config.json`` of a run; a `geofeat.jsonconfig.JsonConfig`, so a key of a settings file
+    ``config.json`` of a run; a `geofeat.storage.jsonconfig.JsonConfig`, so a key of a settings file
     that names no setting (``wandb_project``, say) is warned about and saved back, not lost.
 
     Parameters
@@ -70,7 +70,7 @@ class TrainConfig(JsonConfig):
         Cameras of the official grid for the full shape and for each partial shape.
     camera_layout : {"official", "uniform"}
     preset : {"default", "reference"}
-        Recipe of the multi-view features (`geofeat.render.multiview.RECIPES`):
+        Recipe of the multi-view features (`geofeat.multiview.pipeline.RECIPES`):
         ``"reference"`` computes them as the official GeoLoRA code does, stage by stage, and
         gives each block one LoRA ``A`` shared by the query, key and value projections, as the
         official LoRA on the fused ``qkv`` has (`geofeat.backbones.LoraSettings.shared_a`).

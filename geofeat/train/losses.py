@@ -10,7 +10,7 @@ partial vertex ``p`` with a ground-truth full vertex ``g(p)`` is a query; its lo
 
 and the loss is the cross-entropy with the positive as the target, averaged over the
 queries. ``d`` is the geodesic distance on the full shape divided by the square root of its
-surface area (the trainer's `geofeat.train.shapes.TorchGeodesicStore`). Only the partial -> full direction is used and
+surface area (the trainer's `geofeat.train.geodesics.TorchGeodesicStore`). Only the partial -> full direction is used and
 every full vertex takes part (no sub-sampling).
 
 This follows the released GeoLoRA training code (vikiehm/geo-lora: the weighted loss in
@@ -92,7 +92,7 @@ def geodesic_point_info_nce(
         Ground-truth full vertex of each partial vertex, ``-1`` for none (ignored).
     geodesic_full : torch.Tensor, shape (F, F), floating
         Geodesic distances on the full shape divided by ``sqrt(area)``
-        (`geofeat.train.shapes.TorchGeodesicStore.load`). Only the rows of ground-truth vertices are read; they must
+        (`geofeat.train.geodesics.TorchGeodesicStore.load`). Only the rows of ground-truth vertices are read; they must
         be finite and non-negative. Any device: the rows used are moved to the features'.
     seen_partial : torch.Tensor, shape (P,), bool, optional
         Partial vertices seen in at least one view; the others are no query (their features
@@ -207,7 +207,7 @@ def _negative_weights(geodesic: torch.Tensor, batch: _Batch, offset: float) -> t
     if not torch.isfinite(rows).all() or (rows < 0).any():
         raise TrainingError(
             "geodesic_full has infinite, NaN or negative distances in the rows of ground-truth vertices; "
-            "expected finite distances >= 0 on a connected full shape (see geofeat.train.shapes.TorchGeodesicStore)."
+            "expected finite distances >= 0 on a connected full shape (see geofeat.train.geodesics.TorchGeodesicStore)."
         )
     dtype = torch.promote_types(batch.query.dtype, torch.float32)
     return rows.to(device=batch.query.device, dtype=dtype).add_(offset)

@@ -18,7 +18,7 @@ so any process can make any sample and get the same arrays to the bit:
 - under ``config.generators() == "reference"`` the sample is made as GeoLoRA's training loop
   makes it (`reference_partials`): the draws come from a legacy ``RandomState`` and a torch
   generator, both seeded from ``rng.integers(2**32)``;
-- the geodesic matrix is read from the float16 `geofeat.train.shapes.TorchGeodesicStore`
+- the geodesic matrix is read from the float16 `geofeat.train.geodesics.TorchGeodesicStore`
   (computed and stored when missing) and handed out as stored, float16 on the CPU: the
   device widens it to float32, so the copy to the device moves half the bytes.
 
@@ -57,12 +57,12 @@ from geofeat.errors import GeofeatError, MeshError, TrainingError
 from geofeat.geometry.partial import PartialShape, make_partial
 from geofeat.geometry.partial_reference import cut_partial_reference, draw_holes, holes_partial_reference
 from geofeat.mesh import Mesh, quiet_reports
-from geofeat.processes import end_with_parent
 from geofeat.render.cameras import rotation_about_up
 from geofeat.render.raycast import official_ray_eye, ray_partial_reference
+from geofeat.runtime.processes import end_with_parent
 from geofeat.topology import triangle_areas
 from geofeat.train.config import TrainConfig
-from geofeat.train.shapes import TorchGeodesicStore
+from geofeat.train.geodesics import TorchGeodesicStore
 
 log = logging.getLogger(__name__)
 

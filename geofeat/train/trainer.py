@@ -10,7 +10,7 @@ One step (the GeoLoRA recipe):
 4. render the full shape from ``views_full`` and every partial shape from ``views_partial``
    cameras of the official grid, run the LoRA backbone with gradients on all these views in
    one call, sample its patch features at the foreground pixels and back-project them to
-   each shape, through `geofeat.render.multiview.multiview_features_many`, the path of the
+   each shape, through `geofeat.multiview.pipeline.multiview_features_many`, the path of the
    ``geolora`` descriptor (vertices seen in no view keep zero features);
 5. average the (geodesic-weighted) PointInfoNCE of the partial shapes, back-propagate, clip
    the gradient norm and take an Adam step.
@@ -62,23 +62,24 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from geofeat import distributed
 from geofeat.backbones import DinoBackbone, load_backbone
 from geofeat.backbones.lora import LoraSettings, add_lora, load_adapter
 from geofeat.datasets.records import Match
 from geofeat.errors import TrainingError
 from geofeat.evaluation.protocol import evaluate_pair, summarize
-from geofeat.files import probe_writable
 from geofeat.mesh import Mesh
-from geofeat.progress import progress_bar
+from geofeat.multiview.pipeline import RECIPES, MultiviewFeatures, multiview_features_many
 from geofeat.render import make_cameras
-from geofeat.render.multiview import RECIPES, MultiviewFeatures, multiview_features_many
+from geofeat.runtime import distributed
+from geofeat.runtime.progress import progress_bar
+from geofeat.storage.files import probe_writable
 from geofeat.train import checkpoints
 from geofeat.train.checkpoints import DeferredInterrupt
 from geofeat.train.config import RESUMABLE_CHANGES, TrainConfig
+from geofeat.train.geodesics import TorchGeodesicStore
 from geofeat.train.losses import geodesic_point_info_nce, point_info_nce
 from geofeat.train.samples import PreparedSample, SampleDataset, SamplePrefetcher, resolve_workers, rotate_about_up
-from geofeat.train.shapes import TorchGeodesicStore, load_training_shapes
+from geofeat.train.shapes import load_training_shapes
 
 log = logging.getLogger(__name__)
 
@@ -170,8 +171,8 @@ class GeoLoraTrainer:
 
     Under ``torchrun`` (the variables RANK, WORLD_SIZE, LOCAL_RANK, MASTER_ADDR and
     MASTER_PORT set) the constructor starts the process group unless the caller did
-    (`geofeat.distributed.init_process_group`: NCCL on a GPU, gloo on the CPU), ``device="auto"``
-    (or ``"cuda"``) is the rank's local GPU, and ``self.ranks`` (a `geofeat.distributed.RankInfo`)
+    (`geofeat.runtime.distributed.init_process_group`: NCCL on a GPU, gloo on the CPU), ``device="auto"``
+    (or ``"cuda"``) is the rank's local GPU, and ``self.ranks`` (a `geofeat.runtime.distributed.RankInfo`)
     says which rank this process is; every rank calls ``fit()``.
     """
 
@@ -426,7 +427,7 @@ class GeoLoraTrainer:
     ) -> list[MultiviewFeatures]:
         """`shape_features` of several meshes, their views encoded together in one backbone call.
 
-        `geofeat.render.multiview.multiview_features_many` with the run's settings: a training
+        `geofeat.multiview.pipeline.multiview_features_many` with the run's settings: a training
         step sends the full shape and its partial shapes at once (9 + 2 x 4 views).
 
         Parameters

@@ -5,13 +5,13 @@ import pytest
 import torch
 from shapes import bumpy
 
-from geofeat.adapters import fmap_layers as fl
+from geofeat.adapters.blocks import fmap_layers as fl
+from geofeat.adapters.blocks.operators import surface_operators
 from geofeat.adapters.dpfm import DPFMConfig, DPFMHead
-from geofeat.adapters.dpfm_losses import ground_truth_fmap, weighted_overlap_bce
-from geofeat.adapters.dpfm_sampling import sample_interpolation
+from geofeat.adapters.dpfm.losses import ground_truth_fmap, weighted_overlap_bce
+from geofeat.adapters.dpfm.sampling import sample_interpolation
 from geofeat.adapters.heads import load_head, make_head
 from geofeat.adapters.inputs import ground_truth_overlaps
-from geofeat.adapters.operators import surface_operators
 from geofeat.datasets.records import Match, ShapePair
 from geofeat.errors import HeadError, UnusablePair
 from geofeat.geometry import make_partial

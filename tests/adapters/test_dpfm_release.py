@@ -7,8 +7,8 @@ import pytest
 import torch
 
 from geofeat.adapters.dpfm import DPFMHead
-from geofeat.adapters.dpfm_networks import _MultiHeadAttention
-from geofeat.adapters.dpfm_sampling import ReferenceCandidates, reference_sample_interpolation
+from geofeat.adapters.dpfm.networks import _MultiHeadAttention
+from geofeat.adapters.dpfm.sampling import ReferenceCandidates, reference_sample_interpolation
 from geofeat.adapters.heads import load_head, make_head
 from geofeat.datasets import load_dataset
 from geofeat.errors import HeadError

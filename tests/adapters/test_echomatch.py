@@ -7,10 +7,10 @@ import pytest
 import torch
 from shapes import bumpy
 
-from geofeat.adapters.echomatch import (
-    EchoMatchConfig,
-    EchoMatchHead,
-    EchoMatchNet,
+from geofeat.adapters.echomatch.config import EchoMatchConfig
+from geofeat.adapters.echomatch.head import EchoMatchHead
+from geofeat.adapters.echomatch.networks import EchoMatchNet
+from geofeat.adapters.echomatch.reflection import (
     correspondence_reflection,
     pointmap_matrix,
     reflection_features,

@@ -11,18 +11,11 @@ import pytest
 import torch
 from shapes import bumpy
 
-import geofeat.adapters.echomatch as echomatch
-from geofeat.adapters.echomatch import (
-    EchoMatchConfig,
-    EchoMatchHead,
-    balanced_bce_with_logits,
-    cross_nce_loss,
-    reflection_features,
-    regularized_gt_fmap,
-    sampled_reflection,
-    self_nce_loss,
-    spatial_neighbours,
-)
+import geofeat.adapters.echomatch.head as echomatch
+from geofeat.adapters.echomatch.config import EchoMatchConfig
+from geofeat.adapters.echomatch.head import EchoMatchHead
+from geofeat.adapters.echomatch.losses import balanced_bce_with_logits, cross_nce_loss, regularized_gt_fmap, self_nce_loss
+from geofeat.adapters.echomatch.reflection import reflection_features, sampled_reflection, spatial_neighbours
 from geofeat.adapters.heads import load_head, make_head
 from geofeat.datasets.records import ShapePair
 from geofeat.errors import HeadError

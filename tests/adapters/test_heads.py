@@ -7,9 +7,11 @@ import pytest
 import torch
 from shapes import bumpy
 
-from geofeat.adapters.heads import FunctionalMapHead, HeadConfig, load_head, make_head
+from geofeat.adapters.base import HeadConfig
+from geofeat.adapters.heads import load_head, make_head
 from geofeat.adapters.inputs import input_features
 from geofeat.adapters.learned import LearnedHead
+from geofeat.adapters.matchers import FunctionalMapHead
 from geofeat.datasets.records import Match, ShapePair
 from geofeat.descriptors import compute, make_descriptor
 from geofeat.errors import HeadError, UnusablePair
@@ -48,7 +50,7 @@ def test_head_keeps_recent_features_read_only_and_keyed_by_descriptor_settings()
 
 def test_head_builds_its_descriptor_once_for_every_mesh(monkeypatch):
     """A model-backed descriptor loads its weights when built: a head builds it once, not once per mesh."""
-    import geofeat.adapters.heads as heads_module
+    import geofeat.adapters.base as heads_module
 
     built = []
 
@@ -176,7 +178,7 @@ def test_fit_refuses_a_loss_that_is_not_finite():
 
 
 def test_setting_checks_name_the_setting_and_keep_their_bounds():
-    from geofeat.adapters.heads import check_integers, check_numbers
+    from geofeat.adapters.base import check_integers, check_numbers
 
     config = HeadConfig(n_eig=0, lr=float("inf"))
     with pytest.raises(HeadError, match="test: n_eig must be an integer >= 1; found 0"):
@@ -192,7 +194,7 @@ def test_setting_checks_name_the_setting_and_keep_their_bounds():
 
 def test_head_names_follow_the_registry_rules(monkeypatch):
     from geofeat.adapters import head_registry
-    from geofeat.adapters.heads import NearestNeighbourHead
+    from geofeat.adapters.matchers import NearestNeighbourHead
 
     assert head_registry.head_class("NN") is NearestNeighbourHead
     assert isinstance(make_head(" FMap ", k=10), FunctionalMapHead)

@@ -6,7 +6,7 @@ import torch
 from scipy.spatial import cKDTree
 
 import geofeat
-from geofeat.adapters import functional_maps as fm
+from geofeat.adapters.blocks import functional_maps as fm
 from geofeat.adapters.matchers import fmap_match, nn_match
 from geofeat.errors import FunctionalMapError
 from geofeat.geometry.geodesic import distances_from

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from geofeat.adapters.diffusion_net import DiffusionNet, SpatialGradientFeatures
+from geofeat.adapters.blocks.diffusion_net import DiffusionNet, SpatialGradientFeatures
 from geofeat.adapters.heads import load_head, make_head
 from geofeat.adapters.inputs import normalized_mesh
 from geofeat.adapters.release import check_state, diffusionnet_state

@@ -9,8 +9,9 @@ import torch.nn.functional as F
 from shapes import bumpy
 
 import geofeat
-from geofeat.adapters.functional_maps import nearest_neighbors
-from geofeat.adapters.heads import HeadConfig, load_head, make_head
+from geofeat.adapters.base import HeadConfig
+from geofeat.adapters.blocks.functional_maps import nearest_neighbors
+from geofeat.adapters.heads import load_head, make_head
 from geofeat.adapters.ulrssm import LOSS_TERMS, ULRSSMConfig, ULRSSMHead
 from geofeat.datasets.records import Match, ShapePair
 from geofeat.errors import HeadError

@@ -29,7 +29,7 @@ from geofeat.backbones.lora import (  # noqa: E402
     upgrade_adapter,
 )
 from geofeat.errors import BackboneError, GeofeatError  # noqa: E402
-from geofeat.pretrained import CONFIG_FILE, WEIGHTS_FILE  # noqa: E402
+from geofeat.storage.pretrained import CONFIG_FILE, WEIGHTS_FILE  # noqa: E402
 
 DIM, DEPTH, RANK = 32, 2, 16
 

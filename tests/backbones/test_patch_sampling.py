@@ -7,8 +7,8 @@ from shapes import bumpy
 
 from geofeat.backbones import sample_patch_features, upsample_patch_features
 from geofeat.errors import RenderError
+from geofeat.multiview.backproject import VertexFeatureAccumulator, foreground_pixels
 from geofeat.render import make_cameras, render_phong
-from geofeat.render.backproject import VertexFeatureAccumulator, foreground_pixels
 
 
 @pytest.mark.parametrize("grid_hw, out_hw", [((4, 4), (64, 64)), ((5, 3), (37, 50)), ((8, 8), (8, 8))])

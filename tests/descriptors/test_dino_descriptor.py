@@ -9,7 +9,8 @@ from tiny_models import tiny_dinov3
 from transformers import DINOv3ViTModel
 
 import geofeat
-from geofeat.render import Cameras, make_cameras, multiview_features
+from geofeat.multiview import multiview_features
+from geofeat.render import Cameras, make_cameras
 
 
 @pytest.fixture(scope="module")
@@ -21,8 +22,8 @@ def tiny_dinov3_folder(tmp_path_factory):
 
 def test_identity_backbone_recovers_vertex_positions(faust_mesh):
     """Cameras, rasterizer, depth, unprojection and back-projection together."""
+    from geofeat.multiview.backproject import VertexFeatureAccumulator
     from geofeat.render import render_phong
-    from geofeat.render.backproject import VertexFeatureAccumulator
 
     cameras = make_cameras(faust_mesh, 9, layout="uniform", image_size=192, device="cpu")
     accumulator = VertexFeatureAccumulator(faust_mesh.verts, faust_mesh.faces, 3, mode="ball")
@@ -111,7 +112,7 @@ def test_presets_select_the_recipes_and_keep_explicit_parameters(tiny_dinov3_fol
     """``preset="reference"`` is the reference recipe end to end; explicit parameters override the preset's."""
     from geofeat.backbones import load_backbone
     from geofeat.errors import DescriptorError
-    from geofeat.render.multiview import RECIPES
+    from geofeat.multiview.pipeline import RECIPES
 
     mesh = bumpy(1, 2)
     # on the CPU, as the backbone compared with: device "auto" would take a GPU where there is one

@@ -15,7 +15,7 @@ from geofeat.geometry import geodesic, geodesic_memory
 from geofeat.geometry.geodesic import all_pairs_memory, geodesic_matrix
 from geofeat.geometry.geodesic_memory import GeodesicEntries, evaluation_distances, memory_limit
 from geofeat.geometry.geodesic_store import GeodesicStore
-from geofeat.sizes import parse_size
+from geofeat.storage.sizes import parse_size
 
 
 def two_pieces() -> Mesh:

@@ -6,7 +6,6 @@ import pytest
 import torch
 from shapes import bumpy
 
-from geofeat.devices import resolve_device
 from geofeat.errors import RenderError
 from geofeat.render import (
     Cameras,
@@ -17,6 +16,7 @@ from geofeat.render import (
     official_grid_cameras,
     orbit_cameras,
 )
+from geofeat.runtime.devices import resolve_device
 
 
 def bbox(verts):

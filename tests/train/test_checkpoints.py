@@ -17,7 +17,7 @@ from tiny_models import tiny_dinov3  # noqa: E402
 
 from geofeat.backbones import DinoBackbone, LoraSettings, add_lora, load_adapter, lora_state_dict  # noqa: E402
 from geofeat.errors import DamagedCheckpointError, TrainingError  # noqa: E402
-from geofeat.pretrained import CONFIG_FILE, WEIGHTS_FILE  # noqa: E402
+from geofeat.storage.pretrained import CONFIG_FILE, WEIGHTS_FILE  # noqa: E402
 from geofeat.train import checkpoints  # noqa: E402
 
 

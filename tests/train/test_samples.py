@@ -22,8 +22,8 @@ from geofeat.geometry.geodesic import geodesic_matrix
 from geofeat.geometry.partial import make_partial
 from geofeat.mesh import Mesh
 from geofeat.train.config import TrainConfig
+from geofeat.train.geodesics import TorchGeodesicStore
 from geofeat.train.samples import SampleDataset, SamplePrefetcher, prepare_sample, resolve_workers
-from geofeat.train.shapes import TorchGeodesicStore
 from geofeat.train.trainer import GeoLoraTrainer
 
 

@@ -21,7 +21,7 @@ from geofeat.errors import TrainingError
 from geofeat.geometry.geodesic import geodesic_matrix
 from geofeat.train.checkpoints import latest_checkpoint
 from geofeat.train.config import TrainConfig
-from geofeat.train.shapes import TorchGeodesicStore
+from geofeat.train.geodesics import TorchGeodesicStore
 from geofeat.train.trainer import GeoLoraTrainer, rotate_about_up
 
 
