@@ -151,7 +151,7 @@ class Head:
 
     name: ClassVar[str] = ""
     config_class: ClassVar[type[HeadConfig]] = HeadConfig
-    #: Named sets of settings, e.g. ``"reference"``: the conventions of the authors' code.
+    #: Presets: named sets of defaults (`make_head`), e.g. ``"reference"``: the conventions of the authors' code.
     PRESETS: ClassVar[dict[str, dict[str, Any]]] = {}
 
     def __init__(self, config: HeadConfig | None = None, **settings: Any):
@@ -255,8 +255,6 @@ class Head:
 
     def restore(self, saved: Pretrained) -> None:
         """Take back what `saved_state` gave from a folder read by `load_head`; training-free heads have nothing."""
-
-
 
 
 def _check_inputs(config: HeadConfig) -> None:

@@ -52,4 +52,6 @@ register_head(
     "ulrssm", "geofeat.adapters.ulrssm:ULRSSMHead", summary="ULRSSM: unsupervised DiffusionNet features, functional-map losses"
 )
 register_head("dpfm", "geofeat.adapters.dpfm.head:DPFMHead", summary="DPFM: supervised, overlap-aware functional maps")
-register_head("echomatch", "geofeat.adapters.echomatch.head:EchoMatchHead", summary="EchoMatch: overlap by correspondence reflection")
+register_head(
+    "echomatch", "geofeat.adapters.echomatch.head:EchoMatchHead", summary="EchoMatch: overlap by correspondence reflection"
+)

@@ -15,7 +15,6 @@ mapping of the authors' release checkpoints in `geofeat.adapters.release`.
 from __future__ import annotations
 
 import copy
-import json
 import logging
 import os
 from pathlib import Path
@@ -24,7 +23,7 @@ from typing import TYPE_CHECKING, Any
 from geofeat.adapters.base import HEAD_KIND, Head
 from geofeat.adapters.head_registry import head_class
 from geofeat.errors import HeadError
-from geofeat.storage.pretrained import CONFIG_FILE, WEIGHTS_FILE, from_pretrained, save_pretrained
+from geofeat.storage.pretrained import CONFIG_FILE, WEIGHTS_FILE, from_pretrained
 from geofeat.storage.safe_load import load_torch_file
 
 if TYPE_CHECKING:
@@ -32,10 +31,7 @@ if TYPE_CHECKING:
 
 log = logging.getLogger(__name__)
 
-__all__ = ["load_head", "make_head", "preset_settings", "upgrade_head"]
-
-_OLD_CONFIG_FILE = "head_config.json"
-_OLD_LAYOUT_HINT = "Rewrite it in place with geofeat.adapters.heads.upgrade_head(folder) (the weights are kept)."
+__all__ = ["load_head", "make_head", "preset_settings"]
 
 
 def make_head(name: str, preset: str | None = None, **settings: Any) -> Head:
@@ -46,8 +42,9 @@ def make_head(name: str, preset: str | None = None, **settings: Any) -> Head:
     name : str
         A name of `head_registry.HEADS`.
     preset : str, optional
-        A key of the head's ``PRESETS`` (e.g. ``"reference"``: the authors' conventions);
-        ``settings`` override the preset's values.
+        The name of a set of defaults in the head's ``PRESETS`` (e.g. ``"reference"``: the
+        authors' conventions): its values fill in every setting that ``settings`` do not
+        give. None: the defaults of the head's configuration.
     **settings
         Fields of the head's configuration.
     """
@@ -79,8 +76,11 @@ def load_head(
         ``"reference"`` preset, its sizes read from the tensors, and the weights through an
         exact key mapping (see the head's ``release_state``).
     preset : str
-        With ``checkpoint``: the head's preset to start from (default ``"reference"``; DPFM
-        also has ``"reference_shrec16_cuts"`` and ``"reference_shrec16_holes"``).
+        With ``checkpoint``: the head's preset, whose values fill in every setting that the
+        checkpoint's tensors and ``settings`` do not give. The default is ``"reference"``
+        (`make_head`'s is None) because the released weights were trained with the authors'
+        settings (input descriptor, mesh normalisation, operators). DPFM also has
+        ``"reference_shrec16_cuts"`` and ``"reference_shrec16_holes"``.
     **settings
         With ``checkpoint``: settings that override the preset (e.g. ``tta_steps=5``).
 
@@ -94,7 +94,7 @@ def load_head(
         return _from_release(str(source), Path(checkpoint), preset, settings)
     if settings:
         raise HeadError(f"settings {sorted(settings)} only apply with a release checkpoint; change head.config instead.")
-    saved = from_pretrained(source, HEAD_KIND, HeadError, older_layout_hint=_OLD_LAYOUT_HINT)
+    saved = from_pretrained(source, HEAD_KIND, HeadError)
     name = saved.info.get("head")
     if not isinstance(name, str):
         raise HeadError(
@@ -105,58 +105,6 @@ def load_head(
     head = cls(cls.config_class.from_dict(saved.config))
     head.restore(saved)
     return head
-
-
-def upgrade_head(folder: str | os.PathLike) -> Path:
-    """Rewrite a head folder of the older layout (``head_config.json`` + ``weights.safetensors``) in place.
-
-    The older `Head.save` wrote ``head_config.json`` (``{"head", "geofeat_version",
-    "config"}``) and, for a learned head, ``weights.safetensors`` with the input width in its
-    metadata. The folder is rewritten whole by `geofeat.storage.pretrained.save_pretrained` with the
-    same settings and tensors, so that `load_head` reads it.
-
-    Parameters
-    ----------
-    folder : str or os.PathLike
-
-    Returns
-    -------
-    pathlib.Path
-        The folder.
-
-    Raises
-    ------
-    HeadError
-        The folder holds no ``head_config.json``, or its files cannot be read.
-    """
-    folder = Path(folder)
-    old_config, weights = folder / _OLD_CONFIG_FILE, folder / WEIGHTS_FILE
-    if not old_config.is_file():
-        raise HeadError(f"{folder} holds no {_OLD_CONFIG_FILE}; there is nothing to upgrade.")
-    try:
-        payload = json.loads(old_config.read_text())
-    except (OSError, ValueError) as exc:
-        raise HeadError(f"could not read {old_config} as JSON ({exc}); the file is damaged.") from exc
-    if not isinstance(payload, dict) or not isinstance(payload.get("head"), str) or not isinstance(payload.get("config"), dict):
-        raise HeadError(f"{old_config} is not a head configuration: expected an object with 'head' (a name) and 'config'.")
-    info: dict[str, Any] = {"head": payload["head"]}
-    tensors = None
-    if weights.is_file():
-        from safetensors import safe_open
-        from safetensors.torch import load_file
-
-        try:
-            with safe_open(str(weights), framework="pt") as handle:
-                info["in_channels"] = int((handle.metadata() or {})["in_channels"])
-            tensors = load_file(str(weights))
-        except Exception as exc:  # SafetensorError, OSError, a missing or bad in_channels entry
-            raise HeadError(
-                f"could not read {weights} with its 'in_channels' metadata ({type(exc).__name__}: {exc}); the file is "
-                "truncated or damaged, or was not written by Head.save."
-            ) from exc
-    save_pretrained(folder, HEAD_KIND, payload["config"], tensors, info=info, error=HeadError, overwrite=True)
-    log.info("upgraded the head in %s to config.json + weights.safetensors", folder)
-    return folder
 
 
 def _from_release(name: str, checkpoint: Path, preset: str, settings: dict[str, Any]) -> Head:
@@ -179,5 +127,3 @@ def _from_release(name: str, checkpoint: Path, preset: str, settings: dict[str, 
     head = cls(**(preset_settings(cls, preset) | release.settings | settings))
     head.load_state(release.state, release.in_channels, source=str(checkpoint))
     return head
-
-

@@ -112,7 +112,7 @@ class LearnedHead(Head):
     def use_inputs(self, mesh: Mesh, features: torch.Tensor, operators: SurfaceOperators) -> None:
         """Use these input features and operators for ``mesh`` instead of computing them.
 
-        For feeding a head exactly the inputs of another implementation (``benchmarks/parity.py``)
+        For feeding a head exactly the inputs of another implementation (``python -m benchmarks.parity``)
         or inputs computed elsewhere. They are kept like computed ones (64 meshes).
 
         Parameters

@@ -166,8 +166,13 @@ class FunctionalMapHead(Head):
         c = self.config
         pair = self.prepare(pair)
         map_yx = fmap_match(
-            pair.x, pair.y, self.features(pair.x), self.features(pair.y), k=c.k, zoomout=c.zoomout, k_final=c.k_final,
+            pair.x,
+            pair.y,
+            self.features(pair.x),
+            self.features(pair.y),
+            k=c.k,
+            zoomout=c.zoomout,
+            k_final=c.k_final,
             n_eig=max(c.n_eig, c.k_final if c.zoomout else c.k),
-        )  # fmt: skip
+        )
         return Match(map_yx, np.ones(pair.y.n_vertices, dtype=bool))
-

@@ -57,13 +57,13 @@ checkpoint=...)`` uses):
   eigenfunctions -> point map by nearest neighbours of ``Phi_x C^T`` among ``Phi_y``; no
   test-time adaptation for FAUST_r / SCAPE_r, 15 steps for SHREC'16.
 
-Shown equal stage by stage to float32 precision by ``benchmarks/parity_ulrssm.py``, and
-``faust_scape.pth`` gives 1.617 on the 190 FAUST_r test pairs like the reference code.
-Our defaults differ from the preset in: no mesh normalisation, the robust Laplacian and
-our scale-free operator construction, 128 eigenpairs, the complex product in the gradient
-features, and 15 test-time adaptation steps. Not reproduced: the reference's test-time
-adaptation keeps one Adam state across all test pairs (ours starts a fresh Adam per
-pair); training data augmentation (only for xyz input in the reference).
+How each stage compares with the authors' code, and what the release checkpoints give, is
+in docs/heads.md ("Stage by stage against the authors' code"). Our defaults differ from the
+preset in: no mesh normalisation, the robust Laplacian and our scale-free operator
+construction, 128 eigenpairs, the complex product in the gradient features, and 15
+test-time adaptation steps. Not reproduced: the reference's test-time adaptation keeps one
+Adam state across all test pairs (ours starts a fresh Adam per pair); training data
+augmentation (only for xyz input in the reference).
 """
 
 from __future__ import annotations
@@ -204,7 +204,7 @@ class ULRSSMHead(LearnedHead):
     name = "ulrssm"
     config_class = ULRSSMConfig
     #: ``"reference"``: the conventions of the authors' code for FAUST_r / SCAPE_r
-    #: (``options/train/faust_scape.yaml``, ``options/test/faust.yaml``), see `REFERENCE_NOTES`.
+    #: (``options/train/faust_scape.yaml``, ``options/test/faust.yaml``), listed in the module notes.
     PRESETS = {
         "reference": {
             "descriptor": "wks",
@@ -397,9 +397,18 @@ class ULRSSMHead(LearnedHead):
         # the eigenvalues are only read on the host (mask, partial rank): their CPU copies
         evals_x, evals_y = self.host_eigenvalues(pair.x)[:k], self.host_eigenvalues(pair.y)[:k]
         c_xy, c_yx = regularized_fmap(
-            feat_x, feat_y, evecs_x, evecs_y, ops_x.mass, ops_y.mass, evals_x, evals_y,
-            lambda_=c.fmap_lambda, gamma=c.resolvent_gamma, bidirectional=True,
-        )  # fmt: skip
+            feat_x,
+            feat_y,
+            evecs_x,
+            evecs_y,
+            ops_x.mass,
+            ops_y.mass,
+            evals_x,
+            evals_y,
+            lambda_=c.fmap_lambda,
+            gamma=c.resolvent_gamma,
+            bidirectional=True,
+        )
         zero = feat_x.new_zeros(())
         terms = dict.fromkeys(LOSS_TERMS, zero)
         if partial:

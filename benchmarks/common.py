@@ -1,4 +1,4 @@
-"""Helpers shared by the benchmark scripts: the machine description, the FAUST_r shapes, writing results."""
+"""Helpers shared by the benchmark scripts: their folders, the data folder, the machine description, the FAUST_r shapes, writing results."""
 
 from __future__ import annotations
 
@@ -6,17 +6,37 @@ import json
 import os
 from pathlib import Path
 
-from machine_info import machine  # noqa: F401  (re-exported: the scripts take it from here)
-
 import geofeat
+from geofeat.apps.machine import machine  # noqa: F401  (re-exported: the scripts take it from here)
+from geofeat.datasets.base import DATA_ENV
 
-HERE = Path(__file__).resolve().parent
-DEFAULT_DATA = os.environ.get("GEOFEAT_DATA", str(HERE.parent.parent / "shared" / "data"))
+#: The benchmark scripts' folder, where their results land, and the repository.
+BENCHMARKS = Path(__file__).resolve().parent
+RESULTS = BENCHMARKS / "results"
+REPO = BENCHMARKS.parent
+#: The default of the scripts' data option: ``$GEOFEAT_DATA``, the library's setting (None when it is not set).
+DEFAULT_DATA = os.environ.get(DATA_ENV)
 
 
-def faust_test_shapes(data: str | os.PathLike, n_shapes: int) -> list[geofeat.Mesh]:
-    """The first ``n_shapes`` FAUST_r test shapes (tr_reg_080 on); exits with a clear message when missing."""
-    folder = Path(data) / "FAUST_r" / "off"
+def data_folder(given: str | os.PathLike | None, option: str = "--data") -> Path:
+    """The folder of a script's data option ``option`` (default `DEFAULT_DATA`).
+
+    Raises
+    ------
+    SystemExit
+        With a message that says what to pass, when no folder is given and ``$GEOFEAT_DATA``
+        is not set.
+    """
+    if not given:
+        raise SystemExit(
+            f"no data folder: pass {option} (the folder that holds FAUST_r/ and the other datasets) or set ${DATA_ENV}"
+        )
+    return Path(given).expanduser()
+
+
+def faust_test_shapes(data: str | os.PathLike | None, n_shapes: int) -> list[geofeat.Mesh]:
+    """The first ``n_shapes`` FAUST_r test shapes (tr_reg_080 on) of the ``--data`` folder; exits with a clear message when missing."""
+    folder = data_folder(data) / "FAUST_r" / "off"
     paths = [folder / f"tr_reg_{i:03d}.off" for i in range(80, 80 + n_shapes)]
     missing = [p for p in paths if not p.is_file()]
     if missing:

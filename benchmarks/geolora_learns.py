@@ -2,30 +2,30 @@
 
 No DINOv3 weights exist on a machine without the gated download, so this experiment uses a
 small randomly initialised DINOv3-architecture backbone at reduced resolution. It trains one
-LoRA adapter with the geodesic-weighted PointInfoNCE and one with the plain PointInfoNCE on
+LoRA with the geodesic-weighted PointInfoNCE and one with the plain PointInfoNCE on
 the FAUST_r training shapes (the first 80), each for a bounded wall time, and evaluates the
 ``geolora`` descriptor (49 views) with nearest-neighbour matching on ``faust_r_cuts`` and
 ``faust_r_holes`` test pairs before training (step 0: LoRA B = 0, i.e. the raw random
 backbone) and after. Stages (all by default, in this order)::
 
-    python benchmarks/geolora_learns.py --stage backbone       # random DINOv3 -> <work>/backbone
-    python benchmarks/geolora_learns.py --stage train --loss geodesic --minutes 30
-    python benchmarks/geolora_learns.py --stage train --loss plain --minutes 30
-    python benchmarks/geolora_learns.py --stage evaluate --pairs 50
-    python benchmarks/geolora_learns.py --stage report          # table + training-curve PNG
+    python -m benchmarks.geolora_learns --stage backbone       # random DINOv3 -> <work>/backbone
+    python -m benchmarks.geolora_learns --stage train --loss geodesic --minutes 30
+    python -m benchmarks.geolora_learns --stage train --loss plain --minutes 30
+    python -m benchmarks.geolora_learns --stage evaluate --pairs 50
+    python -m benchmarks.geolora_learns --stage report          # table + training-curve PNG
 
 The two trainings can run at the same time (one thread each: ``--threads 1``).
 
 Whose partial-shape generators should train: geofeat's CUTS / HOLES / RAY
 (`geofeat.geometry.partial`) or GeoLoRA's own, reproduced draw by draw
 (`geofeat.geometry.partial_reference`)? Train the geodesic loss once on each, for the same
-number of steps, and evaluate both final adapters and step 0 on the same held-out pairs::
+number of steps, and evaluate both final LoRA checkpoints and step 0 on the same held-out pairs::
 
-    python benchmarks/geolora_learns.py --stage train --loss geodesic --generators geofeat \\
+    python -m benchmarks.geolora_learns --stage train --loss geodesic --generators geofeat \\
         --steps 800 --minutes 0 --validate-every 0 --threads 1                  # -> <work>/run_geodesic
-    python benchmarks/geolora_learns.py --stage train --loss geodesic --generators reference \\
+    python -m benchmarks.geolora_learns --stage train --loss geodesic --generators reference \\
         --steps 800 --minutes 0 --validate-every 0 --threads 1                  # -> <work>/run_geodesic_reference
-    python benchmarks/geolora_learns.py --stage compare-generators --pairs 50   # generators.md + .json
+    python -m benchmarks.geolora_learns --stage compare-generators --pairs 50   # generators.md + .json
 
 Results go to ``benchmarks/results/geolora_learns/``; runs and the backbone to ``--work``.
 """
@@ -36,19 +36,17 @@ import argparse
 import csv
 import datetime
 import json
-import os
 import sys
 from pathlib import Path
 
 import numpy as np
 import torch
-from common import machine
 
+from benchmarks.common import DEFAULT_DATA, REPO, data_folder, machine
+from benchmarks.common import RESULTS as BENCHMARK_RESULTS
 from geofeat.evaluation.report import markdown_table
 
-HERE = Path(__file__).resolve().parent
-
-RESULTS = HERE / "results" / "geolora_learns"
+RESULTS = BENCHMARK_RESULTS / "geolora_learns"
 LOSSES = ("geodesic", "plain")
 #: ``TrainConfig.partial_generators`` of the train stage; geofeat's runs keep the plain folder name.
 GENERATORS = ("geofeat", "reference")
@@ -97,13 +95,26 @@ def train(work: Path, loss: str, minutes: float, data_root: str, args) -> Path:
     from geofeat.train.trainer import GeoLoraTrainer
 
     config = TrainConfig(
-        data="faust_r", data_root=data_root, split="train", out=str(work / run_name(loss, args.generators)),
-        weights=str(build_backbone(work, args.seed)), image_size=IMAGE_SIZE, backproject=BACKPROJECT, loss=loss, lr=args.lr,
+        data="faust_r",
+        data_root=data_root,
+        split="train",
+        out=str(work / run_name(loss, args.generators)),
+        weights=str(build_backbone(work, args.seed)),
+        image_size=IMAGE_SIZE,
+        backproject=BACKPROJECT,
+        loss=loss,
+        lr=args.lr,
         partial_generators=args.generators,
-        steps=args.steps, max_minutes=minutes if minutes > 0 else None, checkpoint_every=args.checkpoint_every,
-        validate_every=args.validate_every, val_dataset="faust_r_cuts", val_pairs=args.val_pairs,
-        seed=args.seed, device="cpu", progress=not args.no_progress,
-    )  # fmt: skip
+        steps=args.steps,
+        max_minutes=minutes if minutes > 0 else None,
+        checkpoint_every=args.checkpoint_every,
+        validate_every=args.validate_every,
+        val_dataset="faust_r_cuts",
+        val_pairs=args.val_pairs,
+        seed=args.seed,
+        device="cpu",
+        progress=not args.no_progress,
+    )
     GeoLoraTrainer(config).fit()
     return Path(config.out)
 
@@ -145,11 +156,14 @@ def register_reference_ray() -> None:
             template_of_y = template_inverse(map_a, mesh_a.n_vertices)[partial.vertex_map]
             y_of_a = _subset_inverse(partial.vertex_map, mesh_a.n_vertices)
             return ShapePair(
-                x=mesh_b, y=y, map_yx=_compose(template_of_y, map_b),
+                x=mesh_b,
+                y=y,
+                map_yx=_compose(template_of_y, map_b),
                 overlap_x=y_of_a[map_a[nearest_template_points(mesh_b, map_b)]] >= 0,
                 overlap_y=np.ones(y.n_vertices, dtype=bool),
-                map_yx_sym=_compose(template_of_y, self.collection.template_map_sym(b)), protocol="p2f",
-            )  # fmt: skip
+                map_yx_sym=_compose(template_of_y, self.collection.template_map_sym(b)),
+                protocol="p2f",
+            )
 
     def factory(root, split: str, seed: int = 0) -> ReferenceRayPairs:
         collection = RemeshedCollection(FaustRemeshed(root, split))
@@ -158,19 +172,37 @@ def register_reference_ray() -> None:
     register_dataset("faust_r_ray_reference", factory, description="FAUST_r official GeoLoRA RAY partial shapes", overwrite=True)
 
 
-def evaluate_adapter(work: Path, adapter: Path, dataset: str, out: Path, n_pairs: int, data_root: str, no_progress: bool) -> dict:
-    """NN P2F evaluation of the geolora descriptor with one adapter checkpoint; ``results.json`` of ``benchmarks/run.py``."""
-    import run as benchmark_run
+def evaluate_lora(work: Path, lora: Path, dataset: str, out: Path, n_pairs: int, data_root: str, no_progress: bool) -> dict:
+    """NN P2F evaluation of the geolora descriptor with one LoRA checkpoint; ``results.json`` of ``benchmarks/run.py``."""
+    from geofeat.apps.benchmark import main as run_benchmark
 
     argv = [
-        "--pipeline", "nn", "--dataset", dataset, "--descriptor", "geolora", "--data-root", data_root,
-        "--limit", str(n_pairs), "--out", str(out),
-        "--param", f"checkpoint={adapter}", "--param", f"weights={work / 'backbone'}",
-        "--param", f"image_size={IMAGE_SIZE}", "--param", f"backproject={BACKPROJECT}", "--param", "device=cpu",
-    ]  # fmt: skip
+        "--pipeline",
+        "nn",
+        "--dataset",
+        dataset,
+        "--descriptor",
+        "geolora",
+        "--data-root",
+        data_root,
+        "--limit",
+        str(n_pairs),
+        "--out",
+        str(out),
+        "--param",
+        f"checkpoint={lora}",
+        "--param",
+        f"weights={work / 'backbone'}",
+        "--param",
+        f"image_size={IMAGE_SIZE}",
+        "--param",
+        f"backproject={BACKPROJECT}",
+        "--param",
+        "device=cpu",
+    ]
     if no_progress:
         argv.append("--no-progress")
-    benchmark_run.main(argv)
+    run_benchmark(argv)
     return json.loads((out / "results.json").read_text())
 
 
@@ -178,20 +210,20 @@ def evaluate(work: Path, n_pairs: int, data_root: str, no_progress: bool) -> lis
     """NN P2F error of the geolora descriptor, before (step 0) and after each run, on both benchmarks."""
     from geofeat.train.checkpoints import latest_checkpoint
 
-    adapters = {"before (step 0)": work / "run_geodesic" / "checkpoints" / "step_0000000"}
+    loras = {"before (step 0)": work / "run_geodesic" / "checkpoints" / "step_0000000"}
     for loss in LOSSES:
         final = latest_checkpoint(work / f"run_{loss}")
         if final is None:
             raise SystemExit(f"no checkpoint in {work / f'run_{loss}'}: run --stage train --loss {loss} first")
-        adapters[f"after, {loss} loss ({final.name})"] = final
+        loras[f"after, {loss} loss ({final.name})"] = final
     rows = []
-    for label, adapter in adapters.items():
+    for label, lora in loras.items():
         for dataset in DATASETS:
-            out = RESULTS / f"{dataset}_{adapter.parent.parent.name}_{adapter.name}"
-            result = evaluate_adapter(work, adapter, dataset, out, n_pairs, data_root, no_progress)
+            out = RESULTS / f"{dataset}_{lora.parent.parent.name}_{lora.name}"
+            result = evaluate_lora(work, lora, dataset, out, n_pairs, data_root, no_progress)
             rows.append(
                 {
-                    "adapter": label,
+                    "lora": label,
                     "dataset": dataset,
                     **{k: result.get(k) for k in ("n_pairs", "geodesic_error", "pck_auc", "chirality_accuracy")},
                 }
@@ -201,7 +233,7 @@ def evaluate(work: Path, n_pairs: int, data_root: str, no_progress: bool) -> lis
 
 
 def compare_generators(work: Path, n_pairs: int, data_root: str, no_progress: bool) -> list[dict]:
-    """Step 0 and the final adapters of the geodesic-loss runs on geofeat's and the reference generators.
+    """Step 0 and the final LoRA checkpoints of the geodesic-loss runs on geofeat's and the reference generators.
 
     Each is evaluated on the same first ``n_pairs`` pairs of every `GENERATOR_DATASETS`
     benchmark; the table and its rows go to ``generators.md`` and ``generators.json``, with the
@@ -220,19 +252,19 @@ def compare_generators(work: Path, n_pairs: int, data_root: str, no_progress: bo
         with open(folder / "log.csv", newline="") as handle:
             rows = [row for row in csv.DictReader(handle) if row["t_partial"] and not row["val_geodesic_error"]]
         runs[generators] = {
-            "adapter": final,
+            "lora": final,
             "steps": int(final.name.removeprefix("step_")),
             "median_t_partial_s": float(np.median([float(row["t_partial"]) for row in rows])),
             "median_t_geodesics_s": float(np.median([float(row["t_geodesics"]) for row in rows])),
             "elapsed_min": max(float(row["elapsed_s"]) for row in rows) / 60,
         }
     step0 = work / run_name("geodesic") / "checkpoints" / "step_0000000"  # LoRA B = 0: the raw backbone, for both
-    adapters = [("none (step 0)", step0, 0)] + [(g, r["adapter"], r["steps"]) for g, r in runs.items()]
+    loras = [("none (step 0)", step0, 0)] + [(g, r["lora"], r["steps"]) for g, r in runs.items()]
     rows, per_pair = [], {}
-    for generators, adapter, steps in adapters:
+    for generators, lora, steps in loras:
         for dataset in GENERATOR_DATASETS:
-            out = RESULTS / "generators" / f"{dataset}_{adapter.parent.parent.name}_{adapter.name}"
-            result = evaluate_adapter(work, adapter, dataset, out, n_pairs, data_root, no_progress)
+            out = RESULTS / "generators" / f"{dataset}_{lora.parent.parent.name}_{lora.name}"
+            result = evaluate_lora(work, lora, dataset, out, n_pairs, data_root, no_progress)
             per_pair[generators, dataset] = np.array([pair["geodesic_error"] for pair in result["pairs"]])
             rows.append(
                 {
@@ -243,10 +275,14 @@ def compare_generators(work: Path, n_pairs: int, data_root: str, no_progress: bo
                 }
             )
     columns = [
-        ("generators", "generators", "s"), ("dataset", "dataset", "s"), ("n_pairs", "pairs", "d"),
-        ("geodesic_error", "geodesic error x100", ".2f"), ("pck_auc", "PCK AUC", ".3f"),
-        ("chirality_accuracy", "chirality acc.", ".3f"), ("steps", "steps", "d"),
-    ]  # fmt: skip
+        ("generators", "generators", "s"),
+        ("dataset", "dataset", "s"),
+        ("n_pairs", "pairs", "d"),
+        ("geodesic_error", "geodesic error x100", ".2f"),
+        ("pck_auc", "PCK AUC", ".3f"),
+        ("chirality_accuracy", "chirality acc.", ".3f"),
+        ("steps", "steps", "d"),
+    ]
     paired = []  # reference minus geofeat, pair by pair (the same pairs, in the same order)
     for dataset in GENERATOR_DATASETS:
         difference = per_pair["reference", dataset] - per_pair["geofeat", dataset]
@@ -260,9 +296,12 @@ def compare_generators(work: Path, n_pairs: int, data_root: str, no_progress: bo
             }
         )
     paired_columns = [
-        ("dataset", "dataset", "s"), ("n_pairs", "pairs", "d"), ("mean_difference", "mean difference x100", "+.2f"),
-        ("standard_error", "standard error", ".2f"), ("reference_better", "pairs where reference is better", "d"),
-    ]  # fmt: skip
+        ("dataset", "dataset", "s"),
+        ("n_pairs", "pairs", "d"),
+        ("mean_difference", "mean difference x100", "+.2f"),
+        ("standard_error", "standard error", ".2f"),
+        ("reference_better", "pairs where reference is better", "d"),
+    ]
     lines = [
         f"GeoLoRA learns, generators of the training partial shapes: machine: {machine()}, "
         f"date {datetime.date.today().isoformat()}.",
@@ -272,23 +311,30 @@ def compare_generators(work: Path, n_pairs: int, data_root: str, no_progress: bo
         f"(49 views) on the first {n_pairs} test pairs of each benchmark (faust_r_cuts, faust_r_holes and "
         f"faust_r_ray: geofeat's generators; faust_r_ray_reference: the pairs of faust_r_ray with the official RAY).",
         "",
-        *(f"- {g}: {r['steps']} steps in {r['elapsed_min']:.1f} min (one thread, shared cores); median "
-          f"t_partial {r['median_t_partial_s']:.3f} s, t_geodesics {r['median_t_geodesics_s']:.3f} s per step" for g, r in runs.items()),
+        *(
+            f"- {g}: {r['steps']} steps in {r['elapsed_min']:.1f} min (one thread, shared cores); median "
+            f"t_partial {r['median_t_partial_s']:.3f} s, t_geodesics {r['median_t_geodesics_s']:.3f} s per step"
+            for g, r in runs.items()
+        ),
         "",
         "Geodesic error and PCK pooled over the points of all pairs (`benchmarks/run.py`).",
         "",
         markdown_table(rows, columns),
         "",
         "Pair by pair: mean geodesic error of a pair, reference minus geofeat (negative: the reference "
-        "generators' adapter is better). The standard error is over the pairs only: each adapter is one "
+        "generators' LoRA is better). The standard error is over the pairs only: each LoRA is one "
         "training run (one seed), so the run-to-run spread is not in it.",
         "",
         markdown_table(paired, paired_columns),
-    ]  # fmt: skip
-    summary = {g: {k: v for k, v in r.items() if k != "adapter"} for g, r in runs.items()}
+    ]
+    summary = {g: {k: v for k, v in r.items() if k != "lora"} for g, r in runs.items()}
     payload = {
-        "machine": machine(), "date": datetime.date.today().isoformat(), "runs": summary, "rows": rows, "paired": paired,
-    }  # fmt: skip
+        "machine": machine(),
+        "date": datetime.date.today().isoformat(),
+        "runs": summary,
+        "rows": rows,
+        "paired": paired,
+    }
     (RESULTS / "generators.json").write_text(json.dumps(payload, indent=1) + "\n")
     (RESULTS / "generators.md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
@@ -318,10 +364,13 @@ def report(work: Path) -> None:
 
     rows = json.loads((RESULTS / "evaluation.json").read_text())
     columns = [
-        ("adapter", "adapter", "s"), ("dataset", "dataset", "s"), ("n_pairs", "pairs", "d"),
-        ("geodesic_error", "geodesic error x100", ".2f"), ("pck_auc", "PCK AUC", ".3f"),
+        ("lora", "LoRA", "s"),
+        ("dataset", "dataset", "s"),
+        ("n_pairs", "pairs", "d"),
+        ("geodesic_error", "geodesic error x100", ".2f"),
+        ("pck_auc", "PCK AUC", ".3f"),
         ("chirality_accuracy", "chirality acc.", ".3f"),
-    ]  # fmt: skip
+    ]
     runs = {}
     for loss in LOSSES:
         steps, losses, val_steps, val_errors = _read_log(work / f"run_{loss}" / "log.csv")
@@ -332,11 +381,14 @@ def report(work: Path) -> None:
         f"GeoLoRA learns: small random DINOv3 ({BACKBONE}), {IMAGE_SIZE} x {IMAGE_SIZE} renders, "
         f"machine: {machine()}, date {datetime.date.today().isoformat()}.",
         "",
-        *(f"- {loss} loss: {r['steps']} steps in at most {r['config']['max_minutes']} min "
-          f"(lr {r['config']['lr']}, {r['config']['views_full']} + {r['config']['views_partial']} views)" for loss, r in runs.items()),
+        *(
+            f"- {loss} loss: {r['steps']} steps in at most {r['config']['max_minutes']} min "
+            f"(lr {r['config']['lr']}, {r['config']['views_full']} + {r['config']['views_partial']} views)"
+            for loss, r in runs.items()
+        ),
         "",
         markdown_table(rows, columns),
-    ]  # fmt: skip
+    ]
     (RESULTS / "results.md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
 
@@ -375,8 +427,9 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument("--pairs", type=int, default=50, help="evaluation pairs per benchmark")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--threads", type=int, default=None, help="torch threads (1 when two runs share 2 cores)")
-    parser.add_argument("--work", default=str(HERE.parent / "runs" / "geolora_learns"))
-    parser.add_argument("--data-root", default=os.environ.get("GEOFEAT_DATA", str(HERE.parent.parent / "shared" / "data")))
+    parser.add_argument("--work", default=str(REPO / "runs" / "geolora_learns"))
+
+    parser.add_argument("--data-root", default=DEFAULT_DATA, help="the folder holding the datasets (default $GEOFEAT_DATA)")
     parser.add_argument("--no-progress", action="store_true")
     return parser.parse_args(argv)
 
@@ -388,6 +441,8 @@ def main(argv=None) -> int:
     work = Path(args.work)
     work.mkdir(parents=True, exist_ok=True)
     RESULTS.mkdir(parents=True, exist_ok=True)
+    if args.stage in ("all", "train", "evaluate", "compare-generators"):
+        args.data_root = str(data_folder(args.data_root, "--data-root"))
     if args.stage in ("all", "backbone"):
         print(f"backbone: {build_backbone(work, args.seed)}")
     if args.stage in ("all", "train"):

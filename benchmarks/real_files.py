@@ -4,7 +4,7 @@ Runs `run.py` once per pipeline and benchmark on data folders that you pass, the
 table per benchmark. Nothing here is downloaded; give only the folders you have, the other
 benchmarks are left out::
 
-    python benchmarks/real_files.py \\
+    python -m benchmarks.real_files \\
         --psmal PATH/gc-ppsm/PARTIALSMAL \\                         # the full PSMAL (train + test)
         --psmal-sample ../shared/data/PSMAL_sample/PARTIALSMAL \\    # its 3-pair sample
         --becos PATH/becos-code/output \\                            # what the BeCoS generator wrote
@@ -57,10 +57,9 @@ from pathlib import Path
 
 import numpy as np
 
+from benchmarks.common import BENCHMARKS, REPO, RESULTS
 from geofeat.evaluation.report import markdown_table, plot_pck
 
-HERE = Path(__file__).resolve().parent
-REPO = HERE.parent
 log = logging.getLogger("benchmarks.real_files")
 
 TRAINING_FREE = (("nn", "wks"), ("nn", "hks"), ("fmap", "wks"), ("fmap", "hks"))
@@ -107,8 +106,17 @@ def plan(args: argparse.Namespace) -> list[Run]:
 
     def training(pipeline: str) -> tuple[str, ...]:
         params = [item for param in HEAD_PARAMS[pipeline] for item in ("--head-param", param)]
-        return ("--descriptor", "wks", "--train-split", "train", "--epochs", "100",
-                "--max-minutes", str(args.train_minutes), *params)  # fmt: skip
+        return (
+            "--descriptor",
+            "wks",
+            "--train-split",
+            "train",
+            "--epochs",
+            "100",
+            "--max-minutes",
+            str(args.train_minutes),
+            *params,
+        )
 
     if args.psmal:
         base = ("--dataset", "psmal", "--data-root", str(args.psmal), "--split", "test", *common)
@@ -143,8 +151,11 @@ def plan(args: argparse.Namespace) -> list[Run]:
         if args.ulrssm_checkpoint:
             ckpt = ("--pipeline", "ulrssm", "--checkpoint", str(args.ulrssm_checkpoint))
             runs.append(Run("shrec16_sample", "ulrssm_release", (*ckpt, *base)))
-            runs.append(Run("shrec16_sample", f"ulrssm_release_tta{ULRSSM_TTA}",
-                            (*ckpt, "--head-param", f"tta_steps={ULRSSM_TTA}", *base)))  # fmt: skip
+            runs.append(
+                Run(
+                    "shrec16_sample", f"ulrssm_release_tta{ULRSSM_TTA}", (*ckpt, "--head-param", f"tta_steps={ULRSSM_TTA}", *base)
+                )
+            )
     if args.only:
         runs = [r for r in runs if r.benchmark in args.only]
     return runs
@@ -159,7 +170,7 @@ def execute(run: Run, out: Path, force: bool) -> bool:
     if run.after and not (out / run.after / "head").is_dir():
         log.error("%s/%s needs the head of %s, which is missing", run.benchmark, run.name, run.after)
         return False
-    command = [sys.executable, str(HERE / "run.py"), *run.argv, "--out", str(folder)]
+    command = [sys.executable, str(BENCHMARKS / "run.py"), *run.argv, "--out", str(folder)]
     log.info("running %s", shlex.join(command))
     start = time.perf_counter()
     done = subprocess.run(command, cwd=REPO, check=False)
@@ -230,10 +241,12 @@ def table_rows(folder: Path) -> list[dict]:
             row["label"] += f" (first {row['n_pairs']} of {most} pairs)"
         if row["pipeline"] == "ulrssm" and row["head"]["config"].get("tta_steps"):
             base = [
-                r for r in rows
-                if r is not row and r.get("release_checkpoint") == row.get("release_checkpoint")
+                r
+                for r in rows
+                if r is not row
+                and r.get("release_checkpoint") == row.get("release_checkpoint")
                 and not r["head"]["config"].get("tta_steps")
-            ]  # fmt: skip
+            ]
             if base:
                 names = {p["pair"] for p in row["pairs"]}
                 chosen = [p for p in base[0]["pairs"] if p["pair"] in names]
@@ -278,8 +291,14 @@ def write_table(out: Path, benchmark: str, published: list[dict], invocation: st
             "Published figures (typed in by hand from `published_figures.json`; not the same setting, see the last column):",
             "",
         ]
-        pub_columns = [("method", "method", "s"), ("benchmark", "published on", "s"), ("metric", "metric", "s"),
-                       ("published", "figure", "s"), ("cited", "source", "s"), ("differs", "how our setting differs", "s")]  # fmt: skip
+        pub_columns = [
+            ("method", "method", "s"),
+            ("benchmark", "published on", "s"),
+            ("metric", "metric", "s"),
+            ("published", "figure", "s"),
+            ("cited", "source", "s"),
+            ("differs", "how our setting differs", "s"),
+        ]
         lines += [markdown_table(mine, pub_columns), ""]
         lines += [f"[{n}] {source}" + ("  " if n < len(sources) else "") for n, source in enumerate(sources, 1)]
     text = "\n".join(lines) + "\n"
@@ -309,7 +328,7 @@ def main(argv=None) -> int:
     parser.add_argument("--only", nargs="+", choices=sorted(TITLES), help="run only these benchmarks")
     parser.add_argument("--force", action="store_true", help="repeat runs whose results.json exists")
     parser.add_argument("--tables-only", action="store_true", help="run nothing; rewrite the tables from the results")
-    parser.add_argument("--out", type=Path, default=HERE / "results" / "real_files")
+    parser.add_argument("--out", type=Path, default=RESULTS / "real_files")
     args = parser.parse_args(argv)
     for name in ("psmal", "psmal_sample", "becos", "shrec16", "ulrssm_checkpoint"):
         path = getattr(args, name)
@@ -329,7 +348,7 @@ def main(argv=None) -> int:
     published_path = args.out / "published_figures.json"
     published = json.loads(published_path.read_text()) if published_path.is_file() else []
     for benchmark in TITLES:
-        text = write_table(args.out, benchmark, published, "python benchmarks/real_files.py (the call is in README.md)")
+        text = write_table(args.out, benchmark, published, "python -m benchmarks.real_files (the call is in README.md)")
         if text is not None:
             print(text)
     if failed:

@@ -9,34 +9,40 @@ seeded here). The repository has no FAUST_r evaluation script; the point map is 
 neighbour of every row of ``Phi_y`` among the rows of ``Phi_x C^T`` (float64 kd-tree) and the
 errors are geofeat's template protocol (Dijkstra geodesics of the unit-area shape).
 
-    python benchmarks/reference_dpfm_faust_r.py --repo PATH/TO/DPFM [--checkpoint faust.pth]
+    python -m benchmarks.reference_dpfm_faust_r --repo PATH/TO/DPFM [--checkpoint faust.pth]
 """
 
 from __future__ import annotations
 
 import argparse
 import json
-import os
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
 import torch
-from common import machine
-from parity_common import reference_import
 from scipy.spatial import cKDTree
 from tqdm.auto import tqdm
 
+from benchmarks.common import DEFAULT_DATA, data_folder, machine
+from benchmarks.parity.common import reference_import
 from geofeat.datasets import load_dataset
 from geofeat.evaluation import metrics
 from geofeat.geometry.geodesic import geodesic_matrix
 
-HERE = Path(__file__).resolve().parent
 
-
-def reference_faust_r(repo: Path, checkpoint: Path, data_root: Path, seed: int = 0, limit: int | None = None,
-                      n_fmap: int = 50, k_eig: int = 128, ratio: float = 0.7, progress: bool = True) -> dict:  # fmt: skip
+def reference_faust_r(
+    repo: Path,
+    checkpoint: Path,
+    data_root: Path,
+    seed: int = 0,
+    limit: int | None = None,
+    n_fmap: int = 50,
+    k_eig: int = 128,
+    ratio: float = 0.7,
+    progress: bool = True,
+) -> dict:
     """Mean template geodesic error x100 and PCK AUC of the reference pipeline on the 190 test pairs.
 
     Returns
@@ -52,10 +58,24 @@ def reference_faust_r(repo: Path, checkpoint: Path, data_root: Path, seed: int =
     with reference_import(repo, "dpfm") as load:
         model_mod, utils, geometry = load("model"), load("utils"), load("diffusion_net.geometry")
         cfg = {
-            "fmap": {"C_in": 3, "n_feat": 128, "n_fmap": n_fmap, "k_eig": k_eig, "lambda_": 100, "resolvant_gamma": 0.5, "robust": False},
-            "attention": {"num_head": 4, "gnn_dim": 128, "ref_n_layers": 1, "cross_sampling_ratio": ratio, "attention_type": "normal"},
+            "fmap": {
+                "C_in": 3,
+                "n_feat": 128,
+                "n_fmap": n_fmap,
+                "k_eig": k_eig,
+                "lambda_": 100,
+                "resolvant_gamma": 0.5,
+                "robust": False,
+            },
+            "attention": {
+                "num_head": 4,
+                "gnn_dim": 128,
+                "ref_n_layers": 1,
+                "cross_sampling_ratio": ratio,
+                "attention_type": "normal",
+            },
             "overlap": {"overlap_feat_dim": 32},
-        }  # fmt: skip
+        }
         net = model_mod.DPFMNet(cfg)
         net.load_state_dict(torch.load(checkpoint, map_location="cpu", weights_only=True))
         net.eval()
@@ -71,9 +91,16 @@ def reference_faust_r(repo: Path, checkpoint: Path, data_root: Path, seed: int =
                 order = utils.farthest_point_sample(verts.t(), ratio=0.9)
                 dists, ranks = utils.square_distance(verts.unsqueeze(0), verts[order].unsqueeze(0)).sort(dim=-1)
                 shapes[mesh.name] = {
-                    "xyz": verts, "faces": faces, "mass": mass, "L": lap, "evals": evals, "evecs": evecs, "gradX": grad_x,
-                    "gradY": grad_y, "sample_idx": (order, ranks[:, :, :130].clone(), dists[:, :, :130].clone()),
-                }  # fmt: skip
+                    "xyz": verts,
+                    "faces": faces,
+                    "mass": mass,
+                    "L": lap,
+                    "evals": evals,
+                    "evecs": evecs,
+                    "gradX": grad_x,
+                    "gradY": grad_y,
+                    "sample_idx": (order, ranks[:, :, :130].clone(), dists[:, :, :130].clone()),
+                }
             return shapes[mesh.name]
 
         errors, errors_cdist, names = [], [], []
@@ -111,18 +138,17 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--repo", required=True, help="your clone of the DPFM reference repository (pvnieo/DPFM)")
     parser.add_argument("--checkpoint", default=None, help="default: <repo>/dpfm/data/saved_models/faust.pth")
-    parser.add_argument("--data-root", default=os.environ.get("GEOFEAT_DATA", str(HERE.parent.parent / "shared" / "data")))
+    parser.add_argument("--data-root", default=DEFAULT_DATA, help="the folder holding the datasets (default $GEOFEAT_DATA)")
     parser.add_argument("--seed", type=int, default=0, help="seed of torch's generator (the reference's sampling start)")
     parser.add_argument("--limit", type=int, default=None)
     parser.add_argument(
-        "--out", default=None, help="write the result as JSON here (benchmarks/release_table.py reads reference.json)"
+        "--out", default=None, help="write the result as JSON here (benchmarks/tables/release.py reads reference.json)"
     )
     parser.add_argument("--no-progress", action="store_true")
     args = parser.parse_args(argv)
     checkpoint = Path(args.checkpoint or Path(args.repo) / "dpfm" / "data" / "saved_models" / "faust.pth")
-    result = reference_faust_r(
-        Path(args.repo), checkpoint, Path(args.data_root), args.seed, args.limit, progress=not args.no_progress
-    )
+    data_root = data_folder(args.data_root, "--data-root")
+    result = reference_faust_r(Path(args.repo), checkpoint, data_root, args.seed, args.limit, progress=not args.no_progress)
     print(
         f"DPFM reference ({checkpoint.name}) on {result['n_pairs']} FAUST_r pairs: geodesic error x100 "
         f"{result['geodesic_error']:.3f} (float32 cdist NN: {result['geodesic_error_cdist']:.3f}), "

@@ -34,7 +34,7 @@ mirror --export-to DIR``; without ``--features`` the harness computes them with
 ``geofeat.compute`` with the parameters of the ``reference`` preset of geofeat's ULRSSM head
 on the staged (unit-area) meshes and saves them in that layout.
 
-    python benchmarks/swap_in.py --repo PATH/TO/Unsupervised-Learning-of-Robust-Spectral-Shape-Matching
+    python -m benchmarks.swap_in --repo PATH/TO/Unsupervised-Learning-of-Robust-Spectral-Shape-Matching
 
 Needs the reference's requirements (open3d, PyYAML, scikit-learn, networkx, trimesh,
 potpourri3d, robust-laplacian) next to geofeat. Its ``datasets`` package imports
@@ -52,7 +52,6 @@ import argparse
 import contextlib
 import hashlib
 import json
-import os
 import shutil
 import subprocess
 import sys
@@ -62,14 +61,13 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from common import machine
-from parity_common import reference_import
 
 import geofeat
+from benchmarks.common import DEFAULT_DATA, REPO, data_folder, machine
+from benchmarks.parity.common import reference_import
 from geofeat.adapters.ulrssm import ULRSSMHead
 from geofeat.apps.extract import save_npy
 
-HERE = Path(__file__).resolve().parent
 TEST_SHAPES = [f"tr_reg_{i:03d}" for i in range(80, 100)]
 ALL_SHAPES = [f"tr_reg_{i:03d}" for i in range(100)]
 #: geofeat's parameters that match the reference's WKS (the ULRSSM head's ``reference`` preset).
@@ -177,9 +175,15 @@ def _torchvision_stand_in() -> None:
 
 
 def run(
-    repo: Path, checkpoint: Path, data_root: Path, work: Path, features: Path | None, limit: int | None,
-    pairs_kind: str = "all", out: Path | None = None,
-) -> dict:  # fmt: skip
+    repo: Path,
+    checkpoint: Path,
+    data_root: Path,
+    work: Path,
+    features: Path | None,
+    limit: int | None,
+    pairs_kind: str = "all",
+    out: Path | None = None,
+) -> dict:
     """Both runs over the test pairs; a dict of per-pair and summary results (also written to ``out`` as it goes)."""
     work.mkdir(parents=True, exist_ok=True)
     start = time.perf_counter()
@@ -237,19 +241,34 @@ def run(
                 p2p_own, p2p_geofeat = tensor_util.to_numpy(p2p_own), tensor_util.to_numpy(p2p_geofeat)
                 err_own = geo_error(dist_x, corr_x, corr_y, p2p_own, return_mean=False)
                 err_geofeat = geo_error(dist_x, corr_x, corr_y, p2p_geofeat, return_mean=False)
-                pairs.append({
-                    "x": name_x, "y": name_y, "error_own": float(err_own.mean()), "error_geofeat": float(err_geofeat.mean()),
-                    "abs_diff": float(abs(err_own.mean() - err_geofeat.mean())),
-                    "point_map_differs": float((p2p_own != p2p_geofeat).mean()),
-                    "template_points_differ": float((err_own != err_geofeat).mean()),
-                })  # fmt: skip
+                pairs.append(
+                    {
+                        "x": name_x,
+                        "y": name_y,
+                        "error_own": float(err_own.mean()),
+                        "error_geofeat": float(err_geofeat.mean()),
+                        "abs_diff": float(abs(err_own.mean() - err_geofeat.mean())),
+                        "point_map_differs": float((p2p_own != p2p_geofeat).mean()),
+                        "template_points_differ": float((err_own != err_geofeat).mean()),
+                    }
+                )
                 if index % 10 == 0:
                     print(
                         f"pair {index}: {name_x} {name_y} own {err_own.mean():.6f} geofeat {err_geofeat.mean():.6f}", flush=True
                     )
                     if out is not None:  # a run stopped early still leaves what it measured
-                        partial = _summary(pairs, feature_rows, order, timer, staging_s, time.perf_counter() - start,
-                                           checkpoint, feature_dir, work, pairs_kind)  # fmt: skip
+                        partial = _summary(
+                            pairs,
+                            feature_rows,
+                            order,
+                            timer,
+                            staging_s,
+                            time.perf_counter() - start,
+                            checkpoint,
+                            feature_dir,
+                            work,
+                            pairs_kind,
+                        )
                         _write(out, partial, complete=False)
         if hook.calls != 2 * len(pairs):
             raise RuntimeError(f"swap_in: the hook fed {hook.calls} forwards, expected {2 * len(pairs)}")
@@ -287,26 +306,40 @@ def _summary(pairs, feature_rows, order, timer, staging_s, total_s, checkpoint, 
         own = np.array([r["error_own"] for r in rows])
         ours = np.array([r["error_geofeat"] for r in rows])
         return {
-            "pairs": len(rows), "error_own_x100": 100 * float(own.mean()) if rows else None,
+            "pairs": len(rows),
+            "error_own_x100": 100 * float(own.mean()) if rows else None,
             "error_geofeat_x100": 100 * float(ours.mean()) if rows else None,
             "max_pair_abs_diff_x100": 100 * float(np.abs(own - ours).max()) if rows else None,
             "pairs_equal": int((own == ours).sum()),
-        }  # fmt: skip
+        }
 
     before = [r for r in pairs if order[r["x"]] < order[r["y"]]]
     worst = max(feature_rows.values(), key=lambda r: r["max_abs"])
     return {
         "reference": "dongliangcao/Unsupervised-Learning-of-Robust-Spectral-Shape-Matching, options/test/faust.yaml",
-        "checkpoint": str(checkpoint), "features": str(feature_dir), "work": str(work),
-        "geofeat_params": WKS_PARAMS, "pairs_kind": pairs_kind, "all_pairs": stats(pairs), "x_before_y": stats(before),
-        "features_max_abs_diff": worst["max_abs"], "features_worst_shape": worst["shape"],
+        "checkpoint": str(checkpoint),
+        "features": str(feature_dir),
+        "work": str(work),
+        "geofeat_params": WKS_PARAMS,
+        "pairs_kind": pairs_kind,
+        "all_pairs": stats(pairs),
+        "x_before_y": stats(before),
+        "features_max_abs_diff": worst["max_abs"],
+        "features_worst_shape": worst["shape"],
         "features_relative": worst["max_abs"] / worst["scale"],
         "max_point_map_fraction_differs": max((r["point_map_differs"] for r in pairs), default=0.0),
-        "seconds": {"total": total_s, "staging_and_features": staging_s, "map_own_avg": timer["own"].get_avg_time(),
-                    "map_geofeat_avg": timer["geofeat"].get_avg_time()},
-        "threads": torch.get_num_threads(), "machine": machine(),
-        "date": time.strftime("%Y-%m-%d"), "per_pair": pairs, "per_shape_features": list(feature_rows.values()),
-    }  # fmt: skip
+        "seconds": {
+            "total": total_s,
+            "staging_and_features": staging_s,
+            "map_own_avg": timer["own"].get_avg_time(),
+            "map_geofeat_avg": timer["geofeat"].get_avg_time(),
+        },
+        "threads": torch.get_num_threads(),
+        "machine": machine(),
+        "date": time.strftime("%Y-%m-%d"),
+        "per_pair": pairs,
+        "per_shape_features": list(feature_rows.values()),
+    }
 
 
 def markdown(result: dict) -> str:
@@ -322,8 +355,10 @@ def markdown(result: dict) -> str:
     for label, key in rows:
         s = result[key]
         if s["pairs"]:
-            lines.append(f"| {label}: {s['pairs']} | {s['error_own_x100']:.5f} | {s['error_geofeat_x100']:.5f} | "
-                         f"{s['max_pair_abs_diff_x100']:.2g} | {s['pairs_equal']} of {s['pairs']} |")  # fmt: skip
+            lines.append(
+                f"| {label}: {s['pairs']} | {s['error_own_x100']:.5f} | {s['error_geofeat_x100']:.5f} | "
+                f"{s['max_pair_abs_diff_x100']:.2g} | {s['pairs_equal']} of {s['pairs']} |"
+            )
     sec = result["seconds"]
     lines += [
         "",
@@ -340,11 +375,9 @@ def markdown(result: dict) -> str:
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--repo", type=Path, default=None, help="your clone of the ULRSSM reference repository")
+    parser.add_argument("--checkpoint", type=Path, default=REPO.parent / "shared" / "checkpoints" / "ulrssm" / "faust_scape.pth")
     parser.add_argument(
-        "--checkpoint", type=Path, default=HERE.parent.parent / "shared" / "checkpoints" / "ulrssm" / "faust_scape.pth"
-    )
-    parser.add_argument(
-        "--data-root", type=Path, default=Path(os.environ.get("GEOFEAT_DATA", HERE.parent.parent / "shared" / "data"))
+        "--data-root", type=Path, default=DEFAULT_DATA, help="the folder holding the datasets (default $GEOFEAT_DATA)"
     )
     parser.add_argument("--features", type=Path, default=None, help="folder of <shape>.npy geofeat features (default: computed)")
     parser.add_argument(
@@ -376,9 +409,15 @@ def main(argv=None) -> int:
     if not args.checkpoint.is_file():
         raise SystemExit(f"swap_in: checkpoint {args.checkpoint} not found; pass --checkpoint PATH/faust_scape.pth")
     result = run(
-        repo, args.checkpoint.resolve(), args.data_root.resolve(), args.work.resolve(), args.features, args.limit,
-        args.pairs, args.out,
-    )  # fmt: skip
+        repo,
+        args.checkpoint.resolve(),
+        data_folder(args.data_root, "--data-root").resolve(),
+        args.work.resolve(),
+        args.features,
+        args.limit,
+        args.pairs,
+        args.out,
+    )
     print(markdown(result))
     if args.out is not None:
         _write(args.out, result, complete=True)

@@ -15,26 +15,24 @@ Each checkpoint is run with the presets' interpolation of the refined features
 (``"reference"``, the reference code's) and with ``"nearest"`` (the nearest samples, which
 these weights work better with; see `geofeat.adapters.dpfm`).
 
-    python benchmarks/transfer_dpfm_partial.py --models PATH/TO/DPFM/dpfm/data/saved_models --limit 50
+    python -m benchmarks.transfer_dpfm_partial --models PATH/TO/DPFM/dpfm/data/saved_models --limit 50
 """
 
 from __future__ import annotations
 
 import argparse
 import json
-import os
 import sys
 import time
 from pathlib import Path
 
 from tqdm.auto import tqdm
 
+from benchmarks.common import DEFAULT_DATA, data_folder
 from geofeat.adapters.dpfm import DPFMHead
 from geofeat.adapters.heads import load_head
 from geofeat.datasets import load_dataset
 from geofeat.evaluation.protocol import evaluate_pair, summarize
-
-HERE = Path(__file__).resolve().parent
 
 #: dataset -> (checkpoint file, preset)
 RUNS = {
@@ -44,8 +42,9 @@ RUNS = {
 INTERPOLATIONS = ("reference", "nearest")
 
 
-def transfer(models: Path, data_root: Path, dataset_name: str, interpolation: str = "reference", limit: int = 50,
-             progress: bool = True) -> dict:  # fmt: skip
+def transfer(
+    models: Path, data_root: Path, dataset_name: str, interpolation: str = "reference", limit: int = 50, progress: bool = True
+) -> dict:
     """Summary (as ``benchmarks/run.py``) of one checkpoint on the first ``limit`` test pairs.
 
     ``interpolation``: the head's setting (``"reference"``: the reference code's, as the
@@ -78,17 +77,18 @@ def transfer(models: Path, data_root: Path, dataset_name: str, interpolation: st
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--models", required=True, help="folder with shrec_cuts.pth and shrec_holes.pth")
-    parser.add_argument("--data-root", default=os.environ.get("GEOFEAT_DATA", str(HERE.parent.parent / "shared" / "data")))
+    parser.add_argument("--data-root", default=DEFAULT_DATA, help="the folder holding the datasets (default $GEOFEAT_DATA)")
     parser.add_argument("--dataset", choices=sorted(RUNS), action="append")
     parser.add_argument("--interpolation", choices=INTERPOLATIONS, action="append")
     parser.add_argument("--limit", type=int, default=50)
     parser.add_argument("--out", default=None, help="write the results as JSON here")
     parser.add_argument("--no-progress", action="store_true")
     args = parser.parse_args(argv)
+    data_root = data_folder(args.data_root, "--data-root")
     results = []
     for name in args.dataset or sorted(RUNS):
         for interpolation in args.interpolation or INTERPOLATIONS:
-            r = transfer(Path(args.models), Path(args.data_root), name, interpolation, args.limit, not args.no_progress)
+            r = transfer(Path(args.models), data_root, name, interpolation, args.limit, not args.no_progress)
             results.append(r)
             print(
                 f"{r['checkpoint']} on {name} (interpolation {interpolation}, {r['n_pairs']} pairs): geodesic error x100 "

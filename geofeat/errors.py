@@ -17,7 +17,7 @@ type                      raised for
 ``SpectralError``         the Laplace-Beltrami eigenproblem
 ``GeodesicMemoryError``   an all-pairs geodesic matrix that does not fit in memory
 ``RenderError``           cameras, rasterization, shading and back-projection
-``BackboneError``         DINO backbones, their weights and LoRA adapters
+``BackboneError``         DINO backbones, their weights and LoRA
 ``DatasetError``          benchmark folders, files and loader options
 ``MetricError``           inputs to the metrics
 ``TrainingError``         GeoLoRA training: losses, options, checkpoints

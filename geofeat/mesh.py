@@ -117,7 +117,7 @@ class Mesh:
 
     @cached_property
     def _face_areas(self) -> np.ndarray:
-        areas = triangle_areas(self.verts, self.faces)
+        areas = triangle_areas(self.verts, require_faces(self, "face areas"))
         areas.flags.writeable = False
         return areas
 

@@ -47,7 +47,7 @@ class LazyEntry:
     summary : str
         One line for listings.
     options : dict
-        Settings fixed by this name (e.g. the dataset preset ``partiality="cuts"``).
+        Settings fixed by this name (e.g. ``partiality="cuts"`` of the dataset ``shrec16_cuts``).
     """
 
     name: str

@@ -49,8 +49,13 @@ def test_key_values_are_json_when_they_parse_and_given_once():
     from geofeat.errors import ExtractError
 
     assert parse_key_values(["n_eig=12", " scale =0.5", "normalize=false", "laplacian=cotan", "x=[1, 2]", "s="]) == {
-        "n_eig": 12, "scale": 0.5, "normalize": False, "laplacian": "cotan", "x": [1, 2], "s": "",
-    }  # fmt: skip
+        "n_eig": 12,
+        "scale": 0.5,
+        "normalize": False,
+        "laplacian": "cotan",
+        "x": [1, 2],
+        "s": "",
+    }
     with pytest.raises(DescriptorError, match=r"--param expects KEY=VALUE \(for example --param n_descr=128\); found 'n_eig'"):
         parse_key_values(["n_eig"])
     with pytest.raises(ExtractError, match=r"--head-param expects KEY=VALUE.*found '=3'"):

@@ -60,8 +60,8 @@ def test_train_flags_take_their_help_from_the_settings_docstring():
     assert "checkpoints/step_NNNNNNN/" in helps["out"] and "``" not in helps["out"]
     assert helps["camera_layout"] == "one of official, uniform (default official)"
     assert "required" in helps["data"]
-    args = build_parser().parse_args(["train-geolora", "--dataset", "becos", "--data-root", "/data", "--preset", "reference"])
-    assert (args.data, args.data_root, args.preset) == ("becos", "/data", "reference")
+    args = build_parser().parse_args(["train-geolora", "--dataset", "becos", "--data-root", "/data", "--recipe", "reference"])
+    assert (args.data, args.data_root, args.recipe) == ("becos", "/data", "reference")
     doc = """Settings.
 
     Parameters

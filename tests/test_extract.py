@@ -186,8 +186,12 @@ def test_faust_r_dataset_in_its_folder_layout(faust_dir, tmp_path):
 
 def test_param_values_are_json_when_they_parse():
     assert parse_params(["n_eig=12", "scale=0.5", "normalize=false", "laplacian=cotan", "x=[1, 2]"]) == {
-        "n_eig": 12, "scale": 0.5, "normalize": False, "laplacian": "cotan", "x": [1, 2],
-    }  # fmt: skip
+        "n_eig": 12,
+        "scale": 0.5,
+        "normalize": False,
+        "laplacian": "cotan",
+        "x": [1, 2],
+    }
     with pytest.raises(ExtractError, match="KEY=VALUE"):
         parse_params(["n_eig"])
     with pytest.raises(ExtractError, match="twice"):

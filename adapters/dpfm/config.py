@@ -172,5 +172,3 @@ def check_config(c: DPFMConfig) -> None:
             )
     if c.augmentation and c.descriptor != "xyz":
         raise HeadError(f"dpfm: augmentation transforms coordinates; it needs descriptor='xyz', found {c.descriptor!r}.")
-
-

@@ -41,11 +41,9 @@ holds the settings of their code. Where that code differs from our defaults:
   order of torch's unstable sort (see `reference_sample_interpolation`). The presets
   reproduce this, so that a release checkpoint computes here what it computes in the
   reference code; it only touches the refined features (the overlap, and the functional map
-  where ``fmap_features="refined"``). The released SHREC'16 weights evidently learned the
-  intended interpolation: on the SHREC'16 cat pair shipped with the code, ``"nearest"``
-  lifts the overlap ROC AUC of ``shrec_cuts.pth`` from 0.49 (the reference code's own 0.49)
-  to 0.99 and cuts the geodesic error of ``shrec_holes.pth`` from 24.2 to 4.7 (x100), so
-  pass ``interpolation="nearest"`` to use those checkpoints as their authors trained them;
+  where ``fmap_features="refined"``). The released SHREC'16 weights work better with the
+  intended interpolation (docs/heads.md gives the numbers): pass ``interpolation="nearest"``
+  to use those checkpoints as their authors trained them;
 - functional map from the DiffusionNet features on FAUST_r, SCAPE_r and SHREC'16 cuts
   (``fmap_features="extracted"``, the reference's ``robust: False``), refined on holes;
 - ground-truth functional map on FAUST_r: least squares on the template points

@@ -190,7 +190,15 @@ class DPFMNet(nn.Module):
             fx, fy = fx * torch.sigmoid(logits_x).unsqueeze(-1), fy * torch.sigmoid(logits_y).unsqueeze(-1)
         k = c.n_fmap
         fmap = regularized_fmap(
-            fx, fy, ops_x.evecs[:, :k], ops_y.evecs[:, :k], ops_x.mass, ops_y.mass, ops_x.evals[:k], ops_y.evals[:k],
-            lambda_=c.lambda_, gamma=c.gamma,
-        )  # fmt: skip
+            fx,
+            fy,
+            ops_x.evecs[:, :k],
+            ops_y.evecs[:, :k],
+            ops_x.mass,
+            ops_y.mass,
+            ops_x.evals[:k],
+            ops_y.evals[:k],
+            lambda_=c.lambda_,
+            gamma=c.gamma,
+        )
         return DPFMOutput(fmap, logits_x, logits_y, use_x, use_y)

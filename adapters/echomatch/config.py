@@ -114,4 +114,3 @@ class EchoMatchConfig(HeadConfig):
             setattr(self, name, check_boolean(getattr(self, name), name, owner="echomatch", error=HeadError))
         if self.prune_strategy not in PRUNE_STRATEGIES:
             raise HeadError(f"echomatch setting prune_strategy must be one of {PRUNE_STRATEGIES}; found {self.prune_strategy!r}.")
-

@@ -219,8 +219,9 @@ class EchoMatchHead(LearnedHead):
             use_y = use_y * overlap_y[:, None].to(use_y.dtype)
         if c.prune_strategy == "both":
             use_x = use_x * overlap_x[:, None].to(use_x.dtype)
-        c_pred = regularized_fmap(use_x, use_y, evecs_x, evecs_y, ops_x.mass, ops_y.mass, evals_x, evals_y,
-                                  lambda_=c.fmap_lambda, gamma=c.fmap_gamma)  # fmt: skip
+        c_pred = regularized_fmap(
+            use_x, use_y, evecs_x, evecs_y, ops_x.mass, ops_y.mass, evals_x, evals_y, lambda_=c.fmap_lambda, gamma=c.fmap_gamma
+        )
         c_gt = regularized_gt_fmap(map_yx, evecs_x, evecs_y, evals_x, evals_y, c.gt_fmap_lambda, c.fmap_gamma, ops_y.mass)
 
         corr_y = torch.nonzero(map_yx >= 0).squeeze(1)
@@ -244,8 +245,10 @@ class EchoMatchHead(LearnedHead):
         self._ensure_model(pair.x).eval()
         with torch.no_grad():
             out, _, _ = self.network_outputs(pair)
-        return (torch.sigmoid(out.overlap_logits_x).cpu().numpy().astype(np.float32),
-                torch.sigmoid(out.overlap_logits_y).cpu().numpy().astype(np.float32))  # fmt: skip
+        return (
+            torch.sigmoid(out.overlap_logits_x).cpu().numpy().astype(np.float32),
+            torch.sigmoid(out.overlap_logits_y).cpu().numpy().astype(np.float32),
+        )
 
     def predict(self, pair: ShapePair) -> Match:
         """Nearest neighbour of the normalised features and overlaps above ``overlap_threshold``.
@@ -265,9 +268,12 @@ class EchoMatchHead(LearnedHead):
             candidates = torch.nonzero(overlap_x).squeeze(1)
         map_yx = candidates[_nearest(fx[candidates], fy)]
         return Match(
-            map_yx.cpu().numpy().astype(np.int64), overlap_y.cpu().numpy(), overlap_x.cpu().numpy(),
-            prob_y.cpu().numpy().astype(np.float32), prob_x.cpu().numpy().astype(np.float32),
-        )  # fmt: skip
+            map_yx.cpu().numpy().astype(np.int64),
+            overlap_y.cpu().numpy(),
+            overlap_x.cpu().numpy(),
+            prob_y.cpu().numpy().astype(np.float32),
+            prob_x.cpu().numpy().astype(np.float32),
+        )
 
 
 def _nearest(fx: torch.Tensor, fy: torch.Tensor, block: int = 4096) -> torch.Tensor:

@@ -73,8 +73,16 @@ def self_nce_loss(feat: torch.Tensor, temperature: float) -> torch.Tensor:
     return F.cross_entropy(f @ f.T / temperature, torch.arange(f.shape[0], device=f.device))
 
 
-def regularized_gt_fmap(map_yx, evecs_x: torch.Tensor, evecs_y: torch.Tensor, evals_x: torch.Tensor, evals_y: torch.Tensor,
-                        lambda_: float, gamma: float = 0.5, mass_y: torch.Tensor | None = None) -> torch.Tensor:  # fmt: skip
+def regularized_gt_fmap(
+    map_yx,
+    evecs_x: torch.Tensor,
+    evecs_y: torch.Tensor,
+    evals_x: torch.Tensor,
+    evals_y: torch.Tensor,
+    lambda_: float,
+    gamma: float = 0.5,
+    mass_y: torch.Tensor | None = None,
+) -> torch.Tensor:
     """Ground-truth functional map (k_y, k_x) of a partial map y -> x, fitted with a Laplacian-mask regulariser.
 
     Minimises ``||Phi_y C - P_yx Phi_x||_F^2 + lambda_ sum_ij W_ij C_ij^2`` over the vertices
@@ -113,4 +121,3 @@ def regularized_gt_fmap(map_yx, evecs_x: torch.Tensor, evecs_y: torch.Tensor, ev
     systems = gram.unsqueeze(0) + lambda_ * torch.diag_embed(weights.T)  # (k_x, k_y, k_y): one per column of C
     columns = torch.linalg.solve(systems, rhs.T.unsqueeze(-1)).squeeze(-1)  # (k_x, k_y)
     return columns.T.contiguous().to(out_dtype)
-

@@ -53,16 +53,18 @@ class EchoMatchNet(nn.Module):
     def __init__(self, in_channels: int, config: EchoMatchConfig) -> None:
         super().__init__()
         self.n_neighbours = int(config.n_neighbours)
-        self.features = DiffusionNet(in_channels, config.feature_channels, width=config.width, n_blocks=config.n_blocks,
-                                     dropout=float(config.dropout))  # fmt: skip
+        self.features = DiffusionNet(
+            in_channels, config.feature_channels, width=config.width, n_blocks=config.n_blocks, dropout=float(config.dropout)
+        )
         self.learn_log_temperature = bool(config.learn_log_temperature)
         initial = torch.tensor([float(config.temperature_init)])
         if self.learn_log_temperature:
             self.log_temperature = nn.Parameter(initial.log())
         else:
             self.temperature = nn.Parameter(initial)
-        self.overlap = DiffusionNet(self.n_neighbours, 1, width=config.overlap_width, n_blocks=config.overlap_blocks,
-                                    dropout=float(config.dropout))  # fmt: skip
+        self.overlap = DiffusionNet(
+            self.n_neighbours, 1, width=config.overlap_width, n_blocks=config.overlap_blocks, dropout=float(config.dropout)
+        )
 
     def temperature_value(self) -> torch.Tensor:
         """The temperature in use, shape (1,).
@@ -81,8 +83,15 @@ class EchoMatchNet(nn.Module):
         scaled = similarity / self.temperature_value()
         return torch.softmax(scaled, dim=1), torch.softmax(scaled.T, dim=1)
 
-    def forward(self, in_x: torch.Tensor, ops_x: SurfaceOperators, nbrs_x: torch.Tensor,
-                in_y: torch.Tensor, ops_y: SurfaceOperators, nbrs_y: torch.Tensor) -> EchoMatchOutput:  # fmt: skip
+    def forward(
+        self,
+        in_x: torch.Tensor,
+        ops_x: SurfaceOperators,
+        nbrs_x: torch.Tensor,
+        in_y: torch.Tensor,
+        ops_y: SurfaceOperators,
+        nbrs_y: torch.Tensor,
+    ) -> EchoMatchOutput:
         """Features, soft maps and overlap logits of a pair.
 
         Parameters
@@ -104,4 +113,3 @@ class EchoMatchNet(nn.Module):
         logits_x = self.overlap(scores_x, ops_x).squeeze(-1)
         logits_y = self.overlap(scores_y, ops_y).squeeze(-1)
         return EchoMatchOutput(feat_x, feat_y, p_xy, p_yx, logits_x, logits_y)
-

@@ -101,8 +101,9 @@ class _SampledProduct(torch.autograd.Function):
             crow = torch.arange(0, n * k + 1, k, device=index.device)
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore", UserWarning)  # "CSR support is in beta"
-                pattern = torch.sparse_csr_tensor(crow, cols.reshape(-1), a.new_zeros(n * k), (n, b.shape[1]),
-                                                  check_invariants=False)  # fmt: skip
+                pattern = torch.sparse_csr_tensor(
+                    crow, cols.reshape(-1), a.new_zeros(n * k), (n, b.shape[1]), check_invariants=False
+                )
                 values = torch.sparse.sampled_addmm(pattern, a, b, beta=0.0).values().reshape(n, k)
             return torch.empty_like(values).scatter_(1, order, values)
         except (RuntimeError, NotImplementedError):  # a device without sampled_addmm: gather in chunks
@@ -202,4 +203,3 @@ def round_trip_error(reflection: torch.Tensor, verts, mask=None) -> torch.Tensor
     if mask is not None:
         per_vertex = per_vertex[torch.as_tensor(np.asarray(mask, dtype=bool), device=reflection.device)]
     return per_vertex.mean()
-

@@ -1,5 +1,5 @@
 #!/usr/bin/env python
-"""The official GeoLoRA evaluation code run on supplied correspondence maps (for `parity_paper.py`).
+"""The official GeoLoRA evaluation code run on supplied correspondence maps (for `parity/paper.py`).
 
 Runs the dataset classes and ``validation_partial_full`` of ``vikiehm/geo-lora`` (commit
 ed2a541b23df300724812bae45c0854debb5c099), from an unmodified copy given by ``--geo-lora``, on

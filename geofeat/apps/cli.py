@@ -113,7 +113,7 @@ _WEIGHTS_SOURCE = {
         "(dinov3_vitb16_pretrain_lvd1689m-*.pth, access form at https://github.com/facebookresearch/dinov3)"
     ),
 }
-_ADAPTER_SOURCE = (
+_LORA_SOURCE = (
     "checkpoint=, given per call: a folder written by 'geofeat train-geolora' (<run>/checkpoints/step_NNNNNNN), or a "
     "release .pth of the GeoLoRA authors (saved_models/faust.pth, becos.pth, smal.pth, ... in "
     "https://github.com/vikiehm/geo-lora)"
@@ -201,7 +201,7 @@ def _descriptor_lines(info) -> tuple[str, list[str]]:
         env = "GEOFEAT_DINOV2_WEIGHTS" if kind == "dinov2" else "GEOFEAT_DINOV3_WEIGHTS"
         lines += _labelled("get", f"{_WEIGHTS_SOURCE[kind]}. Then set {env} to the folder or .pth, or pass weights=.")
         if info.name == "geolora":
-            lines += _labelled("adapter", _ADAPTER_SOURCE)
+            lines += _labelled("LoRA", _LORA_SOURCE)
         import torch
 
         lines += _labelled("device", "cuda (a GPU is present)" if torch.cuda.is_available() else "cpu (no CUDA GPU here)")
@@ -209,7 +209,7 @@ def _descriptor_lines(info) -> tuple[str, list[str]]:
         lines += _labelled("params", ", ".join(f"{k}={v!r}" for k, v in info.params.items()))
     status = "ready" if ready else "not ready"
     if ready and info.name == "geolora":
-        status = "ready, given an adapter (checkpoint=)"
+        status = "ready, given a LoRA (checkpoint=)"
     return status, lines
 
 
@@ -348,7 +348,7 @@ def _train_command(args: argparse.Namespace) -> int:
     except KeyboardInterrupt:
         return 130
     if main:
-        _out(f"adapter: {checkpoint}")
+        _out(f"lora: {checkpoint}")
     return 0
 
 
@@ -371,9 +371,16 @@ def _extract_command(args: argparse.Namespace) -> int:
     try:
         with _quiet_if(args.no_progress):
             result = extract(
-                shapes, args.descriptor, params, store=args.out, manifest=manifest, export=export,
-                device=args.device, prefetch=args.prefetch, progress=not args.no_progress,
-            )  # fmt: skip
+                shapes,
+                args.descriptor,
+                params,
+                store=args.out,
+                manifest=manifest,
+                export=export,
+                device=args.device,
+                prefetch=args.prefetch,
+                progress=not args.no_progress,
+            )
     except KeyboardInterrupt:
         sys.stderr.write(
             "geofeat: interrupted. The features computed so far are kept in the store; the same command "
@@ -463,9 +470,16 @@ def _data_prepare_command(args: argparse.Namespace) -> int:
     overrides = parse_key_values(args.set or [], "--set", error=DatasetError)
     with _quiet_if(args.no_progress):
         report = prepare_becos(
-            args.generator, args.out, args.config, args.python, setting=args.setting, overrides=overrides or None,
-            echo=_out, check=not args.no_check, progress=not args.no_progress,
-        )  # fmt: skip
+            args.generator,
+            args.out,
+            args.config,
+            args.python,
+            setting=args.setting,
+            overrides=overrides or None,
+            echo=_out,
+            check=not args.no_check,
+            progress=not args.no_progress,
+        )
     for line in report.lines():
         _out(line)
     return 0 if report.ok else 1
@@ -511,17 +525,20 @@ def build_parser() -> argparse.ArgumentParser:
     demo.set_defaults(func=_demo_command)
     train = sub.add_parser(
         "train-geolora",
-        help="train a GeoLoRA adapter (self-supervised, on synthetic partial shapes)",
-        description="Train a LoRA adapter on a frozen DINOv3 with the GeoLoRA recipe. Settings come from --config "
+        help="train a LoRA on DINOv3 for GeoLoRA features (self-supervised, on synthetic partial shapes)",
+        description="Train a LoRA on a frozen DINOv3 with the GeoLoRA recipe. Settings come from --config "
         "(JSON or YAML) and the flags below (flags win). Running again with the same --out resumes from its newest checkpoint.",
     )
     train.add_argument("--config", help="Settings file (.json, .yaml); keys are the flag names with underscores")
     _add_train_flags(train)
     train.add_argument(
-        "--dataset", dest="data", metavar="NAME", default=None,
+        "--dataset",
+        dest="data",
+        metavar="NAME",
+        default=None,
         help="the same as --data with a dataset name: faust_r, scape_r, or an official training set (faust, becos, "
         "becos_without_shrec16, smal) under --data-root",
-    )  # fmt: skip
+    )
     train.set_defaults(func=_train_command)
     ext = sub.add_parser(
         "extract",

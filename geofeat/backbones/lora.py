@@ -1,16 +1,16 @@
-"""LoRA adapters (GeoLoRA) on the attention projections of a frozen DINO backbone, through `peft`.
+"""LoRA (GeoLoRA) on the attention projections of a frozen DINO backbone, through `peft`.
 
 >>> backbone = load_backbone("/models/dinov3-vitb16", kind="dinov3")        # doctest: +SKIP
 >>> add_lora(backbone)                   # rank 16, alpha 32 on q/k/v; base frozen   # doctest: +SKIP
->>> save_adapter(backbone, "runs/faust/adapter", LoraSettings(training={"lr": 1e-4}))  # doctest: +SKIP
->>> load_adapter(load_backbone("/models/dinov3-vitb16", kind="dinov3"), "runs/faust/adapter")  # doctest: +SKIP
+>>> save_lora(backbone, "runs/faust/lora", LoraSettings(training={"lr": 1e-4}))  # doctest: +SKIP
+>>> load_lora(load_backbone("/models/dinov3-vitb16", kind="dinov3"), "runs/faust/lora")  # doctest: +SKIP
 >>> load_official_lora(load_backbone(..., kind="dinov3"), "saved_models/becos.pth")  # doctest: +SKIP
 
-One adapter (peft's ``"default"``) serves full and partial shapes alike (siamese training).
+One LoRA (peft's adapter ``"default"``) serves full and partial shapes alike (siamese training).
 The low-rank update of a projection ``W`` (out, in) is ``W + (alpha / rank) * B @ A`` with
 ``A`` (rank, in) and ``B`` (out, rank).
 
-Adapter folders are written by `geofeat.storage.pretrained.save_pretrained` (kind ``"lora_adapter"``,
+LoRA folders are written by `geofeat.storage.pretrained.save_pretrained` (kind ``"lora"``,
 the layout of heads and trainer checkpoints too):
 
 ``weights.safetensors``
@@ -18,18 +18,15 @@ the layout of heads and trainer checkpoints too):
     ``layer.<i>.<target>.lora_B.weight`` (out, rank), ``<i>`` the block index, ``<target>`` the
     projection's leaf name (``q_proj``, ``k_proj``, ``v_proj`` for DINOv3).
 ``config.json``
-    ``{"kind": "lora_adapter", "format_version", "geofeat_version", "config", "info"}``:
+    ``{"kind": "lora", "format_version", "geofeat_version", "config", "info"}``:
     ``config`` holds the backbone's kind, source and weights digest, its number of blocks,
     rank, alpha, dropout, targets, ``shared_a`` and the free-form training settings;
     ``info`` the extra information (step, loss).
 
-A folder of the older layout (``adapter_config.json`` + ``adapter.safetensors``) is refused
-with a message; `upgrade_adapter` rewrites it in the current layout.
-
 The GeoLoRA release checkpoints (``saved_models/*.pth`` of the authors' repository) adapt the
 fused ``blocks.<i>.attn.qkv`` projection of the official DINOv3 (peft ``r=16``,
 ``lora_alpha=32``, ``target_modules=["qkv"]``, ``bias="none"``). Their update ``B @ A`` splits
-exactly into per-projection adapters sharing ``A``, with ``B`` cut into three row blocks
+exactly into per-projection LoRA updates sharing ``A``, with ``B`` cut into three row blocks
 (query, key, value); `load_official_lora` does that conversion.
 """
 
@@ -41,7 +38,6 @@ import json
 import logging
 import os
 import re
-import shutil
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -60,36 +56,29 @@ from geofeat.storage.safe_load import load_torch_file
 logger = logging.getLogger(__name__)
 
 __all__ = [
-    "ADAPTER_KIND",
+    "LORA_KIND",
     "OFFICIAL_ALPHA",
     "LoraSettings",
-    "adapter_digest",
-    "loaded_adapter_digest",
     "add_lora",
     "convert_official_lora",
     "has_lora",
-    "load_adapter",
+    "load_lora",
     "load_official_lora",
-    "official_lora_state_dict",
-    "save_official_lora",
+    "loaded_lora_digest",
+    "lora_digest",
     "lora_state_dict",
-    "save_adapter",
-    "upgrade_adapter",
+    "official_lora_state_dict",
+    "save_lora",
+    "save_official_lora",
 ]
 
-#: The `geofeat.storage.pretrained` kind of adapter folders (trainer checkpoints included).
-ADAPTER_KIND = "lora_adapter"
-#: Files of the older adapter layout, which `upgrade_adapter` rewrites.
-_OLD_CONFIG_FILE, _OLD_WEIGHTS_FILE = "adapter_config.json", "adapter.safetensors"
+#: The `geofeat.storage.pretrained` kind of LoRA folders (trainer checkpoints included).
+LORA_KIND = "lora"
 _BACKBONE_KEYS = ("backbone_kind", "backbone_digest", "backbone_source", "num_layers")
-_OLD_LAYOUT_HINT = (
-    "Rewrite it in place with geofeat.backbones.lora.upgrade_adapter(folder) (the weights and a trainer checkpoint's "
-    "trainer_state.pt are kept)."
-)
-_ADAPTER = "default"
+_PEFT_ADAPTER = "default"
 _REQUIRED_KEYS = ("backbone_kind", "backbone_digest", "rank", "alpha", "targets")
 _CANONICAL_KEY = re.compile(r"^layer\.(\d+)\.([A-Za-z0-9_]+)\.lora_([AB])\.weight$")
-# the release checkpoints: peft-wrapped official DINOv3, fused qkv (the prefix and adapter name are optional)
+# the release checkpoints: peft-wrapped official DINOv3, fused qkv (the prefix and peft's adapter name are optional)
 _OFFICIAL_KEY = re.compile(r"^(?:module\.)?(?:base_model\.model\.)?blocks\.(\d+)\.attn\.qkv\.lora_([AB])(?:\.default)?\.weight$")
 _OFFICIAL_EXAMPLE = "base_model.model.blocks.<i>.attn.qkv.lora_A.default.weight (rank, D) and ...lora_B.default.weight (3D, rank)"
 OFFICIAL_ALPHA = 32.0
@@ -100,8 +89,7 @@ def _require_peft() -> Any:
         import peft
     except ImportError as exc:
         raise MissingDependencyError(
-            "LoRA adapters need the optional dependency 'peft', which is not installed; install it with: "
-            "pip install 'geofeat[dino]'"
+            "LoRA needs the optional dependency 'peft', which is not installed; install it with: pip install 'geofeat[dino]'"
         ) from exc
     return peft
 
@@ -111,7 +99,7 @@ def _require_peft() -> Any:
 
 @dataclass
 class LoraSettings(JsonConfig):
-    """LoRA hyper-parameters, plus free-form training settings stored with the adapter.
+    """LoRA hyper-parameters, plus free-form training settings stored with the LoRA.
 
     A `geofeat.storage.jsonconfig.JsonConfig`: `JsonConfig.save` / `JsonConfig.load` write and read it as a JSON file.
 
@@ -189,12 +177,12 @@ def _resolve_targets(backbone: DinoBackbone, settings: LoraSettings) -> tuple[st
 
 
 def add_lora(backbone: DinoBackbone, config: LoraSettings | None = None) -> DinoBackbone:
-    """Wrap the backbone's model with a trainable LoRA adapter; every base weight is frozen.
+    """Wrap the backbone's model with a trainable LoRA; every base weight is frozen.
 
     The model is modified in place (``backbone.model`` becomes a ``peft.PeftModel``) and the same
     backbone is returned; its `weights_digest` stays the digest of the base weights.
     `DinoBackbone.patch_features` is then differentiable with respect to the LoRA parameters
-    (the only ones with ``requires_grad``). New adapters start as the identity (``B = 0``).
+    (the only ones with ``requires_grad``). A new LoRA starts as the identity (``B = 0``).
 
     Parameters
     ----------
@@ -218,7 +206,7 @@ def add_lora(backbone: DinoBackbone, config: LoraSettings | None = None) -> Dino
     if not isinstance(settings, LoraSettings):
         raise BackboneError(f"config must be a LoraSettings, found {type(settings).__name__}")
     if has_lora(backbone):
-        raise BackboneError("this backbone already has a LoRA adapter; load a fresh backbone to add another")
+        raise BackboneError("this backbone already has a LoRA; load a fresh backbone to add another")
     targets = _resolve_targets(backbone, settings)
     lora_config = peft.LoraConfig(
         r=settings.rank, lora_alpha=settings.alpha, lora_dropout=settings.dropout, target_modules=list(targets), bias="none"
@@ -242,18 +230,18 @@ def add_lora(backbone: DinoBackbone, config: LoraSettings | None = None) -> Dino
 
 
 def _active_settings(backbone: DinoBackbone) -> LoraSettings:
-    """Rank, alpha, dropout, targets and A sharing of the backbone's peft adapter."""
+    """Rank, alpha, dropout, targets and A sharing of the backbone's LoRA (its peft config)."""
     if not has_lora(backbone):
-        raise BackboneError("this backbone has no LoRA adapter; call add_lora(backbone) or load_adapter(backbone, folder) first")
+        raise BackboneError("this backbone has no LoRA; call add_lora(backbone) or load_lora(backbone, folder) first")
     peft_config = getattr(backbone.model, "peft_config", None)
-    if not peft_config or _ADAPTER not in peft_config:
+    if not peft_config or _PEFT_ADAPTER not in peft_config:
         raise BackboneError("the backbone's LoRA layers were not added by add_lora (no peft 'default' adapter config)")
-    config = peft_config[_ADAPTER]
+    config = peft_config[_PEFT_ADAPTER]
     targets = config.target_modules
     targets = tuple(sorted(targets)) if not isinstance(targets, str) else (targets,)
     modules = _lora_modules(backbone)
     shared = len(targets) > 1 and all(
-        modules[(block, target)].lora_A[_ADAPTER].weight is modules[(block, targets[0])].lora_A[_ADAPTER].weight
+        modules[(block, target)].lora_A[_PEFT_ADAPTER].weight is modules[(block, targets[0])].lora_A[_PEFT_ADAPTER].weight
         for block in {b for b, _ in modules}
         for target in targets
     )
@@ -266,9 +254,9 @@ def _share_a(backbone: DinoBackbone, targets: tuple[str, ...]) -> None:
     """Make the targets of each block use the first target's ``A`` parameter (see `LoraSettings.shared_a`)."""
     modules = _lora_modules(backbone)
     for block in sorted({b for b, _ in modules}):
-        first = modules[(block, targets[0])].lora_A[_ADAPTER]
+        first = modules[(block, targets[0])].lora_A[_PEFT_ADAPTER]
         for target in targets[1:]:
-            modules[(block, target)].lora_A[_ADAPTER].weight = first.weight
+            modules[(block, target)].lora_A[_PEFT_ADAPTER].weight = first.weight
 
 
 def _lora_modules(backbone: DinoBackbone) -> dict[tuple[int, str], Any]:
@@ -295,34 +283,34 @@ def lora_state_dict(backbone: DinoBackbone) -> dict[str, Tensor]:
     out: dict[str, Tensor] = {}
     for (block, target), module in sorted(_lora_modules(backbone).items()):
         for part in ("A", "B"):
-            weight = getattr(module, f"lora_{part}")[_ADAPTER].weight
+            weight = getattr(module, f"lora_{part}")[_PEFT_ADAPTER].weight
             out[f"layer.{block}.{target}.lora_{part}.weight"] = weight.detach().to("cpu", torch.float32, copy=True).contiguous()
     return out
 
 
 def _load_lora_tensors(backbone: DinoBackbone, tensors: Mapping[str, Tensor], source: str) -> None:
-    """Copy geofeat-layout LoRA tensors into the backbone's adapter (every LoRA layer must be covered)."""
+    """Copy geofeat-layout LoRA tensors into the backbone's LoRA (every LoRA layer must be covered)."""
     modules = _lora_modules(backbone)
     expected = {f"layer.{b}.{t}.lora_{p}.weight" for (b, t) in modules for p in "AB"}
     missing, unexpected = sorted(expected - set(tensors)), sorted(set(tensors) - expected)
     if missing or unexpected:
         raise BackboneError(
-            f"the LoRA tensors from {source} do not fit this backbone's adapter: missing {missing[:6]}, unexpected "
-            f"{unexpected[:6]}; the adapter was made for another architecture or other targets"
+            f"the LoRA tensors from {source} do not fit this backbone's LoRA: missing {missing[:6]}, unexpected "
+            f"{unexpected[:6]}; the LoRA was made for another architecture or other targets"
         )
     if _active_settings(backbone).shared_a:
         for block in sorted({b for b, _ in modules}):
             a = [tensors[f"layer.{block}.{t}.lora_A.weight"] for (b, t) in sorted(modules) if b == block]
             if any(not torch.equal(a[0], other) for other in a[1:]):
                 raise BackboneError(
-                    f"the adapter from {source} has different lora_A tensors for the targets of block {block}, but this "
-                    "backbone's adapter shares one A per block (shared_a); load it into an adapter with shared_a=False"
+                    f"the LoRA from {source} has different lora_A tensors for the targets of block {block}, but this "
+                    "backbone's LoRA shares one A per block (shared_a); load it into a LoRA with shared_a=False"
                 )
     with torch.no_grad():
         for (block, target), module in modules.items():
             for part in ("A", "B"):
                 key = f"layer.{block}.{target}.lora_{part}.weight"
-                weight = getattr(module, f"lora_{part}")[_ADAPTER].weight
+                weight = getattr(module, f"lora_{part}")[_PEFT_ADAPTER].weight
                 value = tensors[key]
                 if tuple(value.shape) != tuple(weight.shape):
                     raise BackboneError(
@@ -340,7 +328,7 @@ def _load_lora_tensors(backbone: DinoBackbone, tensors: Mapping[str, Tensor], so
 # ----------------------------------------------------------------------------- files
 
 
-def save_adapter(
+def save_lora(
     backbone: DinoBackbone,
     folder: str | os.PathLike,
     settings: LoraSettings | None = None,
@@ -348,18 +336,18 @@ def save_adapter(
     *,
     extra_files: Mapping[str, Any] | None = None,
 ) -> Path:
-    """Save the backbone's LoRA adapter as a `geofeat.storage.pretrained` folder (``config.json`` + ``weights.safetensors``).
+    """Save the backbone's LoRA as a `geofeat.storage.pretrained` folder (``config.json`` + ``weights.safetensors``).
 
     Parameters
     ----------
     backbone : DinoBackbone
-        A backbone with LoRA (`add_lora`, `load_adapter` or `load_official_lora`).
+        A backbone with LoRA (`add_lora`, `load_lora` or `load_official_lora`).
     folder : str or os.PathLike
-        Created if needed; an adapter (or any folder written by `geofeat.storage.pretrained.save_pretrained`)
+        Created if needed; a LoRA folder (or any folder written by `geofeat.storage.pretrained.save_pretrained`)
         there is replaced whole and atomically; a folder holding other files is refused.
     settings : LoraSettings, optional
-        Its ``training`` dict is stored; its rank, alpha and dropout must agree with the adapter
-        (None: read them from the adapter, no training settings).
+        Its ``training`` dict is stored; its rank, alpha and dropout must agree with the
+        backbone's LoRA (None: read them from it, no training settings).
     extra_info : Mapping, optional
         JSON-serialisable extra information (e.g. step, loss), stored as the folder's ``info``.
     extra_files : Mapping of str to callable, optional
@@ -373,7 +361,7 @@ def save_adapter(
     Raises
     ------
     BackboneError
-        No adapter on the backbone, settings that disagree with it, ``extra_info`` that is not
+        No LoRA on the backbone, settings that disagree with it, ``extra_info`` that is not
         JSON-serialisable, or a folder that holds other files.
     """
     active = _active_settings(backbone)
@@ -383,7 +371,7 @@ def save_adapter(
             mismatch.append("targets")
         if mismatch:
             raise BackboneError(
-                f"settings disagree with the backbone's adapter on {mismatch}: adapter has rank={active.rank}, "
+                f"settings disagree with the backbone's LoRA on {mismatch}: the LoRA has rank={active.rank}, "
                 f"alpha={active.alpha}, dropout={active.dropout}, targets={list(active.targets or ())}"
             )
         active = dataclasses.replace(active, training=dict(settings.training))
@@ -395,19 +383,19 @@ def save_adapter(
         **active.to_dict(unknown=False),
     }
     tensors = lora_state_dict(backbone)
-    folder = save_pretrained(folder, ADAPTER_KIND, config, tensors, info=extra_info, extra_files=extra_files, error=BackboneError)
-    logger.info("saved LoRA adapter (%d tensors) to %s", len(tensors), folder)
+    folder = save_pretrained(folder, LORA_KIND, config, tensors, info=extra_info, extra_files=extra_files, error=BackboneError)
+    logger.info("saved LoRA (%d tensors) to %s", len(tensors), folder)
     return folder
 
 
-def _read_adapter(folder: Path) -> tuple[Pretrained, dict[str, Any]]:
-    """The adapter folder and its checked config (the backbone keys and the `LoraSettings` fields)."""
-    saved = from_pretrained(folder, ADAPTER_KIND, BackboneError, older_layout_hint=_OLD_LAYOUT_HINT)
+def _read_lora(folder: Path) -> tuple[Pretrained, dict[str, Any]]:
+    """The LoRA folder and its checked config (the backbone keys and the `LoraSettings` fields)."""
+    saved = from_pretrained(folder, LORA_KIND, BackboneError)
     config = saved.config
     missing = [k for k in _REQUIRED_KEYS if k not in config]
     if missing:
         raise BackboneError(
-            f"the config of {folder} lacks the keys {missing}; it was not written by save_adapter. Save the adapter again."
+            f"the config of {folder} lacks the keys {missing}; it was not written by save_lora. Save the LoRA again."
         )
     unknown = sorted(set(config) - set(LoraSettings.field_names()) - set(_BACKBONE_KEYS))
     if unknown:
@@ -424,26 +412,26 @@ def _check_backbone(backbone: DinoBackbone, config: Mapping[str, Any], folder: P
     if kind != backbone.kind or digest != backbone.weights_digest:
         source = config.get("backbone_source") or "unrecorded weights"
         raise BackboneError(
-            f"the adapter in {folder} was trained on a {kind} backbone from {source} (weights digest {str(digest)[:12]}...), "
+            f"the LoRA in {folder} was trained on a {kind} backbone from {source} (weights digest {str(digest)[:12]}...), "
             f"but this is a {backbone.kind} backbone from {backbone.source} (digest {backbone.weights_digest[:12]}...); "
-            "load the same backbone weights the adapter was trained on"
+            "load the same backbone weights the LoRA was trained on"
         )
 
 
-def load_adapter(backbone: DinoBackbone, folder: str | os.PathLike) -> DinoBackbone:
-    """Restore an adapter written by `save_adapter` (or a trainer checkpoint) onto a backbone with the same base weights.
+def load_lora(backbone: DinoBackbone, folder: str | os.PathLike) -> DinoBackbone:
+    """Restore a LoRA written by `save_lora` (or a trainer checkpoint) onto a backbone with the same base weights.
 
     Adds the LoRA layers first when the backbone has none (the base weights are frozen, the
-    LoRA parameters trainable, so training can resume); otherwise the existing adapter must
+    LoRA parameters trainable, so training can resume); otherwise the existing LoRA must
     have the same rank, alpha and targets and is overwritten. Unknown config keys are ignored
     (debug log).
 
     Parameters
     ----------
     backbone : DinoBackbone
-        Its `weights_digest` and kind must match those recorded in the adapter.
+        Its `weights_digest` and kind must match those recorded in the LoRA folder.
     folder : str or os.PathLike
-        A folder written by `save_adapter` (``config.json`` of kind ``"lora_adapter"`` and
+        A folder written by `save_lora` (``config.json`` of kind ``"lora"`` and
         ``weights.safetensors``).
 
     Returns
@@ -454,81 +442,36 @@ def load_adapter(backbone: DinoBackbone, folder: str | os.PathLike) -> DinoBackb
     Raises
     ------
     BackboneError
-        Missing or malformed files, a folder of the older layout (the message says how to
-        upgrade it), or another backbone (the message names the one it was trained on).
+        Missing or malformed files, a folder of another layout (the message says to save it
+        again), or another backbone (the message names the one it was trained on).
     """
     folder = Path(folder)
-    saved, config = _read_adapter(folder)
+    saved, config = _read_lora(folder)
     _check_backbone(backbone, config, folder)
     settings = _settings_of(config)
     tensors = saved.tensors()
     _attach(backbone, settings, str(folder))
     _load_lora_tensors(backbone, tensors, str(folder))
     backbone.model.eval()
-    logger.info("loaded LoRA adapter from %s", folder)
+    logger.info("loaded LoRA from %s", folder)
     return backbone
 
 
-def upgrade_adapter(folder: str | os.PathLike) -> Path:
-    """Rewrite an adapter folder of the older layout (``adapter_config.json`` + ``adapter.safetensors``) in place.
-
-    The weights, settings and extra information move to the current layout (`save_adapter`);
-    every other file of the folder (a trainer checkpoint's ``trainer_state.pt``) is kept. The
-    folder is replaced atomically, so an interruption leaves the old one.
-
-    Parameters
-    ----------
-    folder : str or os.PathLike
-
-    Returns
-    -------
-    pathlib.Path
-        The folder, now loadable by `load_adapter`.
-
-    Raises
-    ------
-    BackboneError
-        The folder holds no adapter of the older layout, or its files cannot be read.
-    """
-    import safetensors.torch
-
-    folder = Path(folder)
-    old_config, old_weights = folder / _OLD_CONFIG_FILE, folder / _OLD_WEIGHTS_FILE
-    if not old_config.is_file() or not old_weights.is_file():
-        raise BackboneError(f"{folder} holds no {_OLD_CONFIG_FILE} and {_OLD_WEIGHTS_FILE}; there is nothing to upgrade.")
-    try:
-        data = json.loads(old_config.read_text())
-        tensors = safetensors.torch.load_file(str(old_weights))
-    except Exception as exc:  # OSError, JSONDecodeError and SafetensorError have no common base class
-        raise BackboneError(f"could not read the adapter in {folder} ({type(exc).__name__}: {exc}).") from exc
-    if not isinstance(data, dict) or any(k not in data for k in _REQUIRED_KEYS):
-        raise BackboneError(f"{old_config} lacks the keys {list(_REQUIRED_KEYS)}; it was not written by save_adapter.")
-    config = {k: data[k] for k in (*_BACKBONE_KEYS, *LoraSettings.field_names()) if k in data}
-    others = {
-        path.name: (lambda target, source=path: shutil.copyfile(source, target))
-        for path in sorted(folder.iterdir())
-        if path.is_file() and path.name not in (_OLD_CONFIG_FILE, _OLD_WEIGHTS_FILE)
-    }
-    save_pretrained(
-        folder, ADAPTER_KIND, config, tensors, info=data.get("extra_info") or {}, extra_files=others, error=BackboneError,
-        overwrite=True,
-    )  # fmt: skip
-    logger.info("upgraded the adapter in %s to config.json + weights.safetensors", folder)
-    return folder
-
-
 def _attach(backbone: DinoBackbone, settings: LoraSettings, source: str) -> None:
-    """Add LoRA with ``settings``, or check that the existing adapter has the same structure."""
+    """Add LoRA with ``settings``, or check that the existing LoRA has the same structure."""
     if not has_lora(backbone):
         add_lora(backbone, settings)
         return
     active = _active_settings(backbone)
     targets = settings.targets if settings.targets is not None else backbone.attention_projections
     if (active.rank, active.alpha, set(active.targets or ()), active.shared_a) != (
-        settings.rank, settings.alpha, set(targets), settings.shared_a
-    ):  # fmt: skip
+        settings.rank,
+        settings.alpha,
+        set(targets),
+        settings.shared_a,
+    ):
         raise BackboneError(
-            f"the adapter from {source} has rank={settings.rank}, alpha={settings.alpha}, targets={list(targets)}, "
+            f"the LoRA from {source} has rank={settings.rank}, alpha={settings.alpha}, targets={list(targets)}, "
             f"shared_a={settings.shared_a} but the backbone already carries rank={active.rank}, alpha={active.alpha}, "
             f"targets={list(active.targets or ())}, shared_a={active.shared_a}; load it onto a fresh backbone"
         )
@@ -547,24 +490,24 @@ def _digest(kind: str, base_digest: str, settings: LoraSettings, tensors: Mappin
     return digest.hexdigest()
 
 
-def adapter_digest(folder: str | os.PathLike) -> str:
-    """SHA-256 of what determines an adapter's output, for feature cache keys.
+def lora_digest(folder: str | os.PathLike) -> str:
+    """SHA-256 of what determines a LoRA's output, for feature cache keys.
 
     Covers the LoRA tensors (names, shapes, dtypes, bytes), rank, alpha, targets and the base
     backbone's kind and digest; not the training settings or extra information. Equal to
-    `loaded_adapter_digest` of a backbone carrying that adapter.
+    `loaded_lora_digest` of a backbone carrying that LoRA.
 
     Returns
     -------
     str
         64 hexadecimal characters.
     """
-    saved, config = _read_adapter(Path(folder))
+    saved, config = _read_lora(Path(folder))
     return _digest(config["backbone_kind"], config["backbone_digest"], _settings_of(config), saved.tensors())
 
 
-def loaded_adapter_digest(backbone: DinoBackbone) -> str:
-    """`adapter_digest` of the adapter a backbone carries now (also for converted release checkpoints).
+def loaded_lora_digest(backbone: DinoBackbone) -> str:
+    """`lora_digest` of the LoRA a backbone carries now (also for converted release checkpoints).
 
     Returns
     -------
@@ -640,10 +583,10 @@ def convert_official_lora(
 
 
 def official_lora_state_dict(backbone: DinoBackbone) -> dict[str, Tensor]:
-    """The adapter in the release layout: one fused ``qkv`` LoRA per block (the inverse of `convert_official_lora`).
+    """The LoRA in the release layout: one fused ``qkv`` LoRA per block (the inverse of `convert_official_lora`).
 
-    Needs an adapter on the query, key and value projections of every block with one ``A``
-    shared by the three (``LoraSettings.shared_a``, as the ``reference`` training preset and
+    Needs a LoRA on the query, key and value projections of every block with one ``A``
+    shared by the three (``LoraSettings.shared_a``, as the ``reference`` training recipe and
     `load_official_lora` make it): the fused ``B`` is the three ``B`` stacked.
 
     Returns
@@ -656,15 +599,15 @@ def official_lora_state_dict(backbone: DinoBackbone) -> dict[str, Tensor]:
     Raises
     ------
     BackboneError
-        No adapter, or one that the fused layout cannot hold (separate ``A`` per projection,
+        No LoRA, or one that the fused layout cannot hold (separate ``A`` per projection,
         or targets other than query, key and value).
     """
     settings = _active_settings(backbone)
     targets = backbone.attention_projections
     if not settings.shared_a or set(settings.targets) != set(targets):
         raise BackboneError(
-            "the release layout holds one LoRA on each block's fused qkv projection: it needs an adapter on "
-            f"{list(targets)} with one A shared by the three (shared_a=True, the reference preset's); this one has "
+            "the release layout holds one LoRA on each block's fused qkv projection: it needs a LoRA on "
+            f"{list(targets)} with one A shared by the three (shared_a=True, the reference recipe's); this one has "
             f"targets {list(settings.targets)}, shared_a={settings.shared_a}"
         )
     tensors = lora_state_dict(backbone)
@@ -677,7 +620,7 @@ def official_lora_state_dict(backbone: DinoBackbone) -> dict[str, Tensor]:
 
 
 def save_official_lora(backbone: DinoBackbone, path: str | os.PathLike) -> Path:
-    """Write the adapter as a release checkpoint ``.pth`` (`official_lora_state_dict`), atomically.
+    """Write the LoRA as a release checkpoint ``.pth`` (`official_lora_state_dict`), atomically.
 
     The official code loads it with its ``load_state_dict`` into its peft model, and
     `load_official_lora` reads it back exactly.
@@ -685,7 +628,7 @@ def save_official_lora(backbone: DinoBackbone, path: str | os.PathLike) -> Path:
     Parameters
     ----------
     backbone : DinoBackbone
-        With a shared-A adapter on query, key and value.
+        With a shared-A LoRA on query, key and value.
     path : str or os.PathLike
 
     Returns
@@ -720,7 +663,7 @@ def load_official_lora(
     Parameters
     ----------
     backbone : DinoBackbone
-        The DINOv3 the adapter was trained on (ViT-B/16 for the releases); depth and width must match.
+        The DINOv3 the LoRA was trained on (ViT-B/16 for the releases); depth and width must match.
     path_or_state_dict : str, os.PathLike or Mapping
         The ``.pth`` file or its loaded state dict.
     alpha : float
@@ -729,7 +672,7 @@ def load_official_lora(
     Returns
     -------
     DinoBackbone
-        ``backbone`` itself, with the converted adapter, in ``eval()`` mode.
+        ``backbone`` itself, with the converted LoRA, in ``eval()`` mode.
 
     Raises
     ------

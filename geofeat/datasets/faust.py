@@ -218,9 +218,15 @@ class RemeshedTemplateDataset(PairDataset):
         elif template_x_sym is not None:
             raise DatasetError(f"{self.title}: {entry.x}.sym.vts has {template_x_sym.size} entries; expected {template_y.size}.")
         return ShapePair(
-            x=x, y=y, map_yx=map_yx, map_yx_sym=map_yx_sym, protocol="f2f",
-            corr_x=template_x, corr_y=template_y, corr_x_sym=template_x_sym,
-        )  # fmt: skip
+            x=x,
+            y=y,
+            map_yx=map_yx,
+            map_yx_sym=map_yx_sym,
+            protocol="f2f",
+            corr_x=template_x,
+            corr_y=template_y,
+            corr_x_sym=template_x_sym,
+        )
 
 
 class FaustRemeshed(RemeshedTemplateDataset):

@@ -154,9 +154,16 @@ class PFaust(PairDataset):
             kept_x_sym = self._template(entry.x, x.n_vertices, mask.size, sym=True)[mask]
             map_yx_sym = first_hit_map(kept_y, kept_x_sym, y.n_vertices)
         return ShapePair(
-            x=x, y=y, map_yx=map_yx, overlap_y=has_counterpart(map_yx), map_yx_sym=map_yx_sym, protocol="p2f",
-            corr_x=kept_x, corr_y=kept_y, corr_x_sym=kept_x_sym,
-        )  # fmt: skip
+            x=x,
+            y=y,
+            map_yx=map_yx,
+            overlap_y=has_counterpart(map_yx),
+            map_yx_sym=map_yx_sym,
+            protocol="p2f",
+            corr_x=kept_x,
+            corr_y=kept_y,
+            corr_x_sym=kept_x_sym,
+        )
 
     @staticmethod
     def _kept(path: Path, mask: np.ndarray, n_partial: int) -> np.ndarray:

@@ -7,7 +7,7 @@
 >>> pair = pairs[0]                                # ShapePair, meshes read now
 
 Names follow the rule of every geofeat registry (`geofeat.registry.Registry`): case-insensitive,
-``-`` equals ``_``, and registering a name that exists raises `DatasetError` unless ``overwrite=True``. Each name is a loader plus preset options
+``-`` equals ``_``, and registering a name that exists raises `DatasetError` unless ``overwrite=True``. Each name is a loader plus the options it fixes
 (``shrec16_cuts`` is the SHREC'16 loader with ``partiality="cuts"``): a `geofeat.registry.LazyEntry`
 whose loader module is imported when the dataset is first opened.
 """
@@ -30,7 +30,7 @@ _REGISTRY = Registry("dataset", DatasetError)
 
 
 def register_dataset(
-    name: str, factory: Callable[..., PairDataset] | str, *, description: str = "", overwrite: bool = False, **preset
+    name: str, factory: Callable[..., PairDataset] | str, *, description: str = "", overwrite: bool = False, **fixed
 ) -> None:
     """Make ``factory`` available as ``load_dataset(name, ...)``.
 
@@ -39,14 +39,14 @@ def register_dataset(
     name : str
         Dataset name (case-insensitive; ``-`` and ``_`` are equivalent).
     factory : callable or str
-        Called as ``factory(root, split, **preset, **options)``; returns a `PairDataset` (or
+        Called as ``factory(root, split, **fixed, **options)``; returns a `PairDataset` (or
         any sequence of `ShapePair` with ``pair_names``). A ``"module:attr"`` string is
         imported when the dataset is first opened.
     description : str
         One line for listings.
     overwrite : bool
         Replace an existing entry instead of raising.
-    **preset
+    **fixed
         Options fixed by this name; a caller passing a different value gets an error.
 
     Raises
@@ -54,7 +54,7 @@ def register_dataset(
     DatasetError
         The name is already registered and ``overwrite`` is false.
     """
-    _REGISTRY.register(LazyEntry(name, factory, summary=description, options=dict(preset)), overwrite=overwrite)
+    _REGISTRY.register(LazyEntry(name, factory, summary=description, options=dict(fixed)), overwrite=overwrite)
 
 
 def dataset_names() -> list[str]:

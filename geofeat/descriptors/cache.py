@@ -33,6 +33,7 @@ import logging
 import os
 import re
 import time
+from collections.abc import Mapping
 from pathlib import Path
 
 import h5py
@@ -148,10 +149,10 @@ class FeatureCache(EntryFolder):
             return None
         return features
 
-    def put(self, key: str, features: np.ndarray, meta: dict[str, str] | None = None) -> Path:
+    def put(self, key: str, features: np.ndarray, meta: Mapping[str, str | None] | None = None) -> Path:
         """Store ``features`` (V, C) under ``key`` atomically; returns the entry's path.
 
-        ``meta`` values are saved as string attributes (descriptor name, parameters, ...).
+        ``meta`` values are saved as string attributes (descriptor name, parameters, ...; None as ``""``).
 
         Raises
         ------
@@ -207,7 +208,9 @@ class FeatureCache(EntryFolder):
 
     def _scan(self) -> tuple[list[Path], list[Path], list[Path]]:
         """One pass over the store: entry files, temporary files and everything else (sorted)."""
-        entries, temporary, other = [], [], []
+        entries: list[Path] = []
+        temporary: list[Path] = []
+        other: list[Path] = []
         if not self.root.is_dir():
             return entries, temporary, other
         for folder in self.root.iterdir():

@@ -13,9 +13,10 @@ import os
 import threading
 import time
 from collections import deque
-from collections.abc import Iterator, Sequence
+from collections.abc import Generator, Sequence
 from concurrent.futures import Future, ProcessPoolExecutor, ThreadPoolExecutor, as_completed
 from dataclasses import dataclass
+from typing import cast
 
 import numpy as np
 
@@ -129,16 +130,30 @@ def lookup_or_compute(
         The store key (`entry_key`); None without a store.
     present : bool
         True when the features were read from the store.
+
+    Raises
+    ------
+    DescriptorError
+        Features of the wrong shape or not finite (nothing is written).
+    CacheError
+        ``explicit`` and the store cannot be written.
     """
-    found = _look_up(descriptor, mesh, store, explicit)
+    return _lookup_or_compute(descriptor, mesh, _Storage(store, required=explicit))
+
+
+def _lookup_or_compute(descriptor: Descriptor, mesh: Mesh, storage: _Storage) -> tuple[np.ndarray, str | None, bool]:
+    """`lookup_or_compute` with the store and its policy in one `_Storage`."""
+    found = storage.look_up(descriptor, mesh)
     if found.features is not None:
         return found.features, found.key, True
-    return _compute_and_store(descriptor, mesh, store, found.key, explicit), found.key, False
+    features = descriptor(mesh)
+    storage.write(descriptor, mesh, found.key, features)
+    return features, found.key, False
 
 
 @dataclass(frozen=True, eq=False)
 class _Lookup:
-    """What `_look_up` found in a store.
+    """What `_Storage.look_up` found in a store.
 
     Attributes
     ----------
@@ -153,96 +168,84 @@ class _Lookup:
     features: np.ndarray | None = None
 
 
-def _look_up(descriptor: Descriptor, mesh: Mesh, store: FeatureCache | None, explicit: bool = True) -> _Lookup:
-    """The store entry of ``descriptor`` on ``mesh``, if there is one: the first half of `lookup_or_compute`.
+@dataclass(frozen=True, eq=False)
+class _Storage:
+    """Where features are looked up and written, and whether writing them is required.
 
-    Raises
-    ------
-    CacheError
-        The entry is missing, ``explicit`` is True and the store cannot be written (checked
-        here, before any work).
-    """
-    if store is None:
-        return _Lookup(None)
-    key = entry_key(descriptor, mesh)
-    hit = store.get(key, n_rows=mesh.n_vertices)
-    if hit is not None:
-        log.debug("cache hit %s for %s on %r", key[:12], descriptor.name, mesh.name)
-        return _Lookup(key, np.ascontiguousarray(hit, dtype=np.float32))
-    if explicit:
-        store.check_writable()  # fail before the work, not after it
-    return _Lookup(key)
-
-
-#: `_compute_and_store`'s ``prepared`` when nothing was prepared ahead (None is a valid result of ``prepare``).
-_NOT_PREPARED = object()
-
-
-def _compute_and_store(
-    descriptor: Descriptor,
-    mesh: Mesh,
-    store: FeatureCache | None,
-    key: str | None,
-    explicit: bool = True,
-    prepared: object = _NOT_PREPARED,
-) -> np.ndarray:
-    """Compute ``descriptor`` on ``mesh`` and write the entry ``key``: the second half of `lookup_or_compute`.
-
-    Parameters
+    Attributes
     ----------
-    descriptor : Descriptor
-    mesh : Mesh
     store : FeatureCache or None
-        None: nothing is written.
-    key : str or None
-        The entry (`_look_up`'s ``key``).
-    explicit : bool
-        See `lookup_or_compute`.
-    prepared : object, optional
-        What ``descriptor.prepare(mesh)`` returned, when it ran ahead; the features are then
-        ``descriptor.compute_prepared(mesh, prepared)``, else ``descriptor(mesh)``. Either
-        way they are checked as `Descriptor.__call__` checks them.
-
-    Returns
-    -------
-    numpy.ndarray, shape (V, dim), float32, C-contiguous
-
-    Raises
-    ------
-    DescriptorError
-        Features of the wrong shape or not finite (nothing is written).
-    CacheError
-        ``explicit`` and the write failed.
+        None: nothing is looked up or written.
+    required : bool
+        True: the caller named the store, which must be writable (`CacheError` before the
+        work, or when the write fails). False (the default store): a failed write logs a
+        warning once and the features are returned uncached.
     """
-    features = descriptor(mesh) if prepared is _NOT_PREPARED else descriptor(mesh, prepared)
-    _store_entry(descriptor, mesh, store, key, explicit, features)
-    return features
+
+    store: FeatureCache | None
+    required: bool = True
+
+    def look_up(self, descriptor: Descriptor, mesh: Mesh) -> _Lookup:
+        """The store entry of ``descriptor`` on ``mesh``, if there is one: the first half of `lookup_or_compute`.
+
+        Raises
+        ------
+        CacheError
+            The entry is missing, writing is required and the store cannot be written
+            (checked here, before any work).
+        """
+        if self.store is None:
+            return _Lookup(None)
+        key = entry_key(descriptor, mesh)
+        hit = self.store.get(key, n_rows=mesh.n_vertices)
+        if hit is not None:
+            log.debug("cache hit %s for %s on %r", key[:12], descriptor.name, mesh.name)
+            return _Lookup(key, np.ascontiguousarray(hit, dtype=np.float32))
+        if self.required:
+            self.store.check_writable()  # fail before the work, not after it
+        return _Lookup(key)
+
+    def write(self, descriptor: Descriptor, mesh: Mesh, key: str | None, features: np.ndarray) -> None:
+        """Write the checked ``features`` of ``mesh`` as the entry ``key`` (nothing without a store).
+
+        Parameters
+        ----------
+        descriptor : Descriptor
+        mesh : Mesh
+            V vertices.
+        key : str or None
+            The entry (`look_up`'s ``key``).
+        features : numpy.ndarray, shape (V, dim), float32
+
+        Raises
+        ------
+        CacheError
+            Writing is required and the write failed (else a warning, once per store).
+        """
+        if self.store is None or key is None:  # no store: nothing to write (with one, look_up always gives a key)
+            return
+        meta = {
+            "mesh_hash": mesh.hash,
+            "mesh_name": mesh.name,
+            "descriptor": descriptor.name,
+            "params": descriptor.params_json(),
+            "descriptor_version": descriptor.version,
+            "weights_digest": descriptor.weights_digest(),
+            "geofeat_version": __version__,
+        }
+        try:
+            self.store.put(key, features, meta)
+        except CacheError as err:
+            if self.required:
+                raise
+            root = str(self.store.root)
+            if root not in _UNWRITABLE_WARNED:
+                _UNWRITABLE_WARNED.add(root)
+                log.warning("features are computed without caching (this warning is shown once): %s", err)
 
 
-def _store_entry(
-    descriptor: Descriptor, mesh: Mesh, store: FeatureCache | None, key: str | None, explicit: bool, features: np.ndarray
-) -> None:
-    """Write the checked ``features`` of ``mesh`` as the entry ``key`` (nothing without a store); see `_compute_and_store`."""
-    if store is None:
-        return
-    meta = {
-        "mesh_hash": mesh.hash,
-        "mesh_name": mesh.name,
-        "descriptor": descriptor.name,
-        "params": descriptor.params_json(),
-        "descriptor_version": descriptor.version,
-        "weights_digest": descriptor.weights_digest(),
-        "geofeat_version": __version__,
-    }
-    try:
-        store.put(key, features, meta)
-    except CacheError as err:
-        if explicit:
-            raise
-        root = str(store.root)
-        if root not in _UNWRITABLE_WARNED:
-            _UNWRITABLE_WARNED.add(root)
-            log.warning("features are computed without caching (this warning is shown once): %s", err)
+#: `_Ready`'s ``prepared`` when nothing was prepared ahead (None is a valid result of ``prepare``).
+_NOT_PREPARED = object()
 
 
 @dataclass(frozen=True, eq=False)
@@ -300,7 +303,7 @@ def compute_each(
     prefetch: int | None = None,
     progress: bool = True,
     desc: str | None = None,
-) -> Iterator[Computed]:
+) -> Generator[Computed, None, None]:
     """`lookup_or_compute` over a collection: one `Computed` per shape as it is done.
 
     A shape that fails with a `GeofeatError` (unreadable mesh, non-finite features, a failed
@@ -353,45 +356,58 @@ def compute_each(
         prefetch = default_prefetch(descriptor)
     prefetch = check_integer(prefetch, "prefetch", low=0, expected="a number of shapes >= 0 (0: no read-ahead)")
     items = list(meshes_or_paths)
+    storage = _Storage(store, required=explicit)
+    if n_jobs > 1 and len(items) > 1:
+        outcomes = _in_workers(items, descriptor, storage, n_jobs)
+    elif prefetch > 0:
+        outcomes = _read_ahead(items, descriptor, storage, prefetch)
+    else:
+        outcomes = _inline(items, descriptor, storage)
     bar = progress_bar(total=len(items), desc=desc or f"{descriptor.name} features", unit="shape", show=progress)
-    with bar:
-        if (n_jobs == 1 or len(items) <= 1) and prefetch > 0:
-            for outcome in _read_ahead(items, descriptor, store, explicit, prefetch):
-                bar.update()
-                yield outcome
-            return
-        if n_jobs == 1 or len(items) <= 1:
-            for index, item in enumerate(items):
-                outcome = _compute_one(index, item, descriptor, store, explicit)
-                bar.update()
-                yield outcome
-            return
-        context = multiprocessing.get_context("spawn")
-        with (
-            _one_thread_per_worker(),
-            ProcessPoolExecutor(
-                max_workers=min(n_jobs, len(items)),
-                mp_context=context,
-                initializer=_start_worker,
-                initargs=(os.getpid(), descriptor, store, explicit),
-            ) as pool,
-        ):
-            futures = [pool.submit(_worker_compute, index, item) for index, item in enumerate(items)]
-            try:
-                for future in as_completed(futures):
-                    bar.update()
-                    yield future.result()
-            finally:  # a caller that stops early (compute_many on a failure) starts no further shape
-                for future in futures:
-                    future.cancel()
+    with bar, contextlib.closing(outcomes):
+        for outcome in outcomes:
+            bar.update()
+            yield outcome
 
 
-def _compute_one(index: int, item: MeshLike, descriptor: Descriptor, store: FeatureCache | None, explicit: bool) -> Computed:
+def _inline(items: list, descriptor: Descriptor, storage: _Storage) -> Generator[Computed, None, None]:
+    """`compute_each` in this thread, one shape after the other, in input order."""
+    for index, item in enumerate(items):
+        yield _compute_one(index, item, descriptor, storage)
+
+
+def _in_workers(items: list, descriptor: Descriptor, storage: _Storage, n_jobs: int) -> Generator[Computed, None, None]:
+    """`compute_each` in up to ``n_jobs`` spawned worker processes, in completion order.
+
+    A caller that stops early (`compute_many` on a failure) starts no further shape: the
+    shapes not started are cancelled when the generator is closed.
+    """
+    context = multiprocessing.get_context("spawn")
+    with (
+        _one_thread_per_worker(),
+        ProcessPoolExecutor(
+            max_workers=min(n_jobs, len(items)),
+            mp_context=context,
+            initializer=_start_worker,
+            initargs=(os.getpid(), descriptor, storage),
+        ) as pool,
+    ):
+        futures = [pool.submit(_worker_compute, index, item) for index, item in enumerate(items)]
+        try:
+            for future in as_completed(futures):
+                yield future.result()
+        finally:
+            for future in futures:
+                future.cancel()
+
+
+def _compute_one(index: int, item: MeshLike, descriptor: Descriptor, storage: _Storage) -> Computed:
+    """The outcome of shape ``index``: read, looked up in the store, else computed and written."""
     start = time.perf_counter()
     mesh = None
     try:
         mesh = as_mesh(item)
-        features, key, present = lookup_or_compute(descriptor, mesh, store, explicit)
+        features, key, present = _lookup_or_compute(descriptor, mesh, storage)
     except GeofeatError as err:
         return Computed(
             index, "failed", mesh_hash=None if mesh is None else mesh.hash, error=err, seconds=time.perf_counter() - start
@@ -411,9 +427,7 @@ class _Ready:
     seconds: float = 0.0
 
 
-def _read_ahead(
-    items: list, descriptor: Descriptor, store: FeatureCache | None, explicit: bool, depth: int
-) -> Iterator[Computed]:
+def _read_ahead(items: list, descriptor: Descriptor, storage: _Storage, depth: int) -> Generator[Computed, None, None]:
     """`_compute_one` over ``items`` in input order, each shape read and prepared by a thread up to ``depth`` shapes ahead.
 
     A computed shape's entry is written by a second thread while the next shape is
@@ -427,7 +441,7 @@ def _read_ahead(
         mesh = None
         try:
             mesh = as_mesh(item)
-            found = _look_up(descriptor, mesh, store, explicit)
+            found = storage.look_up(descriptor, mesh)
             if found.features is not None or stop.is_set():  # present, or the consumer has stopped
                 return _Ready(mesh, found, seconds=time.perf_counter() - start)
             prepared = descriptor.prepare(mesh)
@@ -451,7 +465,7 @@ def _read_ahead(
                 if writing is not None and done.found is not None and done.found.key == writing.key:
                     outcome, writing = writing.outcome(stored), None  # the same mesh again: its entry first
                     yield outcome
-                result = _compute_ready(index, done, descriptor, store, explicit, stored, writer)
+                result = _compute_ready(index, done, descriptor, storage, stored, writer)
             except Exception:  # a bug (not a GeofeatError): raised in its shape's turn, after the shape before it
                 if writing is not None:
                     outcome, writing = writing.outcome(stored), None
@@ -502,8 +516,7 @@ def _compute_ready(
     index: int,
     done: _Ready,
     descriptor: Descriptor,
-    store: FeatureCache | None,
-    explicit: bool,
+    storage: _Storage,
     stored: set[str],
     writer: ThreadPoolExecutor,
 ) -> Computed | _Writing:
@@ -517,37 +530,39 @@ def _compute_ready(
     if done.error is not None:
         return Computed(index, "failed", mesh_hash=mesh_hash, error=done.error, seconds=done.seconds)
     found = done.found
+    assert mesh is not None and found is not None  # a shape read without error is looked up
     try:
         if found.features is None and found.key in stored:  # the same mesh earlier in this loop, stored after this look-up
-            found = _look_up(descriptor, mesh, store, explicit)
+            found = storage.look_up(descriptor, mesh)
         if found.features is not None:
             seconds = done.seconds + time.perf_counter() - start
             return Computed(index, "present", found.features, found.key, mesh_hash, seconds=seconds)
         features = descriptor(mesh) if done.prepared is _NOT_PREPARED else descriptor(mesh, done.prepared)
     except GeofeatError as err:
         return Computed(index, "failed", mesh_hash=mesh_hash, error=err, seconds=done.seconds + time.perf_counter() - start)
-    if store is None:  # nothing to write: the outcome now, not one shape later
+    if storage.store is None:  # nothing to write: the outcome now, not one shape later
         return Computed(index, "computed", features, found.key, mesh_hash, seconds=done.seconds + time.perf_counter() - start)
-    future = writer.submit(_store_entry, descriptor, mesh, store, found.key, explicit, features)
+    future = writer.submit(storage.write, descriptor, mesh, found.key, features)
     return _Writing(
-        index, features, found.key, mesh_hash, future, done.seconds + time.perf_counter() - start, time.perf_counter()
+        index, features, found.key, mesh.hash, future, done.seconds + time.perf_counter() - start, time.perf_counter()
     )
 
 
-#: The descriptor and store of this worker process (`compute_each` with ``n_jobs > 1``).
-_WORKER: tuple[Descriptor, FeatureCache | None, bool] | None = None
+#: The descriptor and storage of this worker process (`compute_each` with ``n_jobs > 1``).
+_WORKER: tuple[Descriptor, _Storage] | None = None
 
 
-def _start_worker(parent_pid: int, descriptor: Descriptor, store: FeatureCache | None, explicit: bool) -> None:
+def _start_worker(parent_pid: int, descriptor: Descriptor, storage: _Storage) -> None:
     """In a spawned worker: ends with the parent (`end_with_parent`), keeps what every shape needs."""
     global _WORKER
     end_with_parent(parent_pid)
-    _WORKER = (descriptor, store, explicit)
+    _WORKER = (descriptor, storage)
 
 
 def _worker_compute(index: int, item: MeshLike) -> Computed:
-    descriptor, store, explicit = _WORKER
-    return _compute_one(index, item, descriptor, store, explicit)
+    assert _WORKER is not None  # set by _start_worker, the initializer of every worker process
+    descriptor, storage = _WORKER
+    return _compute_one(index, item, descriptor, storage)
 
 
 def compute_many(
@@ -598,7 +613,7 @@ def compute_many(
             if outcome.error is not None:
                 raise outcome.error
             results[outcome.index] = outcome.features
-    return results
+    return cast(list[np.ndarray], results)  # every shape has its features once none failed
 
 
 _THREAD_VARIABLES = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")

@@ -13,7 +13,7 @@ import logging
 import os
 import threading
 from dataclasses import replace
-from typing import ClassVar, NamedTuple
+from typing import TYPE_CHECKING, ClassVar, NamedTuple
 
 import numpy as np
 import torch
@@ -35,11 +35,14 @@ from geofeat.multiview.pipeline import (
 from geofeat.render import make_cameras
 from geofeat.render.cameras import CAMERA_LAYOUTS, Cameras
 
-#: Views and render size of each preset when ``views`` / ``image_size`` are not given
+if TYPE_CHECKING:
+    from geofeat.backbones.dino import DinoBackbone
+
+#: Views and render size of each recipe when ``views`` / ``image_size`` are not given
 #: (``image_size`` None under "default": the kind's own, 448 for DINOv2 and 512 for DINOv3).
-PRESET_VIEWS = {"default": 49, "reference": 49, "dsmk": 100}
-PRESET_IMAGE_SIZE = {"default": None, "reference": 512, "dsmk": 512}
-#: ``amp``: bfloat16 autocast of the backbone on, off, or on where it is safe and fast (CUDA, "default" preset).
+RECIPE_VIEWS = {"default": 49, "reference": 49, "dsmk": 100}
+RECIPE_IMAGE_SIZE = {"default": None, "reference": 512, "dsmk": 512}
+#: ``amp``: bfloat16 autocast of the backbone on, off, or on where it is safe and fast (CUDA, "default" recipe).
 AMP_MODES = ("auto", "on", "off")
 
 
@@ -51,11 +54,11 @@ class DinoFeatures(Descriptor):
 
     Parameters
     ----------
-    preset : str
-        ``"default"`` (geofeat's recipe), ``"reference"`` (the official GeoLoRA code's, stage
-        by stage) or, for ``dinov2``, ``"dsmk"`` (DeepShapeMatchingKit's); see
-        `geofeat.multiview.pipeline.RECIPES`. The parameters below that are None take the
-        preset's value; the others override it.
+    recipe : str
+        How each stage of the multi-view path is done: ``"default"`` (geofeat's),
+        ``"reference"`` (the official GeoLoRA code's, stage by stage) or, for ``dinov2``,
+        ``"dsmk"`` (DeepShapeMatchingKit's); see `geofeat.multiview.pipeline.RECIPES`. The
+        parameters below that are None take the recipe's value; the others override it.
     weights : str or None
         A Hugging Face model folder, an official Meta checkpoint (``.pth``) or a Hub id; None
         reads ``$GEOFEAT_DINOV2_WEIGHTS`` / ``$GEOFEAT_DINOV3_WEIGHTS`` (see
@@ -63,14 +66,14 @@ class DinoFeatures(Descriptor):
     views : int or None
         Number of cameras (49 = the official 7 x 7 grid); None: 49, or 100 under ``"dsmk"``.
     image_size : int or None
-        Render size in pixels; None: 512 under the ``"reference"`` and ``"dsmk"`` presets
+        Render size in pixels; None: 512 under the ``"reference"`` and ``"dsmk"`` recipes
         (resized to 518 for the backbone, as the official code does), otherwise 448 for
         DINOv2 (patch 14) and 512 for DINOv3 (patch 16), which must then be a multiple of
         the patch size.
     camera_layout : {"official", "uniform"}
         See `geofeat.render.make_cameras`.
     backproject : {"ball", "face", "ball_last"} or None
-        None: the preset's (``"ball"``, or ``"ball_last"`` under ``"reference"`` and ``"dsmk"``).
+        None: the recipe's (``"ball"``, or ``"ball_last"`` under ``"reference"`` and ``"dsmk"``).
     layer : int
         Transformer layer whose patch tokens are used (-1: the last, after the final norm).
     device : str
@@ -81,8 +84,8 @@ class DinoFeatures(Descriptor):
         (`geofeat.multiview.pipeline.auto_batch_size`). It does not change the features.
     amp : {"auto", "on", "off"}
         Run the backbone under bfloat16 autocast (``"on"``) or in float32 (``"off"``);
-        ``"auto"``: bfloat16 on CUDA under the ``"default"`` preset, float32 on the CPU and
-        under the presets that reproduce another code. bfloat16 features differ from float32
+        ``"auto"``: bfloat16 on CUDA under the ``"default"`` recipe, float32 on the CPU and
+        under the recipes that reproduce another code. bfloat16 features differ from float32
         ones by about 1e-2 (relative), so the cache keys them apart.
     fill : {"nearest", "zero"}
         Features of vertices seen in no view.
@@ -94,17 +97,32 @@ class DinoFeatures(Descriptor):
 
     kind: ClassVar[str] = ""
     default_image_size: ClassVar[int] = 0
-    presets: ClassVar[tuple[str, ...]] = ("default", "reference")
+    recipes: ClassVar[tuple[str, ...]] = ("default", "reference")
     # 2: patch features sampled at the foreground pixels (geofeat.multiview.pipeline) instead of
     # read from upsampled whole images; equal up to float32 rounding (see README).
-    # 3: presets (the "reference" recipe of the official GeoLoRA code).
+    # 3: recipes (the "reference" one of the official GeoLoRA code).
     # 4: amp (bfloat16 backbone) in the key; batch_size out of it (it does not change the features).
     version = "4"
+
+    recipe: str
+    weights: str | None
+    views: int | None
+    image_size: int | None
+    camera_layout: str
+    backproject: str | None
+    layer: int
+    device: str
+    batch_size: int | None
+    amp: str
+    fill: str
+    random_rotation: bool
+    seed: int
+    _backbone: DinoBackbone | None
 
     def __init__(
         self,
         *,
-        preset: str = "default",
+        recipe: str = "default",
         weights: str | None = None,
         views: int | None = None,
         image_size: int | None = None,
@@ -119,10 +137,20 @@ class DinoFeatures(Descriptor):
         seed: int = 0,
     ):
         self._store(
-            preset=preset, weights=weights, views=views, image_size=image_size, camera_layout=camera_layout,
-            backproject=backproject, layer=layer, device=device, batch_size=batch_size, amp=amp, fill=fill,
-            random_rotation=random_rotation, seed=seed,
-        )  # fmt: skip
+            recipe=recipe,
+            weights=weights,
+            views=views,
+            image_size=image_size,
+            camera_layout=camera_layout,
+            backproject=backproject,
+            layer=layer,
+            device=device,
+            batch_size=batch_size,
+            amp=amp,
+            fill=fill,
+            random_rotation=random_rotation,
+            seed=seed,
+        )
 
     def _store(self, **params) -> None:
         """Check every parameter by type and range and store it in canonical Python form."""
@@ -135,7 +163,7 @@ class DinoFeatures(Descriptor):
                         f"{owner}: {name} must be a path, a Hub id or None; found {params[name]!r} ({type(params[name]).__name__})."
                     )
                 checked[name] = os.fspath(params[name])  # a pathlib.Path: keep the parameters JSON-serialisable
-        checked["preset"] = check_choice(params["preset"], "preset", self.presets, owner=owner)
+        checked["recipe"] = check_choice(params["recipe"], "recipe", self.recipes, owner=owner)
         for name in ("views", "image_size"):
             if params[name] is not None:
                 checked[name] = check_integer(params[name], name, owner=owner, low=1)
@@ -176,7 +204,7 @@ class DinoFeatures(Descriptor):
             return self.amp == "on"
         from geofeat.runtime.devices import resolve_device
 
-        return self.preset == "default" and resolve_device(self.device).type == "cuda"
+        return self.recipe == "default" and resolve_device(self.device).type == "cuda"
 
     def backbone(self):
         """The loaded backbone (loaded once, on first use)."""
@@ -193,12 +221,17 @@ class DinoFeatures(Descriptor):
     def _views(self, mesh: Mesh) -> tuple[Cameras, int]:
         """The cameras of ``mesh`` and the views per batch."""
         backbone = self.backbone()
-        views = self.views or PRESET_VIEWS[self.preset]
-        image_size = self.image_size or PRESET_IMAGE_SIZE[self.preset] or self.default_image_size
+        views = self.views or RECIPE_VIEWS[self.recipe]
+        image_size = self.image_size or RECIPE_IMAGE_SIZE[self.recipe] or self.default_image_size
         cameras = make_cameras(
-            mesh, views, layout=self.camera_layout, image_size=image_size,
-            random_rotation=self.random_rotation, seed=self.seed, device=backbone.device,
-        )  # fmt: skip
+            mesh,
+            views,
+            layout=self.camera_layout,
+            image_size=image_size,
+            random_rotation=self.random_rotation,
+            seed=self.seed,
+            device=backbone.device,
+        )
         batch_size = self.batch_size or auto_batch_size(len(cameras), cameras.height, cameras.width, backbone)
         return cameras, batch_size
 
@@ -215,13 +248,15 @@ class DinoFeatures(Descriptor):
             if stream is not None:
                 stream.wait_stream(torch.cuda.default_stream(backbone.device))  # the backbone's weights, moved there
             cameras, batch_size = self._views(mesh)
-            rendered = list(render_batches(
-                [mesh], [cameras], backbone.patch_size, recipe=self._recipe(), batch_size=batch_size, device=backbone.device
-            ))  # fmt: skip
+            rendered = list(
+                render_batches(
+                    [mesh], [cameras], backbone.patch_size, recipe=self._recipe(), batch_size=batch_size, device=backbone.device
+                )
+            )
             ready = stream.record_event() if stream is not None else None
         return PreparedViews(cameras, batch_size, rendered, ready)
 
-    def compute_prepared(self, mesh: Mesh, prepared: PreparedViews | None) -> np.ndarray:
+    def compute_prepared(self, mesh: Mesh, prepared: object | None) -> np.ndarray:
         """Vertex features of shape (V, embed_dim), from the views `prepare` rendered (None: rendered here, batch by batch).
 
         The prepared tensors stay referenced until the features are on the host, after the
@@ -231,13 +266,22 @@ class DinoFeatures(Descriptor):
             cameras, batch_size = self._views(mesh)
             rendered = None
         else:
+            if not isinstance(prepared, PreparedViews):
+                raise DescriptorError(f"{self.name}: prepared must be what prepare() returned; found {type(prepared).__name__}.")
             cameras, batch_size, rendered, ready = prepared
             if ready is not None:
                 torch.cuda.current_stream(self.backbone().device).wait_event(ready)
         features, seen = multiview_features(
-            mesh, cameras, self.backbone(), recipe=self._recipe(), fill=self.fill, batch_size=batch_size,
-            autocast=self.autocast(), progress=True, rendered=rendered,
-        )  # fmt: skip
+            mesh,
+            cameras,
+            self.backbone(),
+            recipe=self._recipe(),
+            fill=self.fill,
+            batch_size=batch_size,
+            autocast=self.autocast(),
+            progress=True,
+            rendered=rendered,
+        )
         if self.fill == "zero" and not bool(seen.any()):
             log.warning(
                 "%s: no vertex of %r was seen in any view; its features are all zeros (fill='zero').", self.name, mesh.name
@@ -249,7 +293,7 @@ class DinoFeatures(Descriptor):
         return self.compute_prepared(mesh, None)
 
     def _recipe(self) -> FeatureRecipe:
-        recipe = RECIPES[self.preset]
+        recipe = RECIPES[self.recipe]
         return replace(recipe, backproject=self.backproject) if self.backproject is not None else recipe
 
 
@@ -287,7 +331,7 @@ class DINOv2(DinoFeatures):
     name = "dinov2"
     kind = "dinov2"
     default_image_size = 448
-    presets = ("default", "reference", "dsmk")
+    recipes = ("default", "reference", "dsmk")
 
 
 class DINOv3(DinoFeatures):
@@ -299,30 +343,32 @@ class DINOv3(DinoFeatures):
 
 
 class GeoLoRA(DinoFeatures):
-    """GeoLoRA features: DINOv3 with a trained LoRA adapter, back-projected from multi-view renders.
+    """GeoLoRA features: DINOv3 with a trained LoRA, back-projected from multi-view renders.
 
     Parameters
     ----------
     checkpoint : str
-        The adapter: a folder written by `geofeat.backbones.save_adapter` (``config.json`` +
+        The LoRA: a folder written by `geofeat.backbones.save_lora` (``config.json`` +
         ``weights.safetensors``; every checkpoint of ``geofeat train-geolora``,
         ``<run>/checkpoints/step_NNNNNNN``, is one) or a GeoLoRA release
         checkpoint ``.pth`` (``saved_models/*.pth`` of the authors' repository, for DINOv3
         ViT-B/16).
-    preset, weights, views, image_size, camera_layout, backproject, layer, device, batch_size, amp, fill, random_rotation, seed
+    recipe, weights, views, image_size, camera_layout, backproject, layer, device, batch_size, amp, fill, random_rotation, seed
         As for ``dinov3`` (`DinoFeatures`): 49 views of the official grid at 512 x 512 by
-        default; ``preset="reference"`` reproduces the official GeoLoRA code.
+        default; ``recipe="reference"`` reproduces the official GeoLoRA code.
     """
 
     name = "geolora"
     kind = "dinov3"
     default_image_size = 512
 
+    checkpoint: str | None
+
     def __init__(
         self,
         *,
         checkpoint: str | None = None,
-        preset: str = "default",
+        recipe: str = "default",
         weights: str | None = None,
         views: int | None = None,
         image_size: int | None = None,
@@ -337,22 +383,33 @@ class GeoLoRA(DinoFeatures):
         seed: int = 0,
     ):
         self._store(
-            checkpoint=checkpoint, preset=preset, weights=weights, views=views, image_size=image_size, camera_layout=camera_layout,
-            backproject=backproject, layer=layer, device=device, batch_size=batch_size, amp=amp, fill=fill,
-            random_rotation=random_rotation, seed=seed,
-        )  # fmt: skip
+            checkpoint=checkpoint,
+            recipe=recipe,
+            weights=weights,
+            views=views,
+            image_size=image_size,
+            camera_layout=camera_layout,
+            backproject=backproject,
+            layer=layer,
+            device=device,
+            batch_size=batch_size,
+            amp=amp,
+            fill=fill,
+            random_rotation=random_rotation,
+            seed=seed,
+        )
 
     def backbone(self):
-        """The DINOv3 backbone with the adapter loaded (once, on first use)."""
+        """The DINOv3 backbone with the LoRA loaded (once, on first use)."""
         if self._backbone is None:
             from pathlib import Path
 
             from geofeat.backbones import load_backbone
-            from geofeat.backbones.lora import load_adapter, load_official_lora
+            from geofeat.backbones.lora import load_lora, load_official_lora
 
             if not self.checkpoint:
                 raise DescriptorError(
-                    "geolora needs checkpoint=: an adapter folder written by `geofeat train-geolora` "
+                    "geolora needs checkpoint=: a LoRA folder written by `geofeat train-geolora` "
                     "(<run>/checkpoints/step_NNNNNNN) or a GeoLoRA release .pth (saved_models/*.pth of vikiehm/geo-lora)."
                 )
             path = Path(self.checkpoint).expanduser()
@@ -360,14 +417,14 @@ class GeoLoRA(DinoFeatures):
                 raise DescriptorError(f"geolora: the checkpoint {path} does not exist.")
             backbone = load_backbone(self.weights, kind=self.kind, layer=self.layer, device=self.device)
             if path.is_dir():
-                load_adapter(backbone, path)
+                load_lora(backbone, path)
             else:
                 load_official_lora(backbone, path)
             self._backbone = backbone
         return self._backbone
 
     def weights_digest(self) -> str:
-        """SHA-256 of the base weights together with the adapter (part of the cache key)."""
-        from geofeat.backbones.lora import loaded_adapter_digest
+        """SHA-256 of the base weights together with the LoRA (part of the cache key)."""
+        from geofeat.backbones.lora import loaded_lora_digest
 
-        return loaded_adapter_digest(self.backbone())
+        return loaded_lora_digest(self.backbone())

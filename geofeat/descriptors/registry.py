@@ -78,7 +78,7 @@ register(
         "geofeat.descriptors.dino:GeoLoRA",
         requires=("transformers", "peft", "safetensors"),
         extra="dino",
-        summary="GeoLoRA: DINOv3 + a LoRA adapter trained on partial shapes, back-projected from multi-view renders",
+        summary="GeoLoRA: DINOv3 + a LoRA trained on partial shapes, back-projected from multi-view renders",
     )
 )
 

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 
 from geofeat.checks import check_boolean, check_choice, check_integer
@@ -108,7 +110,11 @@ class SpectralSignature(Descriptor):
     declare their keyword parameters ``n_eig``, ``n_descr``, ``laplacian``, ``normalize``.
     """
 
-    signature = None
+    signature: Callable[[SpectralBasis, int], np.ndarray] | None = None
+    n_eig: int
+    n_descr: int
+    laplacian: str
+    normalize: bool
 
     def _store(self, n_eig: int, n_descr: int, laplacian: str, normalize: bool) -> None:
         for name, value in _checked_spectral_params(self.name, n_eig, n_descr, laplacian, normalize).items():
@@ -116,8 +122,11 @@ class SpectralSignature(Descriptor):
 
     def compute(self, mesh: Mesh) -> np.ndarray:
         """Signature of shape (V, n_descr), channels mass-normalised when ``normalize``."""
+        signature = type(self).signature
+        if signature is None:
+            raise NotImplementedError(f"{type(self).__name__} sets no signature function")
         basis = spectral_basis(mesh, self.n_eig, self.laplacian)
-        features = type(self).signature(basis, self.n_descr)
+        features = signature(basis, self.n_descr)
         return mass_normalize(features, basis.mass) if self.normalize else features
 
 

@@ -8,7 +8,7 @@ benchmark's files into pairs and errors, in geofeat's terms:
 
 - the geofeat dataset that reads the same files (`geofeat.datasets.load_dataset`): the same
   pairs with the same ground truth (checked pair by pair against the official classes,
-  ``benchmarks/parity_paper.py``);
+  ``benchmarks/parity/paper.py``);
 - ``frame``: the rotation the official class applies to both shapes before their features
   are computed (SHREC'16: 90 degrees about x; PSMAL: 180 degrees about x); geodesic errors
   do not depend on it. `framed` applies it;
@@ -120,7 +120,7 @@ PAPER_BENCHMARKS: dict[str, PaperBenchmark] = {
             "smal.pth",
             FLIP_X_180,
             data="https://github.com/vikiehm/gc-ppsm (folder PARTIALSMAL/test)",
-        ),  # fmt: skip
+        ),
         PaperBenchmark(
             "shrec16_cuts",
             "SHREC'16 CUTS P2F",
@@ -130,7 +130,7 @@ PAPER_BENCHMARKS: dict[str, PaperBenchmark] = {
             "becos_without_shrec16.pth",
             ROTATE_X_90,
             data=_SHREC16,
-        ),  # fmt: skip
+        ),
         PaperBenchmark(
             "shrec16_holes",
             "SHREC'16 HOLES P2F",
@@ -140,7 +140,7 @@ PAPER_BENCHMARKS: dict[str, PaperBenchmark] = {
             "becos_without_shrec16.pth",
             ROTATE_X_90,
             data=_SHREC16,
-        ),  # fmt: skip
+        ),
         PaperBenchmark(
             "cp2p",
             "CP2P P2P",
@@ -150,7 +150,7 @@ PAPER_BENCHMARKS: dict[str, PaperBenchmark] = {
             "becos_without_shrec16.pth",
             data="CP2P24's test subset of 100 pairs (CP2P24_test_subset_100; CP2P24 is published on Hugging Face, "
             "xieyizheng/CP2P24)",
-        ),  # fmt: skip
+        ),
     )
 }
 

@@ -1,6 +1,6 @@
 """Evaluating predicted matches against ground truth, pair by pair and over a benchmark.
 
-One protocol for every caller (``benchmarks/run.py``, ``benchmarks/summarize.py``, the GeoLoRA
+One protocol for every caller (``benchmarks/run.py``, ``benchmarks/tables/summarize.py``, the GeoLoRA
 trainer's validation):
 
 * `evaluate_pair` scores a `Match` of a `ShapePair` into a `PairEvaluation` record: geodesic

@@ -32,7 +32,7 @@ import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components, dijkstra
 
 from geofeat.errors import GeodesicMemoryError, MeshError
-from geofeat.mesh import Mesh
+from geofeat.mesh import Mesh, require_faces
 from geofeat.runtime.progress import progress_bar
 from geofeat.storage.lru import LRUCache
 from geofeat.storage.sizes import format_size
@@ -161,7 +161,7 @@ def geodesic_matrix(
     Notes
     -----
     Cost for a 5,000-vertex FAUST_r shape on one CPU core (see
-    ``benchmarks/speed_geodesic.py``): "dijkstra" well under a second (plain scipy Dijkstra
+    ``benchmarks/speed/geodesic.py``): "dijkstra" well under a second (plain scipy Dijkstra
     from every vertex takes about 3 s), "heat" several seconds (about 1 ms per source).
     Memory: one float32 (V, V) matrix plus a few (patch, V) blocks.
     """
@@ -300,17 +300,19 @@ def dijkstra_row_blocks(
 
     def separator_rows(border: np.ndarray) -> np.ndarray:
         missing = np.array([k for k in border.tolist() if k not in cache], dtype=np.int64)
-        fresh = dijkstra(graph, directed=True, indices=missing).astype(np.float32) if missing.size else None
+        if missing.size:
+            fresh = dijkstra(graph, directed=True, indices=missing).astype(np.float32)
+        else:
+            fresh = np.empty((0, n), dtype=np.float32)
         out = np.empty((border.size, n), dtype=np.float32)
         for j, k in enumerate(border.tolist()):
             out[j] = cache[k] if k in cache else fresh[np.searchsorted(missing, k)]
-        if fresh is not None:
-            for k, row in zip(missing.tolist(), fresh, strict=True):
-                if len(cache) >= room:
-                    if not cache or room == 0:
-                        break
-                    cache.pop(next(iter(cache)))  # the oldest first
-                cache[k] = row
+        for k, row in zip(missing.tolist(), fresh, strict=True):
+            if len(cache) >= room:
+                if not cache or room == 0:
+                    break
+                cache.pop(next(iter(cache)))  # the oldest first
+            cache[k] = row
         return out
 
     patches = [p for p in _interior_components(graph, separator) if need[p].any()]
@@ -457,13 +459,14 @@ def _mean(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 def _face_components(mesh: Mesh) -> list[tuple[np.ndarray, np.ndarray | None]]:
     """Connected components as (vertex indices (n,), faces re-indexed (f, 3) or None for a lone vertex)."""
-    n_comp, labels = vertex_components(mesh.n_vertices, mesh.faces)
+    faces = require_faces(mesh, "geodesic distances")
+    n_comp, labels = vertex_components(mesh.n_vertices, faces)
     referenced = np.zeros(mesh.n_vertices, dtype=bool)
-    referenced[mesh.faces.ravel()] = True
+    referenced[faces.ravel()] = True
     if n_comp == 1 and referenced.all():
-        return [(np.arange(mesh.n_vertices), mesh.faces)]
-    face_label = labels[mesh.faces[:, 0]]
-    parts = []
+        return [(np.arange(mesh.n_vertices), faces)]
+    face_label = labels[faces[:, 0]]
+    parts: list[tuple[np.ndarray, np.ndarray | None]] = []
     for label in range(n_comp):
         idx = np.flatnonzero(labels == label)
         if not referenced[idx[0]]:
@@ -471,7 +474,7 @@ def _face_components(mesh: Mesh) -> list[tuple[np.ndarray, np.ndarray | None]]:
             continue
         position = np.full(mesh.n_vertices, -1, dtype=np.int64)
         position[idx] = np.arange(idx.size)
-        parts.append((idx, position[mesh.faces[face_label == label]]))
+        parts.append((idx, position[faces[face_label == label]]))
     return parts
 
 

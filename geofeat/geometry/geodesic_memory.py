@@ -210,25 +210,27 @@ class GeodesicEntries:
             raise GeofeatError("GeodesicEntries reads entries as entries[rows, cols] (two integer arrays) only.")
         rows, cols = np.broadcast_arrays(np.asarray(key[0], dtype=np.int64), np.asarray(key[1], dtype=np.int64))
         flat = (rows * self.shape[0] + cols).ravel()
-        if not self.computed:
+        keys, values = self._keys, self._values
+        if keys is None or values is None:  # not computed yet
             self._asked.append(flat.copy())
             apart = self._labels[rows] != self._labels[cols]
             return np.where(apart, np.inf, 0.0).astype(np.float32)
-        at = np.minimum(np.searchsorted(self._keys, flat), self._keys.size - 1)
-        if self._keys.size == 0 or not np.array_equal(self._keys[at], flat):
+        at = np.minimum(np.searchsorted(keys, flat), keys.size - 1)
+        if keys.size == 0 or not np.array_equal(keys[at], flat):
             raise GeofeatError("GeodesicEntries: an entry read now was not asked for before compute().")
-        return self._values[at].reshape(rows.shape)
+        return values[at].reshape(rows.shape)
 
     def worst_case(self, rows) -> np.ndarray:
         """Largest finite distance from each of ``rows`` (0 where none), shape (len(rows),) float64."""
         rows = np.asarray(rows, dtype=np.int64).ravel()
-        if not self.computed:
+        worst_rows, worst = self._worst_rows, self._worst
+        if worst_rows is None or worst is None:  # not computed yet
             self._asked_rows.append(rows.copy())
             return np.zeros(rows.size)
-        at = np.minimum(np.searchsorted(self._worst_rows, rows), max(self._worst_rows.size - 1, 0))
-        if self._worst_rows.size == 0 or not np.array_equal(self._worst_rows[at], rows):
+        at = np.minimum(np.searchsorted(worst_rows, rows), max(worst_rows.size - 1, 0))
+        if worst_rows.size == 0 or not np.array_equal(worst_rows[at], rows):
             raise GeofeatError("GeodesicEntries: a worst case read now was not asked for before compute().")
-        return self._worst[at]
+        return worst[at]
 
     def compute(self, progress: bool = False) -> GeodesicEntries:
         """Compute every entry and worst case asked for so far, in one pass over the rows (more for many worst cases).

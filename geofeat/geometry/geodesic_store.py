@@ -121,7 +121,7 @@ class GeodesicStore(EntryFolder):
         return f"{type(self).__name__}({str(self.folder)!r}, dtype={self.dtype.name!r})"
 
     @property
-    def root(self) -> Path:
+    def root(self) -> Path:  # type: ignore[override]  # EntryFolder only reads root: here the read-only name of folder
         """The folder (`geofeat.storage.entry_folder.EntryFolder`'s name for it)."""
         return self.folder
 
@@ -139,7 +139,10 @@ class GeodesicStore(EntryFolder):
         return sorted(entries), sorted(temporary), sorted(other)
 
     def _is_sound(self, path: Path) -> bool:
-        dtype, crc = _STORE_ENTRY.fullmatch(path.name).groups()
+        match = _STORE_ENTRY.fullmatch(path.name)
+        if match is None:
+            return False
+        dtype, crc = match.groups()
         try:
             stored = np.load(path, mmap_mode="r")
             n = stored.shape[0] if stored.ndim == 2 else -1

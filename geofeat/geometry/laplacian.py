@@ -102,16 +102,16 @@ def _cotan_laplacian(verts: np.ndarray, faces: np.ndarray) -> tuple[sp.csr_matri
     double_area = np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
     keep = double_area > 1e-300
     faces, tri, double_area = faces[keep], tri[keep], double_area[keep]
-    rows, cols, weights = [], [], []
+    row_parts, col_parts, weight_parts = [], [], []
     for corner in range(3):
         i, j = (corner + 1) % 3, (corner + 2) % 3
         u = tri[:, i] - tri[:, corner]
         v = tri[:, j] - tri[:, corner]
         cot = np.einsum("fd,fd->f", u, v) / double_area
-        rows.append(faces[:, i])
-        cols.append(faces[:, j])
-        weights.append(0.5 * cot)
-    rows, cols, weights = np.concatenate(rows), np.concatenate(cols), np.concatenate(weights)
+        row_parts.append(faces[:, i])
+        col_parts.append(faces[:, j])
+        weight_parts.append(0.5 * cot)
+    rows, cols, weights = np.concatenate(row_parts), np.concatenate(col_parts), np.concatenate(weight_parts)
     off = sp.coo_matrix((-weights, (rows, cols)), shape=(n, n))
     off = off + off.T
     stiffness = off - sp.diags(np.asarray(off.sum(axis=1)).ravel())

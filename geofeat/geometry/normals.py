@@ -62,7 +62,7 @@ def vertex_normals(
     if isinstance(verts, Mesh):
         if faces is not None:
             raise MeshError("vertex_normals: pass either a Mesh or verts and faces, not a Mesh and faces.")
-        verts, faces = verts.verts, verts.faces
+        faces, verts = verts.faces, verts.verts
     verts = np.asarray(verts, dtype=np.float64)
     if verts.ndim != 2 or verts.shape[1] != 3:
         raise MeshError(f"vertex_normals: verts must have shape (V, 3); found {verts.shape}.")

@@ -568,10 +568,11 @@ def partial_generator(kind: str, options: Mapping[str, Any] | None = None) -> Ca
 def _first_accepted(mesh: Mesh, kind: str, draw: _Draw, keep_range: tuple[float, float], max_tries: int) -> PartialShape:
     """Call ``draw`` until the kept fraction lies in ``keep_range``; build the record."""
     lo, hi = keep_range
+    faces = require_faces(mesh, f"a {kind!r} partial shape")
     fractions = []
     for attempt in range(1, max_tries + 1):
         face_ids, drawn = draw()
-        n_kept = _used_vertices(mesh.faces[face_ids], mesh.n_vertices).size
+        n_kept = _used_vertices(faces[face_ids], mesh.n_vertices).size
         fraction = n_kept / mesh.n_vertices
         fractions.append(fraction)
         if face_ids.size and lo <= fraction <= hi:

@@ -44,7 +44,7 @@ RAY is `geofeat.render.raycast.ray_partial_reference` (it casts rays with geofea
 rasterizer); `geofeat.train.samples.training_partial_reference` draws one of the three as
 GeoLoRA's training loop does.
 
-``benchmarks/parity_partial_reference.py`` and ``benchmarks/parity_ray_reference.py`` compare
+``benchmarks/parity/partial_reference.py`` and ``benchmarks/parity/ray_reference.py`` compare
 both sides draw by draw.
 """
 

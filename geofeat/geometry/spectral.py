@@ -265,9 +265,12 @@ def _sparse_with_fallbacks(
     failures = []
     for label, sigma, ncv, maxiter in attempts:
         with progress_bar(
-            desc=f"eigenpairs of {name or 'mesh'} (k={k}, {n} vertices)", unit="solve", delay=PROGRESS_AFTER_SECONDS,
-            show=progress, leave=False,
-        ) as bar:  # fmt: skip
+            desc=f"eigenpairs of {name or 'mesh'} (k={k}, {n} vertices)",
+            unit="solve",
+            delay=PROGRESS_AFTER_SECONDS,
+            show=progress,
+            leave=False,
+        ) as bar:
             try:
                 evals, vecs = _shift_invert(stiffness, mass, k, sigma, ncv, maxiter, bar)
             except (RuntimeError, sla.ArpackError, ValueError, _OutOfBudget) as err:

@@ -11,7 +11,7 @@ Three modes:
 * ``"face"`` gives each foreground pixel's feature to the three corners of its face,
   weighted by the barycentric coordinates.
 * ``"ball_last"`` is what the GeoLoRA and DeepShapeMatchingKit (Diff3f) code computes, for
-  the ``reference`` presets. Each pixel's point looks for the first ``max_neighbours``
+  the ``reference`` and ``dsmk`` recipes. Each pixel's point looks for the first ``max_neighbours``
   vertices (in vertex order) within the radius, as pytorch3d's ``ball_query`` with K=100.
   Their feature sums are then updated with an indexed in-place addition
   (``sums[idx] += features``), which with repeated indices is no sum: every vertex in

@@ -25,7 +25,7 @@ A `FeatureRecipe` says how each stage is done. `RECIPES` holds the named ones:
     pixel centres in float32, and a vertex takes the mean of every pixel within its ball.
 ``"reference"``
     The official GeoLoRA code (vikiehm/geo-lora ``utils/dino_utils.py``), reproduced stage by
-    stage (``benchmarks/parity_geolora.py``): the 512 x 512 render is resized to 518 x 518
+    stage (``benchmarks/parity/geolora.py``): the 512 x 512 render is resized to 518 x 518
     (bilinear) before the backbone, the tokens are cast to float16 and sampled on a
     corner-aligned grid (`geofeat.backbones.grid_sample_patch_features`), pixels are lifted
     to 3D from their depth at those corner-aligned positions, and back-projection is
@@ -307,9 +307,13 @@ def render_batches(
                     if segment.shape not in backprojectors:
                         mesh = meshes[segment.shape]
                         backprojectors[segment.shape] = Backprojector(
-                            mesh.verts, mesh.faces, recipe.backproject, device=device,
-                            radius_basis=recipe.radius_basis, max_neighbours=recipe.max_neighbours,
-                        )  # fmt: skip
+                            mesh.verts,
+                            mesh.faces,
+                            recipe.backproject,
+                            device=device,
+                            radius_basis=recipe.radius_basis,
+                            max_neighbours=recipe.max_neighbours,
+                        )
                     fragments = rendering.fragments
                     foreground = foreground_pixels(fragments.pix_to_face).to(device)  # (M, 3)
                     points = corner_points(view, foreground, fragments.depth) if recipe.pixel_grid == "corners" else None
@@ -344,9 +348,19 @@ def multiview_features(
         ``features`` (V, C) float32 and ``seen`` (V,) bool, on the backbone's device.
     """
     return multiview_features_many(
-        [mesh], [cameras], backbone, recipe=recipe, backproject=backproject, fill=fill, batch_size=batch_size,
-        grad=grad, autocast=autocast, timer=timer, progress=progress, rendered=rendered,
-    )[0]  # fmt: skip
+        [mesh],
+        [cameras],
+        backbone,
+        recipe=recipe,
+        backproject=backproject,
+        fill=fill,
+        batch_size=batch_size,
+        grad=grad,
+        autocast=autocast,
+        timer=timer,
+        progress=progress,
+        rendered=rendered,
+    )[0]
 
 
 def multiview_features_many(
@@ -449,7 +463,7 @@ def multiview_features_many(
             radius_basis=recipe.radius_basis,
             max_neighbours=recipe.max_neighbours,
             dtype=recipe.dtype,
-        )  # fmt: skip
+        )
         for mesh in meshes
     ]
     if rendered is None:

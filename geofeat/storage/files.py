@@ -93,7 +93,7 @@ def probe_writable(folder: str | os.PathLike, prefix: str, suffix: str = "") -> 
     os.unlink(probe)
 
 
-def atomic_write(path: str | os.PathLike, write: Callable[[Path], None], *, durable: bool = True) -> Path:
+def atomic_write(path: str | os.PathLike, write: Callable[[Path], object], *, durable: bool = True) -> Path:
     """Write through a temporary file in the same folder, then rename it over ``path``.
 
     Parameters
@@ -101,7 +101,7 @@ def atomic_write(path: str | os.PathLike, write: Callable[[Path], None], *, dura
     path : str or os.PathLike
         The final file; its folder is created when missing.
     write : callable
-        ``write(tmp_path)`` writes the content to the temporary file.
+        ``write(tmp_path)`` writes the content to the temporary file (what it returns is ignored).
     durable : bool
         ``fsync`` the temporary file before the rename and the folder after it, so that
         after a crash or power cut ``path`` holds either the old or the whole new content.
@@ -129,7 +129,7 @@ def atomic_write(path: str | os.PathLike, write: Callable[[Path], None], *, dura
     return _write_and_rename(path, write, durable)
 
 
-def _write_and_rename(path: Path, write: Callable[[Path], None], durable: bool) -> Path:
+def _write_and_rename(path: Path, write: Callable[[Path], object], durable: bool) -> Path:
     """One try of `atomic_write` in an existing folder."""
     handle, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     os.close(handle)
@@ -290,23 +290,23 @@ def _swap_into_place(tmp: Path, path: Path, attempts: int = 5) -> None:
             with _IN_FLIGHT_LOCK:
                 _IN_FLIGHT.add(aside)
         try:
-            moved = False
+            moved: Path | None = None  # where the old folder was set aside, once it is
             if aside is not None:
                 with contextlib.suppress(FileNotFoundError):  # another process set it aside meanwhile
                     os.rename(path, aside)
-                    moved = True
+                    moved = aside
             try:
                 os.replace(tmp, path)
                 placed = True
             except OSError as err:
                 if err.errno not in (errno.ENOTEMPTY, errno.EEXIST):
-                    if moved:  # put the old folder back (a later cleanup does it if this fails)
+                    if moved is not None:  # put the old folder back (a later cleanup does it if this fails)
                         with contextlib.suppress(OSError):
-                            os.rename(aside, path)
+                            os.rename(moved, path)
                     raise
                 placed = False  # another process put a folder there meanwhile (newer than ours): set it aside too
-            if moved:
-                shutil.rmtree(aside, ignore_errors=True)
+            if moved is not None:
+                shutil.rmtree(moved, ignore_errors=True)
             if placed:
                 return
         finally:

@@ -1,6 +1,6 @@
 """The one base of geofeat's configuration dataclasses: dicts, JSON files, unknown keys.
 
-`HeadConfig` (heads), `TrainConfig` (GeoLoRA training) and `LoraSettings` (LoRA adapters)
+`HeadConfig` (heads), `TrainConfig` (GeoLoRA training) and `LoraSettings` (LoRA)
 are dataclasses deriving from `JsonConfig`. They share:
 
 * `JsonConfig.to_dict` / `JsonConfig.from_dict`: JSON-ready values (tuples as lists);
@@ -12,7 +12,7 @@ are dataclasses deriving from `JsonConfig`. They share:
   loading and saving a file again. They never change a setting.
 
 `JsonConfig.save` is the one way to write a settings file on its own (the trainer's
-``config.json`` of a run). Settings saved together with weights (heads, LoRA adapters,
+``config.json`` of a run). Settings saved together with weights (heads, LoRA folders,
 trainer checkpoints) go through `geofeat.storage.pretrained.save_pretrained`, which stores
 `to_dict` under the ``"config"`` key of its ``config.json``.
 """
@@ -56,6 +56,8 @@ class JsonConfig:
     """
 
     error: ClassVar[type[GeofeatError]] = GeofeatError
+    # set on each subclass by ``@dataclass``
+    __dataclass_fields__: ClassVar[dict[str, dataclasses.Field[Any]]]
 
     # -- unknown keys
 

@@ -21,8 +21,6 @@ V = TypeVar("V")
 #: can be changed while the program runs); ``None`` means no limit.
 Limit = int | None | Callable[[], "int | None"]
 
-_MISSING = object()
-
 
 def _value(limit: Limit) -> int | None:
     return limit() if callable(limit) else limit
@@ -59,14 +57,17 @@ class LRUCache(Generic[K, V]):
         self._data: OrderedDict[K, V] = OrderedDict()
         self._lock = threading.RLock()
 
+    def _touch(self, key: K) -> bool:
+        """Whether ``key`` is stored; if it is, make it the most recently used (call with the lock held)."""
+        if key not in self._data:
+            return False
+        self._data.move_to_end(key)
+        return True
+
     def get(self, key: K, default: V | None = None) -> V | None:
         """The value of ``key`` (now the most recently used), else ``default``."""
         with self._lock:
-            value = self._data.get(key, _MISSING)
-            if value is _MISSING:
-                return default
-            self._data.move_to_end(key)
-            return value
+            return self._data[key] if self._touch(key) else default
 
     def put(self, key: K, value: V) -> V:
         """Store ``value`` under ``key`` as the most recently used entry, evict beyond the limits, return ``value``."""
@@ -78,10 +79,10 @@ class LRUCache(Generic[K, V]):
 
     def get_or_compute(self, key: K, compute: Callable[[], V]) -> V:
         """The value of ``key``; on a miss, ``compute()`` it (outside the lock) and `put` it."""
-        value = self.get(key, _MISSING)
-        if value is _MISSING:
-            value = self.put(key, compute())
-        return value
+        with self._lock:
+            if self._touch(key):
+                return self._data[key]
+        return self.put(key, compute())
 
     def pop(self, key: K, default: V | None = None) -> V | None:
         """Remove ``key`` and return its value, else ``default``."""
@@ -95,18 +96,18 @@ class LRUCache(Generic[K, V]):
 
     def _evict(self) -> None:
         size, weight = _value(self.max_size), _value(self.max_weight)
-        data = self._data
+        data, weigh = self._data, self.weigh
         while data and (
             (size is not None and len(data) > size)
-            or (weight is not None and len(data) > 1 and sum(self.weigh(v) for v in data.values()) > weight)
+            or (weight is not None and weigh is not None and len(data) > 1 and sum(weigh(v) for v in data.values()) > weight)
         ):
             data.popitem(last=False)
 
     def __getitem__(self, key: K) -> V:
-        value = self.get(key, _MISSING)
-        if value is _MISSING:
-            raise KeyError(key)
-        return value
+        with self._lock:
+            if not self._touch(key):
+                raise KeyError(key)
+            return self._data[key]
 
     def __setitem__(self, key: K, value: V) -> None:
         self.put(key, value)

@@ -1,4 +1,4 @@
-"""One way to save and load a folder of settings and weights: heads, LoRA adapters, trainer checkpoints.
+"""One way to save and load a folder of settings and weights: heads, LoRA, trainer checkpoints.
 
 >>> folder = save_pretrained("runs/nn", "head", {"descriptor": "wks"}, {"linear.weight": torch.ones(4, 3)})  # doctest: +SKIP
 >>> saved = from_pretrained("runs/nn", "head", HeadError)                                                   # doctest: +SKIP
@@ -9,7 +9,7 @@ A saved folder holds
 
 ``config.json``
     ``{"kind", "format_version", "geofeat_version", "config", "info"}``: what the folder is
-    (``"head"``, ``"lora_adapter"``, ...), the version of this layout, the geofeat that wrote
+    (``"head"``, ``"lora"``, ...), the version of this layout, the geofeat that wrote
     it, the settings that rebuild the object, and free-form information (step, loss, ...).
 ``weights.safetensors``
     The tensors (on the CPU, contiguous), when there are any.
@@ -41,18 +41,20 @@ from geofeat.storage.files import atomic_folder, remove_dead_temporary_folders
 if TYPE_CHECKING:
     import torch
 
-__all__ = ["CONFIG_FILE", "FORMAT_VERSION", "WEIGHTS_FILE", "Pretrained", "from_pretrained", "save_pretrained"]
+__all__ = ["CONFIG_FILE", "FORMAT_VERSION", "WEIGHTS_FILE", "Pretrained", "from_pretrained", "save_pretrained", "unread_layout"]
 
 CONFIG_FILE = "config.json"
 WEIGHTS_FILE = "weights.safetensors"
 #: Version of the layout written by `save_pretrained`; a folder of a later version is refused.
 FORMAT_VERSION = 1
 _ENVELOPE_KEYS = ("kind", "format_version", "geofeat_version", "config", "info")
-#: Files of the layouts geofeat wrote before `save_pretrained`, and what wrote them.
-_OLDER_LAYOUTS = {
-    "adapter_config.json": "a LoRA adapter or trainer checkpoint (adapter_config.json + adapter.safetensors)",
-    "head_config.json": "a head (head_config.json + weights.safetensors)",
+#: Files that mark a folder of a layout this geofeat does not read, and what such a folder holds.
+_UNREAD_LAYOUTS = {
+    "adapter_config.json": "a LoRA or trainer checkpoint as adapter_config.json + adapter.safetensors",
+    "head_config.json": "a head as head_config.json + weights.safetensors",
 }
+#: Kinds of a ``config.json`` that this geofeat does not read, and what such a folder holds.
+_UNREAD_KINDS = {"lora_adapter": "a LoRA or trainer checkpoint of kind 'lora_adapter'"}
 
 
 def _require_safetensors() -> Any:
@@ -76,6 +78,29 @@ def _json_text(value: Any, what: str, error: type[GeofeatError]) -> str:
         ) from exc
 
 
+def unread_layout(folder: str | os.PathLike) -> str | None:
+    """What ``folder`` holds when it is of a layout this geofeat does not read.
+
+    That is a folder with the files of another layout instead of ``config.json``, or with a
+    ``config.json`` of a kind this geofeat does not read.
+
+    Parameters
+    ----------
+    folder : str or os.PathLike
+
+    Returns
+    -------
+    str or None
+        A description of the folder's content (e.g. ``"a head as head_config.json +
+        weights.safetensors"``); None for any other folder.
+    """
+    folder = Path(folder)
+    if (folder / CONFIG_FILE).exists():
+        kind = (_read_envelope(folder) or {}).get("kind")
+        return _UNREAD_KINDS.get(kind) if isinstance(kind, str) else None
+    return next((what for name, what in _UNREAD_LAYOUTS.items() if (folder / name).is_file()), None)
+
+
 def _read_envelope(folder: Path) -> dict[str, Any] | None:
     """The parsed ``config.json`` of a folder written by `save_pretrained`, or None when it is no such folder."""
     try:
@@ -97,7 +122,6 @@ def save_pretrained(
     extra_files: Mapping[str, Callable[[Path], None]] | None = None,
     error: type[GeofeatError] = StoreError,
     durable: bool = True,
-    overwrite: bool = False,
 ) -> Path:
     """Write a folder of settings and weights in one piece (see the module notes for the layout).
 
@@ -106,7 +130,7 @@ def save_pretrained(
     folder : str or os.PathLike
         Created with its parents; a folder written by `save_pretrained` there is replaced.
     kind : str
-        What the folder is (``"head"``, ``"lora_adapter"``); `from_pretrained` checks it.
+        What the folder is (``"head"``, ``"lora"``); `from_pretrained` checks it.
     config : Mapping
         JSON-serialisable settings that rebuild the object.
     tensors : Mapping of str to torch.Tensor, optional
@@ -120,9 +144,6 @@ def save_pretrained(
         The `GeofeatError` subclass raised for bad input or a folder that cannot be replaced.
     durable : bool
         ``fsync`` everything before the folder is renamed into place (see `geofeat.storage.files.atomic_folder`).
-    overwrite : bool
-        Replace ``folder`` whatever it holds (to rewrite a folder of an older layout in place);
-        default: only a folder written by `save_pretrained` (or an empty one) is replaced.
 
     Returns
     -------
@@ -169,7 +190,7 @@ def save_pretrained(
         weights = {name: value.detach().to("cpu").contiguous() for name, value in tensors.items()}
     if folder.is_symlink() or folder.is_file():
         raise error(f"{folder} is a file or a link; expected a folder to save into. Choose another path or remove it.")
-    if not overwrite and folder.is_dir() and any(folder.iterdir()) and _read_envelope(folder) is None:
+    if folder.is_dir() and any(folder.iterdir()) and _read_envelope(folder) is None:
         raise error(
             f"{folder} already holds files not written by save_pretrained (no {CONFIG_FILE} with kind and "
             "format_version); they are never overwritten. Choose an empty or new folder, or remove that one."
@@ -281,15 +302,13 @@ def from_pretrained(
     folder: str | os.PathLike,
     kind: str | tuple[str, ...],
     error: type[GeofeatError],
-    *,
-    older_layout_hint: str | None = None,
 ) -> Pretrained:
     """Read a folder written by `save_pretrained`: its ``config.json`` and weights, of one save, checking its kind.
 
     Both files carry the save's ``save_id``; a reader that got them from two saves (another
     process replaced the folder between the two reads) reads the folder again, up to
     `READ_ATTEMPTS` times; so does one whose config says it has weights when the weights file
-    is gone. Folders written before ``save_id`` existed are read as they are.
+    is gone. A folder whose ``config.json`` carries no ``save_id`` is read as it is.
 
     Parameters
     ----------
@@ -298,9 +317,6 @@ def from_pretrained(
         The kind (or kinds) accepted.
     error : type
         The `GeofeatError` subclass raised for every problem here and in `Pretrained.tensors`.
-    older_layout_hint : str, optional
-        How to turn a folder of an older geofeat layout into the current one; added to the
-        message when such a folder is found.
 
     Returns
     -------
@@ -310,14 +326,15 @@ def from_pretrained(
     ------
     GeofeatError
         Of type ``error``: a missing folder, a missing or unparsable ``config.json``, another
-        kind, a folder of an older geofeat layout or of a later layout version.
+        kind, a folder of a layout this geofeat does not read (`unread_layout`) or of a later
+        layout version.
     """
     folder = Path(folder)
     kinds = (kind,) if isinstance(kind, str) else tuple(kind)
     expected = " or ".join(repr(k) for k in kinds)
     for attempt in range(READ_ATTEMPTS):
         try:
-            saved, save_id = _read_folder(folder, kinds, expected, error, older_layout_hint)
+            saved, save_id = _read_folder(folder, kinds, expected, error)
         except GeofeatError:
             # a save between its two renames (or one killed there: restored when its writer is dead), or one that
             # finished since the failed read: read again; anything else is the folder's own problem
@@ -350,23 +367,20 @@ def _refuse_run_folder(folder: Path, expected: str, error: type[GeofeatError]) -
     raise error(f"{folder} is a training run folder, not a {expected}: pass one of its checkpoints/step_N folders ({newest}).")
 
 
-def _read_folder(
-    folder: Path, kinds: tuple[str, ...], expected: str, error: type[GeofeatError], older_layout_hint: str | None
-) -> tuple[Pretrained, str | None]:
-    """One read of ``config.json`` and ``weights.safetensors``, checked; the config's ``save_id`` (None before it existed)."""
+def _read_folder(folder: Path, kinds: tuple[str, ...], expected: str, error: type[GeofeatError]) -> tuple[Pretrained, str | None]:
+    """One read of ``config.json`` and ``weights.safetensors``, checked; the config's ``save_id`` (None when it has none)."""
     if not folder.exists():
         raise error(f"{folder} does not exist; expected a folder written by save_pretrained holding a {expected}.")
     if not folder.is_dir():
         raise error(f"{folder} is a file; expected a folder written by save_pretrained holding a {expected}.")
+    found = unread_layout(folder)
+    if found is not None:
+        raise error(
+            f"{folder} holds {found}, a layout this geofeat does not read; expected a {expected} as {CONFIG_FILE} + "
+            f"{WEIGHTS_FILE} written by save_pretrained. Save it again with this version of geofeat, into a new folder."
+        )
     path = folder / CONFIG_FILE
     if not path.is_file():
-        older = [what for name, what in _OLDER_LAYOUTS.items() if (folder / name).is_file()]
-        if older:
-            raise error(
-                f"{folder} holds {older[0]} in the layout of an older geofeat; this version reads folders of "
-                f"{CONFIG_FILE} + {WEIGHTS_FILE} written by save_pretrained. "
-                + (older_layout_hint or "Save it again with this version of geofeat.")
-            )
         raise error(f"{folder} has no {CONFIG_FILE}; expected a folder written by save_pretrained holding a {expected}.")
     try:
         data = json.loads(path.read_text())

@@ -1,11 +1,11 @@
 """Checkpoints and resume safety of GeoLoRA runs: what survives a Ctrl-C, a ``kill -9`` or a power cut.
 
 A run folder (``config.out``) holds ``config.json`` (the `TrainConfig`), ``log.csv`` (one row
-per step) and ``checkpoints/step_NNNNNNN/``. A checkpoint is one LoRA adapter folder of
-`geofeat.storage.pretrained` (``config.json`` of kind ``"lora_adapter"`` + ``weights.safetensors``,
-what `geofeat.backbones.lora.load_adapter` and the ``geolora`` descriptor load) with one extra
+per step) and ``checkpoints/step_NNNNNNN/``. A checkpoint is one LoRA folder of
+`geofeat.storage.pretrained` (``config.json`` of kind ``"lora"`` + ``weights.safetensors``,
+what `geofeat.backbones.lora.load_lora` and the ``geolora`` descriptor load) with one extra
 file, ``trainer_state.pt`` (step, sample position, rank count, optimizer state), and for the
-``reference`` preset's adapters a second one, ``geolora_release.pth``: the adapter in the
+``reference`` recipe's LoRA a second one, ``geolora_release.pth``: the LoRA in the
 layout of the official release, which the official code loads. It is written
 whole into a temporary sibling folder, ``fsync``-ed and renamed (`geofeat.storage.files.atomic_folder`),
 so an interruption never leaves a half-written one; the log rows up to a checkpoint's step
@@ -16,7 +16,7 @@ After a crash a resumed run
 * drops the log rows of steps after the checkpoint it resumes from (`truncate_log`; they
   are trained again);
 * falls back to the previous checkpoint, with a warning, when the newest one cannot be read
-  (`readable_checkpoint`: a truncated ``trainer_state.pt`` or adapter); the damaged folder is
+  (`readable_checkpoint`: a truncated ``trainer_state.pt`` or LoRA); the damaged folder is
   renamed ``.step_NNNNNNN.damaged``;
 * removes the temporary folders of saves that were killed (`remove_stale_temporary_folders`:
   their process is gone).
@@ -37,10 +37,10 @@ from typing import Any
 import torch
 
 from geofeat.backbones import DinoBackbone
-from geofeat.backbones.lora import ADAPTER_KIND, LoraSettings, official_lora_state_dict, save_adapter
+from geofeat.backbones.lora import LORA_KIND, LoraSettings, official_lora_state_dict, save_lora
 from geofeat.errors import DamagedCheckpointError, TrainingError
 from geofeat.storage.files import atomic_write, remove_dead_temporary_folders
-from geofeat.storage.pretrained import CONFIG_FILE, from_pretrained
+from geofeat.storage.pretrained import CONFIG_FILE, WEIGHTS_FILE, from_pretrained, unread_layout
 from geofeat.storage.safe_load import load_torch_file
 
 log = logging.getLogger(__name__)
@@ -60,11 +60,10 @@ __all__ = [
     "write_checkpoint",
 ]
 
-#: The adapter as a GeoLoRA release checkpoint (fused qkv LoRA), in the checkpoints of shared-A adapters.
+#: The LoRA as a GeoLoRA release checkpoint (fused qkv LoRA), in the checkpoints of a shared-A LoRA.
 RELEASE_FILE = "geolora_release.pth"
 #: The trainer's state in a checkpoint folder: ``{"step", "samples", "world_size", "optimizer"}``.
 STATE_FILE = "trainer_state.pt"
-_OLD_ADAPTER_CONFIG = "adapter_config.json"
 
 
 def checkpoint_folder(run: str | os.PathLike, step: int) -> Path:
@@ -128,7 +127,7 @@ def write_checkpoint(
     state: Mapping[str, Any],
     extra_info: Mapping[str, Any] | None = None,
 ) -> Path:
-    """Write ``checkpoints/step_NNNNNNN`` (the adapter and ``trainer_state.pt``) atomically; returns the folder.
+    """Write ``checkpoints/step_NNNNNNN`` (the LoRA and ``trainer_state.pt``) atomically; returns the folder.
 
     A complete checkpoint of that step already there is kept as it is.
 
@@ -139,13 +138,13 @@ def write_checkpoint(
     step : int
         The step count the checkpoint is taken after (the folder's name).
     backbone : DinoBackbone
-        Carrying the LoRA adapter.
+        Carrying the LoRA.
     settings : LoraSettings
-        Stored with the adapter (its training settings).
+        Stored with the LoRA (its training settings).
     state : Mapping
         The trainer state, saved with ``torch.save`` as ``trainer_state.pt``; its ``"step"`` must be ``step``.
     extra_info : Mapping, optional
-        Stored as the adapter's ``info`` besides ``{"step": step}``.
+        Stored as the LoRA folder's ``info`` besides ``{"step": step}``.
 
     Returns
     -------
@@ -153,7 +152,7 @@ def write_checkpoint(
 
     Notes
     -----
-    An adapter with one ``A`` shared by query, key and value (the ``reference`` preset's) is
+    A LoRA with one ``A`` shared by query, key and value (the ``reference`` recipe's) is
     also written as a release checkpoint, `RELEASE_FILE`, which the official code and
     `geofeat.backbones.load_official_lora` load.
     """
@@ -165,15 +164,13 @@ def write_checkpoint(
     extra_files = {STATE_FILE: lambda path: torch.save(dict(state), path)}
     if settings.shared_a:  # the fused-qkv layout of the release holds it: also written so
         extra_files[RELEASE_FILE] = lambda path: torch.save(official_lora_state_dict(backbone), path)
-    save_adapter(
-        backbone, final, settings, extra_info={"step": step, **(extra_info or {})}, extra_files=extra_files
-    )  # fmt: skip
+    save_lora(backbone, final, settings, extra_info={"step": step, **(extra_info or {})}, extra_files=extra_files)
     log.info("saved checkpoint %s", final)
     return final
 
 
 def read_checkpoint(folder: str | os.PathLike, device: str | torch.device = "cpu") -> dict:
-    """The trainer state of a checkpoint folder, after checking that its adapter can be read.
+    """The trainer state of a checkpoint folder, after checking that its LoRA can be read.
 
     Parameters
     ----------
@@ -192,15 +189,16 @@ def read_checkpoint(folder: str | os.PathLike, device: str | torch.device = "cpu
     DamagedCheckpointError
         A file is truncated or unreadable, or the state does not fit the folder.
     TrainingError
-        ``trainer_state.pt`` is a pickle refused for safety, or the folder has the layout of
-        an older geofeat (the message says how to upgrade it).
+        ``trainer_state.pt`` is a pickle refused for safety, or the folder has a layout this
+        geofeat does not read (`geofeat.storage.pretrained.unread_layout`).
     """
     folder = Path(folder)
-    if not (folder / CONFIG_FILE).exists() and (folder / _OLD_ADAPTER_CONFIG).is_file():
+    found = unread_layout(folder)
+    if found is not None:
         raise TrainingError(
-            f"the checkpoint {folder} has the layout of an older geofeat ({_OLD_ADAPTER_CONFIG} + adapter.safetensors). "
-            "Upgrade each checkpoint folder of the run in place with geofeat.backbones.lora.upgrade_adapter(folder), "
-            "then resume."
+            f"the checkpoint {folder} holds {found}, a layout this geofeat does not read; expected {CONFIG_FILE} + "
+            f"{WEIGHTS_FILE} + {STATE_FILE} as the trainer writes them. Train again with this version of geofeat, "
+            "into a new out folder."
         )
     state = load_torch_file(
         folder / STATE_FILE, TrainingError, damaged_error=DamagedCheckpointError, what="a trainer state", map_location=device
@@ -210,7 +208,7 @@ def read_checkpoint(folder: str | os.PathLike, device: str | torch.device = "cpu
     expected = int(folder.name.split("_")[-1])
     if int(state["step"]) != expected:
         raise DamagedCheckpointError(f"{folder / STATE_FILE} is for step {int(state['step'])}, its folder for step {expected}.")
-    from_pretrained(folder, ADAPTER_KIND, DamagedCheckpointError).tensors()
+    from_pretrained(folder, LORA_KIND, DamagedCheckpointError).tensors()
     return state
 
 

@@ -23,8 +23,8 @@ __all__ = ["LOSSES", "PARTIAL_GENERATORS", "RESUMABLE_CHANGES", "TrainConfig"]
 
 LOSSES = ("geodesic", "plain")
 AMP_MODES = ("auto", "on", "off")
-#: Feature recipes a run can train with (`geofeat.multiview.pipeline.RECIPES`).
-TRAIN_PRESETS = ("default", "reference")
+#: Recipes a run can train with (`TrainConfig.recipe`).
+TRAIN_RECIPES = ("default", "reference")
 #: Partial-shape generators of training: geofeat's (`geofeat.geometry.partial`) or GeoLoRA's own
 #: (`geofeat.geometry.partial_reference`, equal draw by draw).
 PARTIAL_GENERATORS = ("geofeat", "reference")
@@ -69,19 +69,22 @@ class TrainConfig(JsonConfig):
     views_full, views_partial : int
         Cameras of the official grid for the full shape and for each partial shape.
     camera_layout : {"official", "uniform"}
-    preset : {"default", "reference"}
-        Recipe of the multi-view features (`geofeat.multiview.pipeline.RECIPES`):
-        ``"reference"`` computes them as the official GeoLoRA code does, stage by stage, and
-        gives each block one LoRA ``A`` shared by the query, key and value projections, as the
-        official LoRA on the fused ``qkv`` has (`geofeat.backbones.LoraSettings.shared_a`).
+    recipe : {"default", "reference"}
+        Whose way the run follows: geofeat's, or the official GeoLoRA code's, stage by stage.
+        It picks the multi-view feature recipe (`geofeat.multiview.pipeline.RECIPES`);
+        ``"reference"`` also gives each block one LoRA ``A`` shared by the query, key and
+        value projections, as the official LoRA on the fused ``qkv`` has
+        (`geofeat.backbones.LoraSettings.shared_a`), and leaves a whole sample out when one
+        of its partial shapes has no loss, as the official loop does. The settings below
+        that are None take the recipe's value.
     backproject : {"ball", "face", "ball_last"} or None
-        None: the preset's.
+        None: the recipe's.
     rope_augmentation : bool or None
         Run DINOv3 in ``train()`` mode during the training steps, which rescales its RoPE
         coordinates at random in every forward pass, as the official training does
         (`geofeat.backbones.DinoBackbone.rope_augmentation`); the draws are seeded by
         ``seed`` and the sample, so a resumed run draws the same. Validation always runs in
-        ``eval()`` mode. None: the preset's (on under ``"reference"``, off under ``"default"``).
+        ``eval()`` mode. None: the recipe's (on under ``"reference"``, off under ``"default"``).
     partials_per_shape : int
         Partial shapes cut from the full shape at every step.
     shapes_per_rank : int
@@ -95,7 +98,7 @@ class TrainConfig(JsonConfig):
         ``"reference"`` makes every sample as GeoLoRA's training loop does (the full shape
         divided by the square root of its area, triangles cut by the plane, the official ray
         caster, nearest-vertex ground truth, a try again below 10 vertices; see
-        `geofeat.train.samples`). None: the preset's (`TrainConfig.generators`).
+        `geofeat.train.samples`). None: the recipe's (`TrainConfig.generators`).
     loss : {"geodesic", "plain"}
         Geodesic-weighted PointInfoNCE or the plain one (ablation).
     temperature, offset : float
@@ -145,7 +148,7 @@ class TrainConfig(JsonConfig):
     views_full: int = 9
     views_partial: int = 4
     camera_layout: str = "official"
-    preset: str = "default"
+    recipe: str = "default"
     backproject: str | None = None
     rope_augmentation: bool | None = None
     partials_per_shape: int = 2
@@ -178,7 +181,7 @@ class TrainConfig(JsonConfig):
             setattr(self, name, canonical(getattr(self, name)))
         self.partial_kinds = tuple(self.partial_kinds)
         problems = []
-        for name in ("data", "out", "split", "camera_layout", "preset", "loss", "amp", "device", "val_split"):
+        for name in ("data", "out", "split", "camera_layout", "recipe", "loss", "amp", "device", "val_split"):
             if not isinstance(getattr(self, name), str):
                 problems.append(f"{name} must be a string, found {type(getattr(self, name)).__name__} {getattr(self, name)!r}")
         for name in ("data_root", "weights", "backproject", "partial_generators", "val_dataset", "geodesic_cache"):
@@ -201,8 +204,8 @@ class TrainConfig(JsonConfig):
             problems.append("data is empty: give a folder of meshes or a dataset name (faust_r, scape_r)")
         if self.loss not in LOSSES:
             problems.append(f"loss must be one of {LOSSES}, found {self.loss!r}")
-        if self.preset not in TRAIN_PRESETS:
-            problems.append(f"preset must be one of {TRAIN_PRESETS}, found {self.preset!r}")
+        if self.recipe not in TRAIN_RECIPES:
+            problems.append(f"recipe must be one of {TRAIN_RECIPES}, found {self.recipe!r}")
         if self.amp not in AMP_MODES:
             problems.append(f"amp must be one of {AMP_MODES}, found {self.amp!r}")
         unknown_kinds = sorted(set(self.partial_kinds) - set(PARTIAL_KINDS))
@@ -245,10 +248,10 @@ class TrainConfig(JsonConfig):
         return cls.load(path, **overrides)
 
     def generators(self) -> str:
-        """The run's partial-shape generators: ``partial_generators``, or the preset's (its own name)."""
+        """The run's partial-shape generators: ``partial_generators``, or the recipe's (its own name)."""
         if self.partial_generators is not None:
             return self.partial_generators
-        return "reference" if self.preset == "reference" else "geofeat"
+        return "reference" if self.recipe == "reference" else "geofeat"
 
     def changes_from(self, other: TrainConfig) -> list[str]:
         """Names of the settings that differ from ``other``."""

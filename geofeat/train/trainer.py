@@ -23,7 +23,7 @@ continues exactly as the uninterrupted run would have.
 
 Steps 1 to 3 are CPU work (`geofeat.train.samples.prepare_sample`: reading the geodesic matrix,
 the rotations, the partial shapes); steps 4 and 5 are the device's. With ``config.workers``
-worker processes (`geofeat.train.samples.SamplePrefetcher`, started by `GeoLoraTrainer.fit` or
+worker processes (`geofeat.train.sample_stream.SampleStream`, started by `GeoLoraTrainer.fit` or
 by the first `GeoLoraTrainer.train_step`) the CPU work of the coming steps runs in the
 background while the device computes the current one; with none it runs in this process at
 the start of the step. Both give the same samples, so the same training to the bit.
@@ -38,32 +38,30 @@ inside the rendering path, a rank may have no usable partial shape, and the loss
 mean over the usable samples of all ranks) and divided by the number of usable samples, so
 ``W`` ranks with ``k`` shapes each compute what one process with ``W * k`` shapes computes.
 Rank 0 alone reads and writes the run folder (checkpoints, ``log.csv``, validation) and
-hands the state to the others at the start. A checkpoint holds the step and the sample
+hands the state to the others at the start (`geofeat.train.rank_sync`). A checkpoint holds the step and the sample
 position, so a run resumes on any number of ranks and continues the sequence without
 repeating or skipping a sample (with another rank count, the grouping of samples into
 steps differs from the uninterrupted run).
 
 A run folder holds ``config.json``, ``log.csv`` (one row per step: loss, seconds per phase
-of `PHASES`, validation error on validation steps) and ``checkpoints/step_NNNNNNN/`` (an
-adapter folder loadable by the ``geolora`` descriptor, with ``trainer_state.pt`` beside it). How
-checkpoints are written, read back and recovered after a crash is `geofeat.train.checkpoints`.
+of `PHASES`, validation error on validation steps; `geofeat.train.run_log`) and
+``checkpoints/step_NNNNNNN/`` (a LoRA folder loadable by the ``geolora`` descriptor, with
+``trainer_state.pt`` beside it). How checkpoints are written, read back and recovered after
+a crash is `geofeat.train.checkpoints`; when a run may be resumed, `geofeat.train.resume`.
 """
 
 from __future__ import annotations
 
 import contextlib
-import csv
 import logging
 import time
-from collections import defaultdict
-from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 import torch
 
 from geofeat.backbones import DinoBackbone, load_backbone
-from geofeat.backbones.lora import LoraSettings, add_lora, load_adapter
+from geofeat.backbones.lora import LoraSettings, add_lora, load_lora
 from geofeat.datasets.records import Match
 from geofeat.errors import TrainingError
 from geofeat.evaluation.protocol import evaluate_pair, summarize
@@ -73,12 +71,14 @@ from geofeat.render import make_cameras
 from geofeat.runtime import distributed
 from geofeat.runtime.progress import progress_bar
 from geofeat.storage.files import probe_writable
-from geofeat.train import checkpoints
+from geofeat.train import checkpoints, rank_sync, resume
 from geofeat.train.checkpoints import DeferredInterrupt
-from geofeat.train.config import RESUMABLE_CHANGES, TrainConfig
+from geofeat.train.config import TrainConfig
 from geofeat.train.geodesics import TorchGeodesicStore
 from geofeat.train.losses import geodesic_point_info_nce, point_info_nce
-from geofeat.train.samples import PreparedSample, SampleDataset, SamplePrefetcher, resolve_workers, rotate_about_up
+from geofeat.train.run_log import LOG_COLUMNS, PHASES, PhaseTimer, StepRecord, open_run_log
+from geofeat.train.sample_stream import SampleStream
+from geofeat.train.samples import PreparedSample, SampleDataset, Timer, resolve_workers, rotate_about_up
 from geofeat.train.shapes import load_training_shapes
 
 log = logging.getLogger(__name__)
@@ -90,70 +90,9 @@ __all__ = [
     "rotate_about_up",
 ]
 
-#: Timed phases of a step, in order (the ``t_<phase>`` columns of ``log.csv``, seconds). Without
-#: worker processes, ``geodesics`` is the reading of the geodesic matrix from the store and
-#: ``partial`` the rotations and partial shapes; with workers, that work is done in the
-#: background and ``partial`` is the time this process waited for the worker's samples (0 when
-#: they were ready). Both ways ``geodesics`` includes the copy of the matrix (and the ground
-#: truth) to the device and its widening to float32.
-PHASES = ("geodesics", "partial", "render", "forward", "backproject", "loss", "backward", "optimizer")
-_LOG_COLUMNS = ("step", "elapsed_s", "loss", "n_partials", "val_geodesic_error", *(f"t_{p}" for p in PHASES))
-
-
-@dataclass
-class StepRecord:
-    """What one step did: the step count after it, its loss (NaN when skipped) and seconds per phase."""
-
-    step: int
-    loss: float
-    n_partials: int
-    seconds: dict[str, float] = field(default_factory=dict)
-
-
-class _Timer:
-    """Seconds per phase; on CUDA without waiting on the device.
-
-    On the CPU, the wall seconds of each phase. On CUDA, the seconds the device's stream
-    took from the phase's start to its end, from CUDA events read when `seconds` is asked
-    for (after the step): the host keeps queuing work, so timing does not slow the step
-    down. A phase in which the host works and the device waits (reading samples) counts the
-    host's time, since the device reaches the phase's end only when the host has queued it.
-    """
-
-    def __init__(self, device: torch.device):
-        self.cuda = device.type == "cuda"
-        self._seconds: dict[str, float] = defaultdict(float)
-        self._events: list[tuple[str, torch.cuda.Event, torch.cuda.Event]] = []
-
-    @contextlib.contextmanager
-    def __call__(self, phase: str):
-        if self.cuda:
-            start, end = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
-            start.record()
-            try:
-                yield
-            finally:
-                end.record()
-                self._events.append((phase, start, end))
-            return
-        start_time = time.perf_counter()
-        try:
-            yield
-        finally:
-            self._seconds[phase] += time.perf_counter() - start_time
-
-    @property
-    def seconds(self) -> dict[str, float]:
-        """Seconds per phase so far (on CUDA this waits for the phases' work to finish)."""
-        for phase, start, end in self._events:
-            end.synchronize()
-            self._seconds[phase] += start.elapsed_time(end) / 1000.0
-        self._events.clear()
-        return self._seconds
-
 
 class GeoLoraTrainer:
-    """Train a LoRA adapter on a frozen DINOv3 with the GeoLoRA recipe.
+    """Train a LoRA on a frozen DINOv3 with the GeoLoRA recipe.
 
     Parameters
     ----------
@@ -189,17 +128,31 @@ class GeoLoraTrainer:
             raise TrainingError(
                 f"cannot write the run folder {self.out}: {err}. Pass a folder you can write to as out."
             ) from None
-        self.shapes = shapes if shapes is not None else load_training_shapes(
-            config.data, root=config.data_root, split=config.split, first=config.first,
-            max_vertices=config.max_vertices, progress=self.progress,
-        )  # fmt: skip
+        self.shapes = (
+            shapes
+            if shapes is not None
+            else load_training_shapes(
+                config.data,
+                root=config.data_root,
+                split=config.split,
+                first=config.first,
+                max_vertices=config.max_vertices,
+                progress=self.progress,
+            )
+        )
         if not self.shapes:
             raise TrainingError(f"no training shape in {config.data!r}.")
         self.geodesics = TorchGeodesicStore(config.geodesic_cache)
         #: Worker processes that prepare the samples (`geofeat.train.samples.resolve_workers` of ``config.workers``).
         self.workers = resolve_workers(config.workers, self.device)
-        self._samples = SampleDataset(config, self.shapes, self.geodesics.folder)
-        self._prefetcher: SamplePrefetcher | None = None
+        #: The prepared samples of the steps (`SampleStream`): from the worker processes, or made when asked for.
+        self.sample_stream = SampleStream(
+            config,
+            SampleDataset(config, self.shapes, self.geodesics.folder),
+            self.sample_indices,
+            self.workers,
+            pin_memory=self.device.type == "cuda",
+        )
         self.backbone = (
             backbone
             if backbone is not None
@@ -223,7 +176,7 @@ class GeoLoraTrainer:
         return LoraSettings(
             rank=self.config.rank,
             alpha=self.config.alpha,
-            shared_a=self.config.preset == "reference",
+            shared_a=self.config.recipe == "reference",
             training=self.config.to_dict(),
         )
 
@@ -243,7 +196,7 @@ class GeoLoraTrainer:
             except Exception as err:
                 distributed.broadcast_from_main({"error": f"{type(err).__name__}: {err}"})
                 raise
-            optimizer = _to_cpu(self.optimizer.state_dict()) if resumed else None
+            optimizer = rank_sync.to_cpu(self.optimizer.state_dict()) if resumed else None
             outcome = {"error": None, "resumed": resumed, "origin": self._origin, "optimizer": optimizer}
         outcome = distributed.broadcast_from_main(outcome)
         if not self.ranks.is_main:
@@ -254,11 +207,8 @@ class GeoLoraTrainer:
                 self.optimizer.load_state_dict(outcome["optimizer"])  # moved to the parameters' device
             self._origin = tuple(outcome["origin"])
             self.step = self._origin[0]
-        with torch.no_grad():  # rank 0's LoRA weights everywhere (the same seeded initialisation, or the checkpoint)
-            params = self._lora_parameters()
-            flat = distributed.broadcast_tensor_from_main(torch.cat([p.detach().reshape(-1) for p in params]))
-            for p, value in zip(params, flat.split([p.numel() for p in params]), strict=True):
-                p.copy_(value.view_as(p))
+        # rank 0's LoRA weights everywhere (the same seeded initialisation, or the checkpoint)
+        rank_sync.broadcast_parameters(self._lora_parameters())
         return outcome["resumed"]
 
     def _add_lora(self) -> None:
@@ -272,23 +222,14 @@ class GeoLoraTrainer:
 
     def _start_or_resume_here(self) -> bool:
         """`_start_or_resume` in the process that owns the run folder."""
-        checkpoints.remove_stale_temporary_folders(self.out)
-        checkpoint, state = checkpoints.readable_checkpoint(self.out, self.device)
+        checkpoint, state = resume.checkpoint_to_resume(self.out, self.config, self.shapes, self.device)
         if checkpoint is None:
             self._add_lora()
             self._origin = (0, 0)
             self.out.mkdir(parents=True, exist_ok=True)
             self.config.save(self.out / "config.json")
             return False
-        saved = TrainConfig.from_file(self.out / "config.json")
-        changed = sorted(set(self.config.changes_from(saved)) - RESUMABLE_CHANGES - {"out"})
-        if changed:
-            raise TrainingError(
-                f"{self.out} holds a run with other settings ({', '.join(f'{n}={getattr(saved, n)!r}' for n in changed)}); "
-                "resume it with the same settings or choose another out folder."
-            )
-        self._check_same_shapes(state.get("shapes"), checkpoint)
-        load_adapter(self.backbone, checkpoint)
+        load_lora(self.backbone, checkpoint)
         self._make_optimizer()
         self.optimizer.load_state_dict(state["optimizer"])
         self.step = int(state["step"])
@@ -301,51 +242,19 @@ class GeoLoraTrainer:
             log.info(
                 "the checkpoint was written by %d rank(s), this run has %d: the shape sequence continues from sample %d, "
                 "%d shape(s) a step",
-                saved_world, self.ranks.world_size, self._origin[1], self.ranks.world_size * self.config.shapes_per_rank,
-            )  # fmt: skip
+                saved_world,
+                self.ranks.world_size,
+                self._origin[1],
+                self.ranks.world_size * self.config.shapes_per_rank,
+            )
         return True
-
-    def _shape_records(self) -> list[list[str]]:
-        """``[name, content hash]`` of every training shape, in the run's order (saved with each checkpoint)."""
-        return [[mesh.name, mesh.hash] for mesh in self.shapes]
-
-    def _check_same_shapes(self, saved: list | None, checkpoint: Path) -> None:
-        """Refuse to resume on other training shapes than the checkpoint's run (names and contents compared).
-
-        Raises
-        ------
-        TrainingError
-            Shapes added, removed, reordered or changed since the checkpoint, named.
-        """
-        if saved is None:  # a checkpoint of an older geofeat: nothing to compare with
-            log.warning("%s records no training shapes; resuming without checking that they are the same", checkpoint)
-            return
-        mine = self._shape_records()
-        if [list(r) for r in saved] == mine:
-            return
-        before, now = dict((n, h) for n, h in saved), dict(mine)
-        changes = (
-            [f"{len(set(now) - set(before))} added ({', '.join(sorted(set(now) - set(before))[:3])})"]
-            if set(now) - set(before)
-            else []
-        )
-        if set(before) - set(now):
-            changes.append(f"{len(set(before) - set(now))} removed ({', '.join(sorted(set(before) - set(now))[:3])})")
-        edited = sorted(n for n in set(now) & set(before) if now[n] != before[n])
-        if edited:
-            changes.append(f"{len(edited)} changed in content ({', '.join(edited[:3])})")
-        raise TrainingError(
-            f"{self.out} was trained on other shapes than {self.config.data!r} holds now: "
-            + ("; ".join(changes) or "the same shapes in another order")
-            + f" (checkpoint {checkpoint.name}). Resume with the run's data, or start a new run in another out folder."
-        )
 
     def _make_optimizer(self) -> None:
         params = [p for p in self.backbone.model.parameters() if p.requires_grad]
         self.optimizer = torch.optim.Adam(params, lr=self.config.lr)
 
     def save_checkpoint(self, extra: dict | None = None) -> Path:
-        """Write ``checkpoints/step_NNNNNNN`` (adapter + optimizer state) atomically; returns the folder.
+        """Write ``checkpoints/step_NNNNNNN`` (LoRA + optimizer state) atomically; returns the folder.
 
         `geofeat.train.checkpoints.write_checkpoint`. Only rank 0 writes; on the other ranks
         this returns the folder without writing.
@@ -357,7 +266,7 @@ class GeoLoraTrainer:
             "samples": self._sample_position(self.step),
             "world_size": self.ranks.world_size,
             "optimizer": self.optimizer.state_dict(),
-            "shapes": self._shape_records(),
+            "shapes": resume.shape_records(self.shapes),
         }
         return checkpoints.write_checkpoint(self.out, self.step, self.backbone, self._lora_settings(), state, extra)
 
@@ -368,10 +277,10 @@ class GeoLoraTrainer:
         return self.config.amp == "on" or (self.config.amp == "auto" and self.device.type == "cuda")
 
     def _rope_augmentation(self) -> bool:
-        """Whether the training steps run DINOv3 in ``train()`` mode (``config.rope_augmentation``, or the preset's)."""
+        """Whether the training steps run DINOv3 in ``train()`` mode (``config.rope_augmentation``, or the recipe's)."""
         if self.config.rope_augmentation is not None:
             return self.config.rope_augmentation
-        return self.config.preset == "reference"
+        return self.config.recipe == "reference"
 
     @contextlib.contextmanager
     def _training_mode(self, sample_index: int):
@@ -393,14 +302,14 @@ class GeoLoraTrainer:
             finally:
                 self.backbone.rope_augmentation = False
 
-    def shape_features(
-        self, mesh: Mesh, n_views: int, timer: _Timer | None = None, fill: str = "zero"
+    def mesh_features(
+        self, mesh: Mesh, n_views: int, timer: Timer | None = None, fill: str = "zero"
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """Multi-view LoRA-DINOv3 features of a mesh, differentiable when gradients are enabled.
 
-        `geofeat.render.multiview_features` with the run's settings, all views in one batch;
+        `geofeat.multiview.pipeline.multiview_features` with the run's settings, all views in one batch;
         the ``geolora`` descriptor with the same views, image size, layout, back-projection,
-        fill and adapter gives the same features.
+        fill and LoRA gives the same features.
 
         Parameters
         ----------
@@ -408,7 +317,7 @@ class GeoLoraTrainer:
             V vertices.
         n_views : int
             Cameras of ``config.camera_layout`` (not rotated).
-        timer : _Timer, optional
+        timer : PhaseTimer, optional
             Charged with "render", "forward" and "backproject".
         fill : {"zero", "nearest"}
             Features of vertices seen in no view.
@@ -420,12 +329,12 @@ class GeoLoraTrainer:
             on (`torch.is_grad_enabled`): training steps; validation runs under ``no_grad``.
         seen : torch.Tensor, shape (V,), bool
         """
-        return self.shapes_features([mesh], [n_views], timer, fill)[0]
+        return self.meshes_features([mesh], [n_views], timer, fill)[0]
 
-    def shapes_features(
-        self, meshes: list[Mesh], n_views: list[int], timer: _Timer | None = None, fill: str = "zero"
+    def meshes_features(
+        self, meshes: list[Mesh], n_views: list[int], timer: Timer | None = None, fill: str = "zero"
     ) -> list[MultiviewFeatures]:
-        """`shape_features` of several meshes, their views encoded together in one backbone call.
+        """`mesh_features` of several meshes, their views encoded together in one backbone call.
 
         `geofeat.multiview.pipeline.multiview_features_many` with the run's settings: a training
         step sends the full shape and its partial shapes at once (9 + 2 x 4 views).
@@ -435,13 +344,13 @@ class GeoLoraTrainer:
         meshes : list of Mesh
         n_views : list of int
             Views of each mesh.
-        timer : _Timer, optional
+        timer : PhaseTimer, optional
         fill : {"zero", "nearest"}
 
         Returns
         -------
         list of MultiviewFeatures
-            One per mesh, as `shape_features` returns it.
+            One per mesh, as `mesh_features` returns it.
         """
         config = self.config
         cameras = [
@@ -449,9 +358,16 @@ class GeoLoraTrainer:
             for mesh, views in zip(meshes, n_views, strict=True)
         ]
         return multiview_features_many(
-            meshes, cameras, self.backbone, recipe=RECIPES[config.preset], backproject=config.backproject,
-            fill=fill, grad=torch.is_grad_enabled(), autocast=self._autocast(), timer=timer,
-        )  # fmt: skip
+            meshes,
+            cameras,
+            self.backbone,
+            recipe=RECIPES[config.recipe],
+            backproject=config.backproject,
+            fill=fill,
+            grad=torch.is_grad_enabled(),
+            autocast=self._autocast(),
+            timer=timer,
+        )
 
     # ------------------------------------------------------------------ one step
 
@@ -481,7 +397,7 @@ class GeoLoraTrainer:
             return geodesic_point_info_nce(feat_partial, feat_full, gt, dist, offset=self.config.offset, **options)
         return point_info_nce(feat_partial, feat_full, gt, **options)
 
-    def _sample_features(self, full: Mesh, partials: list[Mesh], timer: _Timer) -> list[MultiviewFeatures]:
+    def sample_features(self, full: Mesh, partials: list[Mesh], timer: Timer) -> list[MultiviewFeatures]:
         """Features of the shapes of one sample: the full shape first, then each partial shape.
 
         Parameters
@@ -490,25 +406,25 @@ class GeoLoraTrainer:
             The turned full shape, V vertices; rendered from ``config.views_full`` cameras.
         partials : list of Mesh
             The turned partial shapes; each rendered from ``config.views_partial`` cameras.
-        timer : _Timer
+        timer : PhaseTimer
             Charged with "render", "forward" and "backproject".
 
         Returns
         -------
         list of MultiviewFeatures
-            ``1 + len(partials)`` pairs of `shape_features`: features (n, C) float32 with their
+            ``1 + len(partials)`` pairs of `mesh_features`: features (n, C) float32 with their
             autograd graph, and ``seen`` (n,) bool. All views go through the backbone in one call
-            (`shapes_features`).
+            (`meshes_features`).
         """
         config = self.config
         views = [config.views_full] + [config.views_partial] * len(partials)
-        return self.shapes_features([full, *partials], views, timer)
+        return self.meshes_features([full, *partials], views, timer)
 
-    def _sample_loss(self, sample: PreparedSample, timer: _Timer) -> tuple[torch.Tensor | None, int]:
+    def _sample_loss(self, sample: PreparedSample, timer: Timer) -> tuple[torch.Tensor | None, int]:
         """The mean loss of the partial shapes of a prepared sample and their number (None, 0: none usable).
 
         A partial shape without a loss (no vertex seen on both shapes) is left out; under
-        ``preset="reference"`` it leaves the whole sample out, as the official loop skips a
+        ``recipe="reference"`` it leaves the whole sample out, as the official loop skips a
         step whose loss is NaN.
 
         The sample's CPU tensors go to the device here (asynchronously when pinned), the
@@ -518,7 +434,7 @@ class GeoLoraTrainer:
             dist = sample.geodesics.to(self.device, non_blocking=True).float()
             gts = [gt.to(self.device, non_blocking=True) for _, gt in sample.partials]
         with self._training_mode(sample.index):
-            features = self._sample_features(sample.full, [mesh for mesh, _ in sample.partials], timer)
+            features = self.sample_features(sample.full, [mesh for mesh, _ in sample.partials], timer)
         feat_full, seen_full = features[0]
         losses = []
         for (feat_partial, seen_partial), gt in zip(features[1:], gts, strict=True):
@@ -526,7 +442,7 @@ class GeoLoraTrainer:
                 try:
                     losses.append(self._loss(feat_partial, feat_full, gt, dist, seen_partial, seen_full))
                 except TrainingError as err:  # e.g. no partial vertex seen
-                    if self.config.preset == "reference":  # the official loop skips the step (its loss is NaN)
+                    if self.config.recipe == "reference":  # the official loop skips the step (its loss is NaN)
                         log.warning("step %d: skipped sample %d of %s: %s", self.step, sample.index, sample.full.name, err)
                         return None, 0
                     log.warning(
@@ -536,69 +452,13 @@ class GeoLoraTrainer:
             return None, 0
         return torch.stack(losses).mean(), len(losses)
 
-    def _next_samples(self, timer: _Timer) -> list[PreparedSample]:
-        """The prepared samples of the coming step (`sample_indices`).
-
-        With worker processes: from the running `SamplePrefetcher`, started (or restarted)
-        at the current step when there is none or it stands at another step (the wait is
-        charged to "partial"); made here when the step is past ``config.steps`` (the loader
-        prepares no further). Without: made here, charged to "geodesics" and "partial".
-        """
-        if self.workers > 0 and self.step < self.config.steps:
-            if self._prefetcher is None or self._prefetcher.next_step != self.step:
-                self._start_prefetch()
-            with timer("partial"):
-                samples = self._prefetcher.take(self.step)
-            if samples is not None:
-                return samples
-        return [self._samples.prepare(index, timer) for index in self.sample_indices()]
-
-    def _start_prefetch(self) -> None:
-        """(Re)start the worker processes at the current step, up to ``config.steps``; nothing without workers."""
-        self.close()
-        if self.workers > 0 and self.step < self.config.steps:
-            self._prefetcher = SamplePrefetcher(
-                self._samples, self.sample_indices, self.step, self.config.steps, self.workers,
-                pin_memory=self.device.type == "cuda", seed=self.config.seed,
-            )  # fmt: skip
-
-    @contextlib.contextmanager
-    def _prefetching(self):
-        """The worker processes run inside the block (none without ``config.workers``); they are stopped however it ends."""
-        self._start_prefetch()
-        try:
-            yield
-        finally:
-            self.close()
-
     def close(self) -> None:
         """Stop the worker processes that prepare samples, if any, and wait for them.
 
         `fit` does it before it returns or raises; call it after running `train_step`
         yourself with ``workers`` (a later `train_step` starts them again).
         """
-        prefetcher, self._prefetcher = self._prefetcher, None
-        if prefetcher is not None:
-            prefetcher.close()
-
-    def _average_gradients(self, n_shapes: int) -> None:
-        """Turn the gradients summed over this rank's shapes into the mean over the ``n_shapes`` of all ranks.
-
-        Several ranks: one all-reduce (sum) of all LoRA gradients flattened into one tensor
-        (zeros for a rank without a usable shape), then the division.
-        """
-        params = self._lora_parameters()
-        if self.ranks.world_size > 1:
-            flat = torch.cat([(p.grad if p.grad is not None else torch.zeros_like(p)).reshape(-1) for p in params])
-            distributed.all_reduce_sum(flat)
-            if n_shapes != 1:
-                flat.div_(n_shapes)
-            for p, grad in zip(params, flat.split([p.numel() for p in params]), strict=True):
-                p.grad = grad.view_as(p)
-        elif n_shapes != 1:
-            for p in params:
-                if p.grad is not None:
-                    p.grad.div_(n_shapes)
+        self.sample_stream.close()
 
     def train_step(self) -> StepRecord:
         """One optimisation step (see the module notes and `sample_indices`); skipped (loss NaN) when no partial shape is usable.
@@ -609,11 +469,11 @@ class GeoLoraTrainer:
         ranks with ``shapes_per_rank=k`` train exactly as one process with ``shapes_per_rank=W*k``.
         """
         config = self.config
-        timer = _Timer(self.device)
+        timer = PhaseTimer(self.device)
         self.backbone.model.eval()
         self.optimizer.zero_grad(set_to_none=True)
         loss_sum, n_shapes, n_partials = 0.0, 0, 0
-        for sample in self._next_samples(timer):
+        for sample in self.sample_stream.next_samples(self.step, timer):
             loss, count = self._sample_loss(sample, timer)
             if loss is None:
                 continue
@@ -629,7 +489,7 @@ class GeoLoraTrainer:
             self.step += 1
             return StepRecord(self.step, float("nan"), 0, dict(timer.seconds))
         with timer("optimizer"):
-            self._average_gradients(n_shapes)
+            rank_sync.average_gradients(self._lora_parameters(), n_shapes, self.ranks.world_size)
             torch.nn.utils.clip_grad_norm_(self._lora_parameters(), max_norm=config.grad_clip)
             self.optimizer.step()
         self.step += 1
@@ -655,53 +515,19 @@ class GeoLoraTrainer:
 
             self._validation = load_dataset(config.val_dataset, root=config.data_root, split=config.val_split)
         dataset = self._validation
-        timer = _Timer(self.device)
+        timer = PhaseTimer(self.device)
         records = []
         n_pairs = min(config.val_pairs, len(dataset))
         for i in progress_bar(range(n_pairs), desc="validation", unit="pair", leave=False, show=config.progress):
             pair = dataset[i]
-            feat_x, _ = self.shape_features(pair.x, config.views_full, timer, fill="nearest")
-            feat_y, _ = self.shape_features(pair.y, config.views_partial, timer, fill="nearest")
+            feat_x, _ = self.mesh_features(pair.x, config.views_full, timer, fill="nearest")
+            feat_y, _ = self.mesh_features(pair.y, config.views_partial, timer, fill="nearest")
             predicted = torch.cdist(feat_y, feat_x).argmin(dim=1).cpu().numpy()
             match = Match(predicted, np.ones(pair.y.n_vertices, dtype=bool))
             records.append(evaluate_pair(pair, match, "vertices", distances=self.geodesics.load(pair.x).numpy()))
         return summarize(records).geodesic_error
 
     # ------------------------------------------------------------------ the loop
-
-    def _log_row(self, writer, record: StepRecord, elapsed: float, val_error: float | None) -> None:
-        row = {"step": record.step, "elapsed_s": f"{elapsed:.3f}", "loss": f"{record.loss:.6f}", "n_partials": record.n_partials}
-        row["val_geodesic_error"] = "" if val_error is None else f"{val_error:.4f}"
-        row.update({f"t_{p}": f"{record.seconds.get(p, 0.0):.4f}" for p in PHASES})
-        writer.writerow(row)
-
-    def _validation_row(self, writer, elapsed: float) -> float | None:
-        error = self.validate()
-        if error is not None:
-            log.info("step %d: validation geodesic error %.2f", self.step, error)
-            writer.writerow({"step": self.step, "elapsed_s": f"{elapsed:.3f}", "val_geodesic_error": f"{error:.4f}"})
-        return error
-
-    def _anywhere(self, flag: bool) -> bool:
-        """True when ``flag`` is true on any rank (every rank must call this at the same point)."""
-        if self.ranks.world_size == 1:
-            return bool(flag)
-        votes = torch.tensor([float(bool(flag))], dtype=torch.float64, device=self.device)
-        return distributed.all_reduce_sum(votes).item() > 0
-
-    @contextlib.contextmanager
-    def _log_file(self):
-        """``(handle, writer)`` of ``log.csv`` opened for appending on rank 0, ``(None, None)`` on the others."""
-        if not self.ranks.is_main:
-            yield None, None
-            return
-        log_path = self.out / "log.csv"
-        new_log = not log_path.is_file()
-        with open(log_path, "a", newline="") as handle:
-            writer = csv.DictWriter(handle, fieldnames=_LOG_COLUMNS)
-            if new_log:
-                writer.writeheader()
-            yield handle, writer
 
     def fit(self) -> Path:
         """Train until ``config.steps`` (or ``config.max_minutes``); returns the last checkpoint folder.
@@ -718,11 +544,11 @@ class GeoLoraTrainer:
         on by all ranks before each step, so they stop after the same step; all ranks return
         once the last checkpoint is on disk.
         """
-        config, main = self.config, self.ranks.is_main
+        config, main, world = self.config, self.ranks.is_main, self.ranks.world_size
         self.close()  # workers started by earlier train_step calls stand at the position before resuming
         resumed = self._start_or_resume()
         if main:
-            checkpoints.truncate_log(self.out, self.step if resumed else None, _LOG_COLUMNS)
+            checkpoints.truncate_log(self.out, self.step if resumed else None, LOG_COLUMNS)
         mine = distributed.shard(self.shapes, self.ranks)  # the one-off Dijkstra, shared out among the ranks
         for mesh in progress_bar(mine, desc="geodesics", unit="shape", show=self.progress):
             self.geodesics.ensure(mesh)
@@ -730,54 +556,48 @@ class GeoLoraTrainer:
         start = time.perf_counter()
         # the deferred Ctrl-C is in place before the sample workers are forked: a Ctrl-C during their start (in
         # logging's at-fork hook, say) is a request to stop like any other, never an exception swallowed there
-        with DeferredInterrupt() as interrupt, self._prefetching(), self._log_file() as (handle, writer):
+        with (
+            DeferredInterrupt() as interrupt,
+            self.sample_stream.running(self.step),
+            open_run_log(self.out, main) as run_log,
+        ):
             if not resumed and main:
-                self._validation_row(writer, 0.0)
-                checkpoints.sync_log(handle)
+                run_log.validation_row(self.step, 0.0, self.validate())
+                run_log.sync()
                 self.save_checkpoint()
             bar = progress_bar(total=config.steps, initial=self.step, desc="GeoLoRA", unit="step", show=self.progress)
-            while self.step < config.steps and not self._anywhere(interrupt.requested):
+            while self.step < config.steps and not rank_sync.any_rank(interrupt.requested, world, self.device):
                 record = self.train_step()
                 elapsed = time.perf_counter() - start
                 if main:
-                    self._log_row(writer, record, elapsed, None)
+                    run_log.step_row(record, elapsed)
                 bar.update(1)
                 bar.set_postfix(loss=f"{record.loss:.4f}")
-                out_of_time = self._anywhere(config.max_minutes is not None and elapsed > 60.0 * config.max_minutes)
+                over_budget = config.max_minutes is not None and elapsed > 60.0 * config.max_minutes
+                out_of_time = rank_sync.any_rank(over_budget, world, self.device)
                 if main and config.validate_every and self.step % config.validate_every == 0 and self.step < config.steps:
                     if not out_of_time:
-                        self._validation_row(writer, elapsed)
+                        run_log.validation_row(self.step, elapsed, self.validate())
                 if main and config.checkpoint_every and self.step % config.checkpoint_every == 0:
-                    checkpoints.sync_log(handle)
+                    run_log.sync()
                     self.save_checkpoint()
                 if main:
-                    handle.flush()
+                    run_log.flush()
                 if out_of_time:
                     log.info("time budget of %.1f minutes spent at step %d", config.max_minutes, self.step)
                     break
-            interrupted = self._anywhere(interrupt.requested)
+            interrupted = rank_sync.any_rank(interrupt.requested, world, self.device)
             bar.close()
             if interrupted:
                 if main:
-                    checkpoints.sync_log(handle)
+                    run_log.sync()
                 checkpoint = self.save_checkpoint()
                 distributed.barrier()
                 log.warning("interrupted: stopped after step %d; resume with the same out folder (%s)", self.step, checkpoint)
                 raise KeyboardInterrupt
             if main:
-                self._validation_row(writer, time.perf_counter() - start)
-                checkpoints.sync_log(handle)
+                run_log.validation_row(self.step, time.perf_counter() - start, self.validate())
+                run_log.sync()
             final = self.save_checkpoint()
         distributed.barrier()  # the other ranks return once rank 0 has written the last checkpoint
         return final
-
-
-def _to_cpu(obj):
-    """``obj`` with every tensor in it (nested dicts, lists, tuples) moved to the CPU (to pickle it for another rank)."""
-    if isinstance(obj, torch.Tensor):
-        return obj.detach().cpu()
-    if isinstance(obj, dict):
-        return {key: _to_cpu(value) for key, value in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return type(obj)(_to_cpu(value) for value in obj)
-    return obj

@@ -1,6 +1,6 @@
 """EchoMatch against the facts of the authors' code (DeepShapeMatchingKit), on small hand-checkable inputs.
 
-The full stage-by-stage comparison with the reference code is ``benchmarks/parity_echomatch.py``
+The full stage-by-stage comparison with the reference code is ``benchmarks/parity/echomatch.py``
 (it needs a clone of the reference); these tests pin the conventions it checked: the
 reference preset, the checkpoint key mapping, and the formulas of the reflection features
 and of every loss term, each written out here the way the reference computes it.
@@ -100,9 +100,16 @@ def test_release_state_maps_every_reference_tensor_to_its_place():
     release = EchoMatchHead.release_state(raw)
     assert release.in_channels == 3
     assert release.settings == {
-        "descriptor": "xyz", "descriptor_params": {}, "feature_channels": 6, "width": 8, "n_blocks": 2,
-        "n_neighbours": 5, "overlap_width": 4, "overlap_blocks": 1, "learn_log_temperature": False,
-    }  # fmt: skip
+        "descriptor": "xyz",
+        "descriptor_params": {},
+        "feature_channels": 6,
+        "width": 8,
+        "n_blocks": 2,
+        "n_neighbours": 5,
+        "overlap_width": 4,
+        "overlap_blocks": 1,
+        "learn_log_temperature": False,
+    }
     src = raw["networks"]["echo_match_net"]
     head = make_head("echomatch", preset="reference", progress=False, **release.settings)
     head.load_state(release.state, release.in_channels, "synthetic")
@@ -221,9 +228,14 @@ def test_ground_truth_fmap_solves_the_references_row_systems(lambda_):
     mask = _resolvent_mask(evals_x, evals_y, 0.5)  # get_mask(evals_y, evals_x): rows of x, columns of y
     c_t = np.stack([np.linalg.solve(coeff_y @ coeff_y.T + lambda_ * np.diag(mask[i]), coeff_y @ coeff_x[i]) for i in range(3)])
     got = regularized_gt_fmap(
-        torch.tensor(map_yx), torch.tensor(evecs_x), torch.tensor(evecs_y), torch.tensor(evals_x), torch.tensor(evals_y),
-        lambda_, 0.5,
-    )  # fmt: skip
+        torch.tensor(map_yx),
+        torch.tensor(evecs_x),
+        torch.tensor(evecs_y),
+        torch.tensor(evals_x),
+        torch.tensor(evals_y),
+        lambda_,
+        0.5,
+    )
     np.testing.assert_allclose(got.numpy(), c_t.T, rtol=1e-10, atol=1e-12)
 
 
@@ -234,9 +246,14 @@ def test_ground_truth_fmap_without_regularisation_is_the_mass_weighted_projectio
     p = np.zeros((7, 6))
     p[np.flatnonzero(map_yx >= 0), map_yx[map_yx >= 0]] = 1
     got = regularized_gt_fmap(
-        torch.tensor(map_yx), torch.tensor(evecs_x), torch.tensor(evecs_y), torch.zeros(3, dtype=torch.float64),
-        torch.zeros(3, dtype=torch.float64), 0.0, mass_y=torch.tensor(mass_y),
-    )  # fmt: skip
+        torch.tensor(map_yx),
+        torch.tensor(evecs_x),
+        torch.tensor(evecs_y),
+        torch.zeros(3, dtype=torch.float64),
+        torch.zeros(3, dtype=torch.float64),
+        0.0,
+        mass_y=torch.tensor(mass_y),
+    )
     np.testing.assert_allclose(got.numpy(), evecs_y.T @ np.diag(mass_y) @ p @ evecs_x, rtol=1e-12)
 
 
@@ -247,8 +264,19 @@ def test_training_prunes_the_features_of_y_only_and_weights_the_terms(monkeypatc
     map_yx = part.vertex_map.astype(np.int64).copy()
     map_yx[::4] = -1  # some vertices of y without a counterpart, so that pruning shows
     pair = ShapePair(mesh, y, map_yx, protocol="p2f")
-    settings = dict(descriptor="xyz", n_eig=16, n_fmap=8, feature_channels=8, width=8, n_blocks=1, overlap_width=4,
-                    overlap_blocks=1, n_neighbours=8, dropout=0.0, progress=False)  # fmt: skip
+    settings = dict(
+        descriptor="xyz",
+        n_eig=16,
+        n_fmap=8,
+        feature_channels=8,
+        width=8,
+        n_blocks=1,
+        overlap_width=4,
+        overlap_blocks=1,
+        n_neighbours=8,
+        dropout=0.0,
+        progress=False,
+    )
     head = make_head("echomatch", **settings)
     seen = {}
     original = echomatch.regularized_fmap

@@ -210,13 +210,12 @@ def test_head_names_follow_the_registry_rules(monkeypatch):
         make_head("test_afine")
 
 
-def test_saved_folder_layout_and_the_upgrade_of_an_older_one(tmp_path, monkeypatch):
+def test_saved_folder_layout_and_a_folder_of_another_layout(tmp_path, monkeypatch):
     import json
 
     from safetensors.torch import save_file
 
     from geofeat.adapters import head_registry
-    from geofeat.adapters.heads import upgrade_head
 
     monkeypatch.setattr(head_registry, "HEADS", head_registry.HEADS.copy())
     head_registry.register_head("test_affine", f"{__name__}:_AffineHead")
@@ -231,23 +230,20 @@ def test_saved_folder_layout_and_the_upgrade_of_an_older_one(tmp_path, monkeypat
     assert [p.name for p in (tmp_path / "fmap").iterdir()] == ["config.json"]
     assert load_head(tmp_path / "fmap").config.k == 12
 
-    old = tmp_path / "old"  # what Head.save wrote before config.json
+    old = tmp_path / "old"  # head_config.json + weights.safetensors: not read, refused with a message
     old.mkdir()
     (old / "head_config.json").write_text(
         json.dumps({"head": "test_affine", "geofeat_version": "0.9", "config": head.config.to_dict()})
     )
     state = {k: v.contiguous() for k, v in head.model.state_dict().items()}
     save_file(state, str(old / "weights.safetensors"), metadata={"in_channels": "3"})
-    with pytest.raises(HeadError, match=r"older geofeat.*upgrade_head"):
+    with pytest.raises(
+        HeadError,
+        match=r"holds a head as head_config.json \+ weights.safetensors, a layout this geofeat does not read; expected a "
+        r"'head' as config.json \+ weights.safetensors .* Save it again",
+    ):
         load_head(old)
-    upgrade_head(old)
-    again = load_head(old)
-    assert again.config == head.config
-    for key, value in head.model.state_dict().items():
-        torch.testing.assert_close(again.model.state_dict()[key], value, rtol=0, atol=0)
-    with pytest.raises(HeadError, match="nothing to upgrade"):
-        upgrade_head(tmp_path / "new")
-    with pytest.raises(HeadError, match="holds a 'lora_adapter', not a 'head'"):
-        saved["kind"] = "lora_adapter"
+    with pytest.raises(HeadError, match="holds a 'lora', not a 'head'"):
+        saved["kind"] = "lora"
         (tmp_path / "new" / "config.json").write_text(json.dumps(saved))
         load_head(tmp_path / "new")

@@ -95,8 +95,14 @@ def test_dpfm_style_keys_map_like_ulrssm_style_keys():
             key = f"block_{parts[1]}." + ".".join(parts[2:])
         spelled["feature_extractor." + key] = value
     sizes, state = diffusionnet_state(spelled, "dpfm", prefix="feature_extractor.")
-    assert sizes == {"in_channels": 3, "width": 8, "out_channels": 5, "n_blocks": 2, "mlp_hidden": [8, 8],
-                     "with_gradient_rotations": True}  # fmt: skip
+    assert sizes == {
+        "in_channels": 3,
+        "width": 8,
+        "out_channels": 5,
+        "n_blocks": 2,
+        "mlp_hidden": [8, 8],
+        "with_gradient_rotations": True,
+    }
     check_state(ours, state, "test")
     for key, value in ours.state_dict().items():
         torch.testing.assert_close(state[key], value)
@@ -118,8 +124,13 @@ def test_reference_preset_and_overrides():
     head = make_head("ulrssm", preset="reference", tta_steps=3)
     c = head.config
     assert (c.mesh_normalization, c.operators, c.laplacian, c.n_fmap, c.diffusion_eig, c.gradient_mixing) == (
-        "unit_area", "ulrssm", "cotan", 200, 128, "ulrssm",
-    )  # fmt: skip
+        "unit_area",
+        "ulrssm",
+        "cotan",
+        200,
+        128,
+        "ulrssm",
+    )
     assert c.descriptor_params == {"n_eig": 128, "n_descr": 128, "laplacian": "cotan", "normalize": True}
     assert c.tta_steps == 3
     with pytest.raises(HeadError, match="no preset 'paper'"):
@@ -143,8 +154,13 @@ def test_ulrssm_release_checkpoint_matches_a_faust_r_pair(release_checkpoints, f
     dist = geodesic_matrix(pair.x, method="dijkstra", normalize=True)
     error = 100 * template_geodesic_errors(match.map_yx, pair.corr_x, pair.corr_y, dist).mean()
     assert error < ULRSSM_PAIR_BOUND
-    assert 100 * template_geodesic_errors(np.random.default_rng(0).permutation(pair.x.n_vertices)[: pair.y.n_vertices],
-                                          pair.corr_x, pair.corr_y, dist).mean() > 30  # fmt: skip
+    assert (
+        100
+        * template_geodesic_errors(
+            np.random.default_rng(0).permutation(pair.x.n_vertices)[: pair.y.n_vertices], pair.corr_x, pair.corr_y, dist
+        ).mean()
+        > 30
+    )
 
 
 def test_pair_normalisation_keeps_a_partial_in_the_frame_of_its_full_shape(faust_mesh):

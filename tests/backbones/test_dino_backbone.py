@@ -311,7 +311,7 @@ def test_attention_projections_are_lora_targets(request, kind, images):
     assert len(wrapped) == 3 * backbone.num_layers
     assert any("lora_" in n for n, p in backbone.model.named_parameters() if p.requires_grad)
     after = backbone.pixel_features(images[:1, :28, :28] if kind == "dinov2" else images[:1])
-    assert not torch.allclose(before, after, atol=1e-4)  # the adapter is in the forward path
+    assert not torch.allclose(before, after, atol=1e-4)  # the LoRA is in the forward path
     assert np.isfinite(after.numpy()).all()
 
 

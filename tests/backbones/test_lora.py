@@ -1,4 +1,4 @@
-"""LoRA adapters on tiny random DINOv3 models: freezing, training step, save/load, release-checkpoint conversion."""
+"""LoRA on tiny random DINOv3 models: freezing, training step, save/load, release-checkpoint conversion."""
 
 from __future__ import annotations
 
@@ -19,14 +19,13 @@ from tiny_models import tiny_dinov3  # noqa: E402
 from geofeat.backbones import DinoBackbone  # noqa: E402
 from geofeat.backbones.lora import (  # noqa: E402
     LoraSettings,
-    adapter_digest,
     add_lora,
     convert_official_lora,
-    load_adapter,
+    load_lora,
     load_official_lora,
+    lora_digest,
     lora_state_dict,
-    save_adapter,
-    upgrade_adapter,
+    save_lora,
 )
 from geofeat.errors import BackboneError, GeofeatError  # noqa: E402
 from geofeat.storage.pretrained import CONFIG_FILE, WEIGHTS_FILE  # noqa: E402
@@ -124,31 +123,31 @@ def test_save_load_round_trip(base_model, images, tmp_path):
     _randomize_lora(backbone)
     expected = backbone.pixel_features(images)
     settings = LoraSettings(training={"lr": 1e-4, "partial": ["cuts", "holes"]})
-    save_adapter(backbone, tmp_path / "adapter", settings, extra_info={"step": 7})
+    save_lora(backbone, tmp_path / "lora", settings, extra_info={"step": 7})
 
-    envelope = json.loads((tmp_path / "adapter" / CONFIG_FILE).read_text())
+    envelope = json.loads((tmp_path / "lora" / CONFIG_FILE).read_text())
     config = envelope["config"]
-    assert envelope["kind"] == "lora_adapter"
+    assert envelope["kind"] == "lora"
     assert config["backbone_kind"] == "dinov3" and config["backbone_digest"] == backbone.weights_digest
     assert (config["rank"], config["alpha"], sorted(config["targets"])) == (16, 32.0, ["k_proj", "q_proj", "v_proj"])
     assert config["training"] == settings.training and envelope["info"] == {"step": 7}
     assert "geofeat_version" in envelope
-    assert sorted(p.name for p in (tmp_path / "adapter").iterdir()) == [CONFIG_FILE, WEIGHTS_FILE]
+    assert sorted(p.name for p in (tmp_path / "lora").iterdir()) == [CONFIG_FILE, WEIGHTS_FILE]
 
-    restored = load_adapter(DinoBackbone(fresh, kind="dinov3"), tmp_path / "adapter")
+    restored = load_lora(DinoBackbone(fresh, kind="dinov3"), tmp_path / "lora")
     assert torch.equal(restored.pixel_features(images), expected)
     assert all(("lora_" in n) == p.requires_grad for n, p in restored.model.named_parameters())
     assert not torch.equal(DinoBackbone(tiny_dinov3(seed=0), kind="dinov3").pixel_features(images), expected)
 
 
-def test_adapter_digest_tracks_weights(base_model, tmp_path):
+def test_lora_digest_tracks_weights(base_model, tmp_path):
     backbone = add_lora(DinoBackbone(base_model, kind="dinov3"))
     _randomize_lora(backbone, seed=1)
-    save_adapter(backbone, tmp_path / "a", LoraSettings(training={"lr": 1}))
-    save_adapter(backbone, tmp_path / "b", LoraSettings(training={"lr": 2}))  # training settings do not count
+    save_lora(backbone, tmp_path / "a", LoraSettings(training={"lr": 1}))
+    save_lora(backbone, tmp_path / "b", LoraSettings(training={"lr": 2}))  # training settings do not count
     _randomize_lora(backbone, seed=2)
-    save_adapter(backbone, tmp_path / "c")
-    digests = [adapter_digest(tmp_path / n) for n in "abc"]
+    save_lora(backbone, tmp_path / "c")
+    digests = [lora_digest(tmp_path / n) for n in "abc"]
     assert len(digests[0]) == 64 and digests[0] == digests[1] != digests[2]
 
 
@@ -156,89 +155,97 @@ def test_unknown_config_keys_are_ignored(base_model, images, tmp_path, caplog):
     fresh = copy.deepcopy(base_model)
     backbone = add_lora(DinoBackbone(base_model, kind="dinov3"))
     _randomize_lora(backbone)
-    save_adapter(backbone, tmp_path)
+    save_lora(backbone, tmp_path)
     path = tmp_path / CONFIG_FILE
     envelope = json.loads(path.read_text())
     envelope["config"]["new_option"] = {"x": 1}
     path.write_text(json.dumps(envelope | {"new_top_level_key": 2}))
     with caplog.at_level(logging.DEBUG, logger="geofeat.backbones.lora"):
-        restored = load_adapter(DinoBackbone(fresh, kind="dinov3"), tmp_path)
+        restored = load_lora(DinoBackbone(fresh, kind="dinov3"), tmp_path)
     assert "new_option" in caplog.text
     assert torch.equal(restored.pixel_features(images), backbone.pixel_features(images))
 
 
 def test_digest_mismatch_names_the_training_backbone(base_model, tmp_path):
     backbone = add_lora(DinoBackbone(base_model, kind="dinov3", source="/models/tiny-a"))
-    save_adapter(backbone, tmp_path)
+    save_lora(backbone, tmp_path)
     other = DinoBackbone(tiny_dinov3(seed=5), kind="dinov3", source="/models/tiny-b")
     with pytest.raises(
         GeofeatError, match=r"trained on a dinov3 backbone from /models/tiny-a .*digest " + backbone.weights_digest[:12]
     ):
-        load_adapter(other, tmp_path)
+        load_lora(other, tmp_path)
     assert not any("lora_" in n for n, _ in other.model.named_parameters())  # nothing was attached
 
 
-def test_missing_or_incomplete_adapter_errors(base_model, tmp_path):
+def test_missing_or_incomplete_lora_errors(base_model, tmp_path):
     backbone = DinoBackbone(base_model, kind="dinov3")
     with pytest.raises(BackboneError, match="does not exist"):
-        load_adapter(backbone, tmp_path / "nowhere")
-    with pytest.raises(BackboneError, match="no LoRA adapter"):
-        save_adapter(backbone, tmp_path / "x")
+        load_lora(backbone, tmp_path / "nowhere")
+    with pytest.raises(BackboneError, match="has no LoRA; call add_lora"):
+        save_lora(backbone, tmp_path / "x")
     (tmp_path / CONFIG_FILE).write_text(
-        json.dumps({"kind": "lora_adapter", "format_version": 1, "geofeat_version": "0", "config": {"rank": 16}, "info": {}})
+        json.dumps({"kind": "lora", "format_version": 1, "geofeat_version": "0", "config": {"rank": 16}, "info": {}})
     )
     with pytest.raises(BackboneError, match="lacks the keys"):
-        load_adapter(backbone, tmp_path)
+        load_lora(backbone, tmp_path)
     (tmp_path / CONFIG_FILE).write_text(
         json.dumps({"kind": "head", "format_version": 1, "geofeat_version": "0", "config": {}, "info": {}})
     )
-    with pytest.raises(BackboneError, match="holds a 'head', not a 'lora_adapter'"):
-        load_adapter(backbone, tmp_path)
+    with pytest.raises(BackboneError, match="holds a 'head', not a 'lora'"):
+        load_lora(backbone, tmp_path)
 
 
-def test_damaged_adapter_weights_are_a_backbone_error(base_model, tmp_path):
+def test_damaged_lora_weights_are_a_backbone_error(base_model, tmp_path):
     backbone = add_lora(DinoBackbone(copy.deepcopy(base_model), kind="dinov3"))
-    save_adapter(backbone, tmp_path / "a")
+    save_lora(backbone, tmp_path / "a")
     weights = tmp_path / "a" / WEIGHTS_FILE
     weights.write_bytes(weights.read_bytes()[:64])
     with pytest.raises(BackboneError, match="truncated or damaged"):
-        load_adapter(DinoBackbone(base_model, kind="dinov3"), tmp_path / "a")
+        load_lora(DinoBackbone(base_model, kind="dinov3"), tmp_path / "a")
 
 
-def test_save_adapter_refuses_a_folder_of_other_files(base_model, tmp_path):
+def test_save_lora_refuses_a_folder_of_other_files(base_model, tmp_path):
     backbone = add_lora(DinoBackbone(base_model, kind="dinov3"))
     (tmp_path / "notes.txt").write_text("mine")
     with pytest.raises(BackboneError, match="not written by save_pretrained"):
-        save_adapter(backbone, tmp_path)
+        save_lora(backbone, tmp_path)
     assert [p.name for p in tmp_path.iterdir()] == ["notes.txt"]
 
 
-def test_an_adapter_of_the_older_layout_is_refused_then_upgraded(base_model, images, tmp_path):
-    """adapter_config.json + adapter.safetensors (geofeat before save_pretrained): a clear error, then upgrade_adapter."""
+def test_a_lora_of_another_layout_is_refused(base_model, tmp_path):
+    """adapter_config.json + adapter.safetensors: an error that names what was found and what is expected."""
     import safetensors.torch
 
     fresh = copy.deepcopy(base_model)
     backbone = add_lora(DinoBackbone(base_model, kind="dinov3", source="tiny"))
     _randomize_lora(backbone)
-    save_adapter(backbone, tmp_path / "new", LoraSettings(training={"lr": 1e-4}), extra_info={"step": 3})
+    save_lora(backbone, tmp_path / "new", LoraSettings(training={"lr": 1e-4}), extra_info={"step": 3})
     envelope = json.loads((tmp_path / "new" / CONFIG_FILE).read_text())
     old = tmp_path / "old"
     old.mkdir()
-    legacy = {"format": "geofeat-lora", "format_version": 1, **envelope["config"], "extra_info": {"step": 3}}
-    (old / "adapter_config.json").write_text(json.dumps(legacy))
+    other = {"format": "geofeat-lora", "format_version": 1, **envelope["config"], "extra_info": {"step": 3}}
+    (old / "adapter_config.json").write_text(json.dumps(other))
     safetensors.torch.save_file(lora_state_dict(backbone), str(old / "adapter.safetensors"))
     (old / "trainer_state.pt").write_bytes(b"kept as it is")
-    with pytest.raises(BackboneError, match=r"older geofeat.*upgrade_adapter\(folder\)"):
-        load_adapter(DinoBackbone(copy.deepcopy(fresh), kind="dinov3"), old)
-    assert upgrade_adapter(old) == old
-    assert sorted(p.name for p in old.iterdir()) == [CONFIG_FILE, "trainer_state.pt", WEIGHTS_FILE]
-    assert (old / "trainer_state.pt").read_bytes() == b"kept as it is"
-    upgraded = json.loads((old / CONFIG_FILE).read_text())
-    assert (upgraded["config"], upgraded["info"]) == (envelope["config"], {"step": 3})
-    restored = load_adapter(DinoBackbone(fresh, kind="dinov3"), old)
-    assert torch.equal(restored.pixel_features(images), backbone.pixel_features(images))
-    with pytest.raises(BackboneError, match="nothing to upgrade"):
-        upgrade_adapter(old)
+    with pytest.raises(
+        BackboneError,
+        match=r"holds a LoRA or trainer checkpoint as adapter_config.json \+ adapter.safetensors, a layout "
+        r"this geofeat does not read; expected a '\w+' as config.json \+ weights.safetensors .* Save it again",
+    ):
+        load_lora(DinoBackbone(fresh, kind="dinov3"), old)
+    assert sorted(p.name for p in old.iterdir()) == ["adapter.safetensors", "adapter_config.json", "trainer_state.pt"]
+
+
+def test_a_lora_folder_of_kind_lora_adapter_is_refused(base_model, tmp_path):
+    """A config.json of kind 'lora_adapter': an error that names it and says to save the LoRA again."""
+    save_lora(add_lora(DinoBackbone(copy.deepcopy(base_model), kind="dinov3")), tmp_path)
+    envelope = json.loads((tmp_path / CONFIG_FILE).read_text())
+    (tmp_path / CONFIG_FILE).write_text(json.dumps({**envelope, "kind": "lora_adapter"}))
+    found = r"holds a LoRA or trainer checkpoint of kind 'lora_adapter', a layout this geofeat does not read; expected a 'lora'"
+    with pytest.raises(BackboneError, match=found + r" .* Save it again"):
+        load_lora(DinoBackbone(base_model, kind="dinov3"), tmp_path)
+    with pytest.raises(BackboneError, match=found):
+        lora_digest(tmp_path)
 
 
 # ----------------------------------------------------------------------------- release checkpoints
@@ -297,7 +304,7 @@ def test_official_conversion_is_exact(base_model, images, tmp_path):
     assert not torch.allclose(ours, base_features, atol=1e-3)
 
 
-def test_an_adapter_saved_in_the_release_layout_loads_back_exactly(base_model, tmp_path):
+def test_a_lora_saved_in_the_release_layout_loads_back_exactly(base_model, tmp_path):
     from geofeat.backbones.lora import official_lora_state_dict, save_official_lora
 
     official = _official_state_dict(seed=3)
@@ -375,9 +382,9 @@ def test_shared_a_is_one_parameter_per_block_and_survives_save_and_load(base_mod
     backbone.patch_features(images).square().mean().backward()
     torch.optim.Adam(trainable, lr=1e-2).step()  # a step keeps the three projections on one A
     expected = backbone.pixel_features(images)
-    save_adapter(backbone, tmp_path / "adapter")
-    assert json.loads((tmp_path / "adapter" / CONFIG_FILE).read_text())["config"]["shared_a"] is True
-    restored = load_adapter(DinoBackbone(fresh, kind="dinov3"), tmp_path / "adapter")
+    save_lora(backbone, tmp_path / "lora")
+    assert json.loads((tmp_path / "lora" / CONFIG_FILE).read_text())["config"]["shared_a"] is True
+    restored = load_lora(DinoBackbone(fresh, kind="dinov3"), tmp_path / "lora")
     assert torch.equal(restored.pixel_features(images), expected)
     named = dict(restored.model.named_parameters(remove_duplicate=False))
     assert (
@@ -386,16 +393,16 @@ def test_shared_a_is_one_parameter_per_block_and_survives_save_and_load(base_mod
     )
 
 
-def test_separate_a_tensors_do_not_load_into_a_shared_adapter(base_model, tmp_path):
+def test_separate_a_tensors_do_not_load_into_a_shared_lora(base_model, tmp_path):
     backbone = add_lora(DinoBackbone(copy.deepcopy(base_model), kind="dinov3"))
     _randomize_lora(backbone)  # three different A per block
-    save_adapter(backbone, tmp_path / "separate", LoraSettings())
+    save_lora(backbone, tmp_path / "separate", LoraSettings())
     config_path = tmp_path / "separate" / CONFIG_FILE
     envelope = json.loads(config_path.read_text())
     envelope["config"]["shared_a"] = True
     config_path.write_text(json.dumps(envelope))
     with pytest.raises(BackboneError, match="different lora_A tensors"):
-        load_adapter(DinoBackbone(base_model, kind="dinov3"), tmp_path / "separate")
+        load_lora(DinoBackbone(base_model, kind="dinov3"), tmp_path / "separate")
 
 
 def test_release_checkpoints_load_with_a_shared_a(base_model, images):

@@ -77,7 +77,7 @@ def test_a_cuts_list_keeps_the_listed_shapes(tmp_path):
 
 
 def run_paper(tmp_path, *extra):
-    command = [sys.executable, str(REPO / "benchmarks" / "paper.py"), "--random-weights", str(tmp_path / "weights")]
+    command = [sys.executable, "-m", "benchmarks.tables.paper", "--random-weights", str(tmp_path / "weights")]
     command += ["--backbone", "tiny", "--views", "4", "--image-size", "64", "--device", "cpu", "--no-progress", *extra]
     done = subprocess.run(command, capture_output=True, text=True, cwd=REPO)
     assert done.returncode == 0, done.stderr[-3000:]
@@ -115,8 +115,19 @@ def test_a_saved_head_adds_its_rows_and_ulrssm_its_adapted_row(tmp_path):
     head.fit([pair])
     head.save(tmp_path / "ulrssm")
     out = tmp_path / "run"
-    run_paper(tmp_path, "--data", f"shrec16={root}", "--benchmarks", "shrec16_cuts", "--head", str(tmp_path / "ulrssm"),
-              "--tta-steps", "1", "--out", str(out))  # fmt: skip
+    run_paper(
+        tmp_path,
+        "--data",
+        f"shrec16={root}",
+        "--benchmarks",
+        "shrec16_cuts",
+        "--head",
+        str(tmp_path / "ulrssm"),
+        "--tta-steps",
+        "1",
+        "--out",
+        str(out),
+    )
     rows = {r["row"]: r for r in json.loads((out / "paper.json").read_text())["rows"]}
     assert {"shrec16_cuts/ulrssm/wks", "shrec16_cuts/ulrssm_tta/wks"} <= set(rows)
     assert rows["shrec16_cuts/ulrssm/wks"]["n_points"] == rows["shrec16_cuts/nn/dinov3"]["n_points"]

@@ -1,4 +1,3 @@
-import importlib.util
 import json
 import subprocess
 import sys
@@ -7,7 +6,12 @@ from pathlib import Path
 import pytest
 from shapes import REPO
 
+from benchmarks.run import RUNS
+from geofeat.apps import benchmark
+from geofeat.errors import DescriptorError
+
 RUN = REPO / "benchmarks" / "run.py"
+SUMMARIZE = [sys.executable, "-m", "benchmarks.tables.summarize"]
 
 
 def run(*args):
@@ -16,18 +20,6 @@ def run(*args):
 
 MAIN_LABELS = ["nn + WKS", "nn + HKS", "fmap + WKS", "fmap + HKS", "random", "mirrored_truth"]
 RESULT_NAMES = {"results.json", "results.md", "pck.png", "pairs.png"}
-
-
-def load_run_module():
-    """benchmarks/run.py as a module (its folder on sys.path for its ``common`` import)."""
-    spec = importlib.util.spec_from_file_location("benchmarks_run", RUN)
-    module = importlib.util.module_from_spec(spec)
-    sys.path.insert(0, str(RUN.parent))
-    try:
-        spec.loader.exec_module(module)
-    finally:
-        sys.path.remove(str(RUN.parent))
-    return module
 
 
 def result_files() -> dict:
@@ -73,14 +65,14 @@ def test_main_job_compares_the_pipelines_with_the_references_on_full_and_partial
 
 
 def test_runs_write_into_the_ignored_runs_folder_by_default():
-    module = load_run_module()
-    assert module.output_folder(module.parse_args([])) == REPO / "runs" / "main"
-    assert module.output_folder(module.parse_args(["--limit", "3", "--workers", "1"])) == REPO / "runs" / "main"
-    one = module.parse_args(["--pipeline", "fmap"])
+    assert RUNS == REPO / "runs"  # what benchmarks/run.py gives the command
+    assert benchmark.output_folder(benchmark.parse_args([]), RUNS) == REPO / "runs" / "main"
+    assert benchmark.output_folder(benchmark.parse_args(["--limit", "3", "--workers", "1"]), RUNS) == REPO / "runs" / "main"
+    one = benchmark.parse_args(["--pipeline", "fmap"])
     assert not one.main_job and (one.dataset, one.descriptor) == ("synthetic_cuts", "wks")
-    assert module.output_folder(one) == REPO / "runs" / "fmap_synthetic_cuts_wks"
-    assert module.parse_args(["--param", "n_descr=16"]).main_job is False
-    assert module.output_folder(module.parse_args(["--out", "elsewhere"])) == Path("elsewhere")
+    assert benchmark.output_folder(one, RUNS) == REPO / "runs" / "fmap_synthetic_cuts_wks"
+    assert benchmark.parse_args(["--param", "n_descr=16"]).main_job is False
+    assert benchmark.output_folder(benchmark.parse_args(["--out", "elsewhere"]), RUNS) == Path("elsewhere")
     ignored = subprocess.run(["git", "check-ignore", "-q", "runs/main/results.json"], cwd=REPO)
     assert ignored.returncode == 0, "runs/ must be ignored by git"
 
@@ -140,25 +132,23 @@ def test_descriptor_parameters_reach_the_descriptor(tmp_path):
 
 
 def test_key_value_options_refuse_a_key_given_twice(tmp_path):
-    module = load_run_module()
-    assert module.descriptor_params(["n_descr=16", "laplacian=cotan"]) == {"n_descr": 16, "laplacian": "cotan"}
-    with pytest.raises(module.geofeat.DescriptorError, match=r"--head-param lr is given twice"):
-        module.descriptor_params(["lr=0.1", "lr=0.2"], what="--head-param")
+    assert benchmark.descriptor_params(["n_descr=16", "laplacian=cotan"]) == {"n_descr": 16, "laplacian": "cotan"}
+    with pytest.raises(DescriptorError, match=r"--head-param lr is given twice"):
+        benchmark.descriptor_params(["lr=0.1", "lr=0.2"], what="--head-param")
     result = run("--limit", "1", "--param", "n_descr=16", "--param", "n_descr=8", "--out", str(tmp_path))
     assert result.returncode == 2 and "--param n_descr is given twice (16 and '8')" in result.stderr
 
 
 def test_results_json_is_written_atomically(tmp_path, monkeypatch, isolated_cache):
-    module = load_run_module()
     written = []
-    real = module.atomic_write
+    real = benchmark.atomic_write
 
     def recording(path, write, **kwargs):
         written.append(Path(path))
         return real(path, write, **kwargs)
 
-    monkeypatch.setattr(module, "atomic_write", recording)
-    assert module.main(["--pipeline", "random", "--limit", "1", "--no-progress", "--out", str(tmp_path)]) == 0
+    monkeypatch.setattr(benchmark, "atomic_write", recording)
+    assert benchmark.main(["--pipeline", "random", "--limit", "1", "--no-progress", "--out", str(tmp_path)]) == 0
     assert tmp_path / "results.json" in written
     assert json.loads((tmp_path / "results.json").read_text())["pipeline"] == "random"
     assert sorted(p.name for p in tmp_path.iterdir() if p.name.startswith(".")) == []  # no temporary file left
@@ -205,9 +195,8 @@ def test_summary_tells_the_test_time_adaptation_apart(tmp_path):
     for name, row in runs.items():
         paths.append(tmp_path / f"{name}.json")
         paths[-1].write_text(json.dumps({**row, **curve}))
-    summary = REPO / "benchmarks" / "summarize.py"
     result = subprocess.run(
-        [sys.executable, str(summary), *map(str, paths), "--out", str(tmp_path / "summary")], capture_output=True, text=True
+        [*SUMMARIZE, *map(str, paths), "--out", str(tmp_path / "summary")], capture_output=True, text=True, cwd=REPO
     )
     assert result.returncode == 0, result.stderr
     lines = (tmp_path / "summary.md").read_text().splitlines()
@@ -217,18 +206,22 @@ def test_summary_tells_the_test_time_adaptation_apart(tmp_path):
 
 def test_summary_skips_the_results_of_other_scripts_and_refuses_when_none_is_a_run(tmp_path):
     run_record = {
-        "pipeline": "nn", "dataset": "faust_r", "descriptor": "wks", "date": "2026-11-24", "n_pairs": 1,
-        "geodesic_error": 25.0, "pck_thresholds": [0.0, 0.25], "pck": [0.2, 0.8], "head": None,
-    }  # fmt: skip
+        "pipeline": "nn",
+        "dataset": "faust_r",
+        "descriptor": "wks",
+        "date": "2026-11-24",
+        "n_pairs": 1,
+        "geodesic_error": 25.0,
+        "pck_thresholds": [0.0, 0.25],
+        "pck": [0.2, 0.8],
+        "head": None,
+    }
     (tmp_path / "run.json").write_text(json.dumps(run_record))
-    (tmp_path / "speed.json").write_text(json.dumps({"machine": "x", "rows": []}))  # e.g. speed_extract's results.json
-    summary = REPO / "benchmarks" / "summarize.py"
+    (tmp_path / "speed.json").write_text(json.dumps({"machine": "x", "rows": []}))  # e.g. speed/extract.py's results.json
 
     def summarize(*names):
         paths = [str(tmp_path / name) for name in names]
-        return subprocess.run(
-            [sys.executable, str(summary), *paths, "--out", str(tmp_path / "summary")], capture_output=True, text=True
-        )
+        return subprocess.run([*SUMMARIZE, *paths, "--out", str(tmp_path / "summary")], capture_output=True, text=True, cwd=REPO)
 
     result = summarize("speed.json", "run.json")
     assert result.returncode == 0, result.stderr

@@ -1,4 +1,4 @@
-"""The table scripts of the docs: release_table.py and summarize.py's machine line, on small made-up records."""
+"""The table scripts of the docs: tables/release.py and tables/summarize.py's machine line, on small made-up records."""
 
 import json
 import subprocess
@@ -6,8 +6,8 @@ import sys
 
 from shapes import REPO
 
-RELEASE_TABLE = REPO / "benchmarks" / "release_table.py"
-SUMMARIZE = REPO / "benchmarks" / "summarize.py"
+RELEASE_TABLE = [sys.executable, "-m", "benchmarks.tables.release"]
+SUMMARIZE = [sys.executable, "-m", "benchmarks.tables.summarize"]
 
 
 def _run_record(checkpoint, dataset, errors, tta=0, protocol="template", n_evaluated=None, pipeline="ulrssm"):
@@ -61,9 +61,7 @@ def _results_tree(tmp_path, reference_pairs=3):
 
 
 def _release_table(tmp_path):
-    return subprocess.run(
-        [sys.executable, str(RELEASE_TABLE), "--results", str(tmp_path)], capture_output=True, text=True, cwd=REPO
-    )
+    return subprocess.run([*RELEASE_TABLE, "--results", str(tmp_path)], capture_output=True, text=True, cwd=REPO)
 
 
 def test_release_summary_puts_the_reference_beside_geofeat(tmp_path):
@@ -106,15 +104,16 @@ def test_summarize_states_the_machines_the_runs_recorded(tmp_path):
     (tmp_path / "a.json").write_text(json.dumps({**base, **curve, "pipeline": "nn", "machine": "box A"}))
     (tmp_path / "b.json").write_text(json.dumps({**base, **curve, "pipeline": "fmap"}))
     result = subprocess.run(
-        [sys.executable, str(SUMMARIZE), str(tmp_path / "a.json"), str(tmp_path / "b.json"), "--out", str(tmp_path / "s")],
+        [*SUMMARIZE, str(tmp_path / "a.json"), str(tmp_path / "b.json"), "--out", str(tmp_path / "s")],
         capture_output=True,
         text=True,
+        cwd=REPO,
     )
     assert result.returncode == 0, result.stderr
     assert "Machine: box A (1 of the 2 runs recorded none)." in (tmp_path / "s.md").read_text()
 
 
-REAL_FILES = REPO / "benchmarks" / "real_files.py"
+REAL_FILES = [sys.executable, "-m", "benchmarks.real_files"]
 
 
 def test_real_files_tables_list_each_published_source_once_under_its_rows(tmp_path):
@@ -143,9 +142,12 @@ def test_real_files_tables_list_each_published_source_once_under_its_rows(tmp_pa
     (tmp_path / "published_figures.json").write_text(json.dumps(published))
 
     done = subprocess.run(
-        [sys.executable, str(REAL_FILES), "--tables-only", "--out", str(tmp_path)],
-        capture_output=True, text=True, check=False,
-    )  # fmt: skip
+        [*REAL_FILES, "--tables-only", "--out", str(tmp_path)],
+        capture_output=True,
+        text=True,
+        check=False,
+        cwd=REPO,
+    )
 
     assert done.returncode == 0, done.stderr
     text = (tmp_path / "psmal.md").read_text()

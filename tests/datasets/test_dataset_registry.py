@@ -1,4 +1,4 @@
-"""Dataset registry: names, presets, options, errors."""
+"""Dataset registry: names, fixed options, options, errors."""
 
 import pytest
 

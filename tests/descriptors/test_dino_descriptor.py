@@ -108,8 +108,15 @@ def test_bad_parameters():
         geofeat.compute(bumpy(0, 1), "dinov2", views=0)
 
 
-def test_presets_select_the_recipes_and_keep_explicit_parameters(tiny_dinov3_folder, isolated_cache):
-    """``preset="reference"`` is the reference recipe end to end; explicit parameters override the preset's."""
+def test_compute_prepared_refuses_what_prepare_did_not_make():
+    from geofeat.descriptors.dino import DINOv2
+
+    with pytest.raises(geofeat.DescriptorError, match="prepare"):
+        DINOv2().compute_prepared(bumpy(0, 1), "views")
+
+
+def test_recipes_apply_end_to_end_and_keep_explicit_parameters(tiny_dinov3_folder, isolated_cache):
+    """``recipe="reference"`` is the reference recipe end to end; explicit parameters override the recipe's."""
     from geofeat.backbones import load_backbone
     from geofeat.errors import DescriptorError
     from geofeat.multiview.pipeline import RECIPES
@@ -117,7 +124,7 @@ def test_presets_select_the_recipes_and_keep_explicit_parameters(tiny_dinov3_fol
     mesh = bumpy(1, 2)
     # on the CPU, as the backbone compared with: device "auto" would take a GPU where there is one
     params = {"weights": str(tiny_dinov3_folder), "views": 4, "image_size": 64, "batch_size": 2, "device": "cpu"}
-    reference = geofeat.compute(mesh, "dinov3", preset="reference", **params)
+    reference = geofeat.compute(mesh, "dinov3", recipe="reference", **params)
     backbone = load_backbone(str(tiny_dinov3_folder), kind="dinov3", device="cpu")
     cameras = make_cameras(mesh, 4, image_size=64, device="cpu")
     with torch.no_grad():
@@ -125,13 +132,13 @@ def test_presets_select_the_recipes_and_keep_explicit_parameters(tiny_dinov3_fol
     np.testing.assert_array_equal(reference, expected.numpy())
     default = geofeat.compute(mesh, "dinov3", **params)
     assert not np.allclose(default, reference, atol=1e-3)
-    overridden = geofeat.compute(mesh, "dinov3", preset="reference", backproject="ball", cache=False, **params)
+    overridden = geofeat.compute(mesh, "dinov3", recipe="reference", backproject="ball", cache=False, **params)
     with torch.no_grad():
         expected, _ = multiview_features(mesh, cameras, backbone, recipe=RECIPES["reference"], backproject="ball")
     np.testing.assert_array_equal(overridden, expected.numpy())
-    assert len(geofeat.FeatureCache().entries()) == 2  # the preset is part of the cache key
-    with pytest.raises(DescriptorError, match="preset"):
-        geofeat.compute(mesh, "dinov3", preset="dsmk", **params)  # DeepShapeMatchingKit's recipe is for DINOv2
+    assert len(geofeat.FeatureCache().entries()) == 2  # the recipe is part of the cache key
+    with pytest.raises(DescriptorError, match="recipe"):
+        geofeat.compute(mesh, "dinov3", recipe="dsmk", **params)  # DeepShapeMatchingKit's recipe is for DINOv2
 
 
 def test_an_instance_loads_its_backbone_once_for_every_mesh(tiny_dinov3_folder, monkeypatch):

@@ -1,4 +1,4 @@
-"""The geolora descriptor: a DINOv3 folder plus an adapter folder or a release checkpoint."""
+"""The geolora descriptor: a DINOv3 folder plus a LoRA folder or a release checkpoint."""
 
 import numpy as np
 import pytest
@@ -7,7 +7,7 @@ from shapes import bumpy
 from tiny_models import tiny_dinov3
 
 import geofeat
-from geofeat.backbones import adapter_digest, add_lora, load_backbone, save_adapter
+from geofeat.backbones import add_lora, load_backbone, lora_digest, save_lora
 from geofeat.descriptors.registry import make_descriptor
 
 PARAMS = {"views": 4, "image_size": 64, "camera_layout": "uniform", "device": "cpu"}
@@ -15,28 +15,28 @@ PARAMS = {"views": 4, "image_size": 64, "camera_layout": "uniform", "device": "c
 
 @pytest.fixture(scope="module")
 def folders(tmp_path_factory):
-    """A tiny DINOv3 folder, a fresh adapter (B = 0) and a trained-looking one (random B)."""
+    """A tiny DINOv3 folder, a fresh LoRA (B = 0) and a trained-looking one (random B)."""
     root = tmp_path_factory.mktemp("geolora")
     tiny_dinov3().save_pretrained(root / "backbone")
     backbone = add_lora(load_backbone(root / "backbone", kind="dinov3", device="cpu"))
-    save_adapter(backbone, root / "fresh")
+    save_lora(backbone, root / "fresh")
     torch.manual_seed(5)
     with torch.no_grad():
         for name, param in backbone.model.named_parameters():
             if "lora_B" in name:
                 param.copy_(torch.randn_like(param) * 0.5)
-    save_adapter(backbone, root / "trained")
+    save_lora(backbone, root / "trained")
     return root
 
 
-def test_fresh_adapter_gives_the_raw_backbone_features(folders):
+def test_fresh_lora_gives_the_raw_backbone_features(folders):
     mesh = bumpy(0, 2)
     raw = geofeat.compute(mesh, "dinov3", weights=str(folders / "backbone"), **PARAMS)
     fresh = geofeat.compute(mesh, "geolora", checkpoint=str(folders / "fresh"), weights=str(folders / "backbone"), **PARAMS)
     np.testing.assert_allclose(fresh, raw, atol=1e-6)
 
 
-def test_trained_adapter_changes_features_and_cache_key(folders):
+def test_trained_lora_changes_features_and_cache_key(folders):
     mesh = bumpy(0, 2)
     common = {"weights": str(folders / "backbone"), **PARAMS}
     fresh = geofeat.compute(mesh, "geolora", checkpoint=str(folders / "fresh"), **common)
@@ -45,12 +45,12 @@ def test_trained_adapter_changes_features_and_cache_key(folders):
     assert np.abs(trained - fresh).max() > 1e-3  # fresh vs raw agree to 1e-6 (test above)
     assert len(geofeat.FeatureCache().entries()) == 2
     descriptor = make_descriptor("geolora", checkpoint=str(folders / "trained"), **common)
-    assert descriptor.weights_digest() == adapter_digest(folders / "trained")
+    assert descriptor.weights_digest() == lora_digest(folders / "trained")
     assert descriptor.weights_digest() != make_descriptor("geolora", checkpoint=str(folders / "fresh"), **common).weights_digest()
 
 
-def test_release_checkpoint_is_loaded_like_its_converted_adapter(folders, tmp_path):
-    """checkpoint=<release .pth> gives the features of the same adapter saved in our format."""
+def test_release_checkpoint_is_loaded_like_its_converted_lora(folders, tmp_path):
+    """checkpoint=<release .pth> gives the features of the same LoRA saved in our format."""
     torch.manual_seed(9)
     release = {}
     for block in range(2):  # tiny_dinov3: 2 blocks of width 32; rank 4
@@ -60,7 +60,7 @@ def test_release_checkpoint_is_loaded_like_its_converted_adapter(folders, tmp_pa
     from geofeat.backbones import load_official_lora
 
     converted = load_official_lora(load_backbone(folders / "backbone", kind="dinov3", device="cpu"), tmp_path / "release.pth")
-    save_adapter(converted, tmp_path / "converted")
+    save_lora(converted, tmp_path / "converted")
     mesh = bumpy(1, 2)
     common = {"weights": str(folders / "backbone"), "cache": False, **PARAMS}
     from_release = geofeat.compute(mesh, "geolora", checkpoint=str(tmp_path / "release.pth"), **common)

@@ -38,9 +38,16 @@ def _randomize_lora_b(backbone: DinoBackbone, seed: int = 5) -> None:
 
 def _trainer(tmp_path, backbone_folder, backproject: str) -> GeoLoraTrainer:
     config = TrainConfig(
-        data="unused", out=str(tmp_path / "run"), image_size=IMAGE_SIZE, backproject=backproject, camera_layout="official",
-        geodesic_cache=str(tmp_path / "geodesics"), progress=False, device="cpu", validate_every=0,
-    )  # fmt: skip
+        data="unused",
+        out=str(tmp_path / "run"),
+        image_size=IMAGE_SIZE,
+        backproject=backproject,
+        camera_layout="official",
+        geodesic_cache=str(tmp_path / "geodesics"),
+        progress=False,
+        device="cpu",
+        validate_every=0,
+    )
     backbone = load_backbone(backbone_folder, kind="dinov3", device="cpu")
     trainer = GeoLoraTrainer(config, backbone=backbone, shapes=[bumpy(0, 2)])
     trainer._start_or_resume()  # adds LoRA (B = 0)
@@ -50,30 +57,47 @@ def _trainer(tmp_path, backbone_folder, backproject: str) -> GeoLoraTrainer:
 
 @pytest.mark.parametrize("backproject, fill", [("ball", "nearest"), ("ball", "zero"), ("face", "nearest")])
 def test_trainer_and_geolora_descriptor_give_the_same_features(tmp_path, backbone_folder, backproject, fill):
-    """Same shape, views and adapter: the trainer's features (with and without autograd) equal the descriptor's."""
+    """Same shape, views and LoRA: the trainer's features (with and without autograd) equal the descriptor's."""
     trainer = _trainer(tmp_path, backbone_folder, backproject)
     checkpoint = trainer.save_checkpoint()
     mesh = bumpy(1, 3)
     views = 9  # the descriptor encodes them in batches of 4, 4 and 1; the trainer all at once
-    training, seen = trainer.shape_features(mesh, views, fill=fill)
+    training, seen = trainer.mesh_features(mesh, views, fill=fill)
     assert training.requires_grad and training.grad_fn is not None
     with torch.no_grad():
-        validation, _ = trainer.shape_features(mesh, views, fill=fill)
+        validation, _ = trainer.mesh_features(mesh, views, fill=fill)
     assert not validation.requires_grad
     served = geofeat.compute(
-        mesh, "geolora", checkpoint=str(checkpoint), weights=str(backbone_folder), views=views, image_size=IMAGE_SIZE,
-        camera_layout="official", backproject=backproject, fill=fill, batch_size=4, device="cpu", cache=False,
-    )  # fmt: skip
+        mesh,
+        "geolora",
+        checkpoint=str(checkpoint),
+        weights=str(backbone_folder),
+        views=views,
+        image_size=IMAGE_SIZE,
+        camera_layout="official",
+        backproject=backproject,
+        fill=fill,
+        batch_size=4,
+        device="cpu",
+        cache=False,
+    )
     assert served.shape == tuple(training.shape) and served.dtype == np.float32
     assert 0.1 < float(seen.float().mean()) <= 1.0
     assert backproject == "face" or not bool(seen.all())  # ball: some vertices unseen, the fill mode matters
     np.testing.assert_allclose(training.detach().numpy(), served, rtol=0, atol=1e-5)
     np.testing.assert_allclose(validation.numpy(), served, rtol=0, atol=1e-5)
     raw = geofeat.compute(
-        mesh, "dinov3", weights=str(backbone_folder), views=views, image_size=IMAGE_SIZE, backproject=backproject,
-        fill=fill, device="cpu", cache=False,
-    )  # fmt: skip
-    assert np.abs(raw - served).max() > 1e-3  # the adapter is in use (the agreement above is 1e-5)
+        mesh,
+        "dinov3",
+        weights=str(backbone_folder),
+        views=views,
+        image_size=IMAGE_SIZE,
+        backproject=backproject,
+        fill=fill,
+        device="cpu",
+        cache=False,
+    )
+    assert np.abs(raw - served).max() > 1e-3  # the LoRA is in use (the agreement above is 1e-5)
 
 
 def test_gradients_reach_the_lora_parameters_only_when_asked(tmp_path, backbone_folder):
@@ -221,8 +245,8 @@ def test_amp_is_keyed_as_it_resolves_and_batch_size_is_not_keyed(backbone_folder
     assert make("dinov3", weights=str(backbone_folder), device="cpu", batch_size=3).params_json() == plain.params_json()
     forced = make("dinov3", weights=str(backbone_folder), device="cpu", amp="on")
     assert forced.get_params()["amp"] == "on" and forced.params_json() != plain.params_json()
-    reference = make("dinov3", weights=str(backbone_folder), preset="reference", amp="auto")
-    assert reference.get_params()["amp"] == "off"  # a preset that reproduces other code keeps float32
+    reference = make("dinov3", weights=str(backbone_folder), recipe="reference", amp="auto")
+    assert reference.get_params()["amp"] == "off"  # a recipe that reproduces other code keeps float32
     with pytest.raises(geofeat.GeofeatError, match="amp"):
         make("dinov3", weights=str(backbone_folder), amp="bf16")
 

@@ -1,7 +1,7 @@
 """The ``reference`` recipe against recorded outputs of the official GeoLoRA code.
 
 ``tests/data/geolora_reference.npz`` and ``geolora_reference_lora.pth`` were written by
-``benchmarks/parity_geolora.py --record tests/data`` (see ``tests/data/README.md``): the official
+``python -m benchmarks.parity.geolora --record tests/data`` (see ``tests/data/README.md``): the official
 code (vikiehm/geo-lora with pytorch3d, and the official DINOv3 model class at test size) run on
 FAUST_r ``tr_reg_080``. Here geofeat alone, with no pytorch3d and no reference code, loads the
 same weights through its official-layout converters and must give the same stages.
@@ -29,7 +29,7 @@ from geofeat.render.shading import render_phong
 
 DATA = Path(__file__).resolve().parent.parent / "data"
 RECIPE = RECIPES["reference"]
-SIZE, VIEWS, EVERY = 64, 4, 10  # benchmarks/parity_geolora.py RECORD_SIZE, RECORD_VIEWS, RECORD_EVERY
+SIZE, VIEWS, EVERY = 64, 4, 10  # benchmarks/parity/geolora.py RECORD_SIZE, RECORD_VIEWS, RECORD_EVERY
 
 
 @pytest.fixture(scope="module")
@@ -75,7 +75,7 @@ def test_official_lora_file_loads_exactly(recorded, official_pth):
     with torch.no_grad():
         tokens = _backbone(official_pth, lora=True).patch_features(image)
     expected = recorded["tokens/lora"]
-    assert np.abs(expected - recorded["tokens/plain"]).max() > 1e-2  # the adapter changes the tokens
+    assert np.abs(expected - recorded["tokens/plain"]).max() > 1e-2  # the LoRA changes the tokens
     np.testing.assert_allclose(tokens.reshape(expected.shape).numpy(), expected, atol=2e-5)
 
 
@@ -135,11 +135,7 @@ def test_reference_recipe_stages_equal_the_official_code(recorded, official_pth,
 
 def test_reference_training_step_equals_the_official_step(recorded, official_pth, mesh):
     """One GeoLoRA step on the recorded pair: the trainer's loss and LoRA gradients equal the official ``train.py``'s."""
-    import sys
-
-    sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))
-    from parity_geolora import training_pair
-
+    from benchmarks.parity.geolora import training_pair
     from geofeat.geometry.geodesic import geodesic_matrix
     from geofeat.train.config import TrainConfig
     from geofeat.train.trainer import GeoLoraTrainer
@@ -151,15 +147,22 @@ def test_reference_training_step_equals_the_official_step(recorded, official_pth
     np.testing.assert_allclose(geodesics[0].numpy(), recorded["step/geodesics_row0"], rtol=1e-5, atol=1e-6)
     with tempfile.TemporaryDirectory() as tmp:
         config = TrainConfig(
-            data="unused", out=tmp, preset="reference", views_full=views_full, views_partial=views_partial,
-            image_size=512, device="cpu", amp="off", progress=False,
-        )  # fmt: skip
+            data="unused",
+            out=tmp,
+            recipe="reference",
+            views_full=views_full,
+            views_partial=views_partial,
+            image_size=512,
+            device="cpu",
+            amp="off",
+            progress=False,
+        )
         trainer = GeoLoraTrainer(config, backbone=backbone, shapes=[full])
         for name, param in backbone.model.named_parameters():
             param.requires_grad_("lora_" in name)
         with torch.enable_grad():
-            feat_full, seen_full = trainer.shape_features(full, views_full)
-            feat_partial, seen_partial = trainer.shape_features(partial, views_partial)
+            feat_full, seen_full = trainer.mesh_features(full, views_full)
+            feat_partial, seen_partial = trainer.mesh_features(partial, views_partial)
             loss = trainer._loss(feat_partial, feat_full, gt, geodesics, seen_partial, seen_full)
             loss.backward()
     np.testing.assert_allclose(float(loss.detach()), float(recorded["step/loss"]), rtol=1e-5)

@@ -30,6 +30,7 @@ import geofeat.train.checkpoints as checkpoints_module
 from geofeat.apps.cli import main
 from geofeat.runtime import distributed
 from geofeat.storage.pretrained import WEIGHTS_FILE
+from geofeat.train.run_log import RunLog
 from geofeat.train.trainer import GeoLoraTrainer
 
 log = logging.getLogger(__name__)
@@ -41,10 +42,32 @@ _VALIDATION = ["--val-dataset", "synthetic_cuts", "--val-pairs", "1"]
 
 def _argv(root: Path, out: str, steps: int, *extra: str) -> list[str]:
     return [
-        "train-geolora", "--data", str(root / "shapes"), "--weights", str(root / "backbone"), "--out", str(root / out),
-        "--steps", str(steps), "--image-size", "32", "--backproject", "face", "--lr", "0.001", "--checkpoint-every", "1",
-        "--validate-every", "0", "--geodesic-cache", str(root / "geodesics"), "--device", "cpu", "--no-progress", *extra,
-    ]  # fmt: skip
+        "train-geolora",
+        "--data",
+        str(root / "shapes"),
+        "--weights",
+        str(root / "backbone"),
+        "--out",
+        str(root / out),
+        "--steps",
+        str(steps),
+        "--image-size",
+        "32",
+        "--backproject",
+        "face",
+        "--lr",
+        "0.001",
+        "--checkpoint-every",
+        "1",
+        "--validate-every",
+        "0",
+        "--geodesic-cache",
+        str(root / "geodesics"),
+        "--device",
+        "cpu",
+        "--no-progress",
+        *extra,
+    ]
 
 
 def _rank_main(rank: int, world: int, port: int, root: Path) -> None:
@@ -60,10 +83,10 @@ def _rank_main(rank: int, world: int, port: int, root: Path) -> None:
 
         return wrapper
 
-    checkpoints_module.save_adapter = counted("save_adapter", checkpoints_module.save_adapter)  # writes a checkpoint's adapter
+    checkpoints_module.save_lora = counted("save_lora", checkpoints_module.save_lora)  # writes a checkpoint's LoRA
     checkpoints_module.truncate_log = counted("_truncate_log", checkpoints_module.truncate_log)
-    for method in ("validate", "_log_row", "_validation_row"):
-        setattr(GeoLoraTrainer, method, counted(method, getattr(GeoLoraTrainer, method)))
+    for owner, method in ((GeoLoraTrainer, "validate"), (RunLog, "step_row"), (RunLog, "validation_row")):
+        setattr(owner, method, counted(method, getattr(owner, method)))
     record = {}
     with distributed.process_group("cpu"):  # one group for both commands (each leaves a started group running)
         workers = ("--workers", "2")
@@ -97,7 +120,7 @@ def runs(tmp_path_factory):
     return root, [json.loads((root / f"rank{r}.json").read_text()) for r in (0, 1)]
 
 
-def _adapter(run: Path, step: int) -> dict[str, torch.Tensor]:
+def _lora(run: Path, step: int) -> dict[str, torch.Tensor]:
     return safetensors.torch.load_file(str(run / "checkpoints" / f"step_{step:07d}" / WEIGHTS_FILE))
 
 
@@ -120,32 +143,35 @@ def test_two_ranks_with_one_shape_each_train_as_one_process_with_both(runs, caps
     root, ranks = runs
     assert [r["new"]["code"] for r in ranks] == [0, 0]
     assert main(_argv(root, "one", 2, "--shapes-per-rank", "2")) == 0
-    ddp, one = _adapter(root / "ddp", 2), _adapter(root / "one", 2)
+    ddp, one = _lora(root / "ddp", 2), _lora(root / "one", 2)
     difference = _max_difference(ddp, one)
     log.info("max |LoRA weight difference|, 2 ranks x 1 shape vs 1 process x 2 shapes, after 2 steps: %.3g", difference)
     assert difference < 1e-5, difference
-    assert _max_difference(one, _adapter(root / "one", 0)) > 1e-3  # the weights moved
+    assert _max_difference(one, _lora(root / "one", 0)) > 1e-3  # the weights moved
     losses = [[float(r["loss"]) for r in _loss_rows(root / run)] for run in ("ddp", "one")]
     assert len(losses[0]) == 2 and losses[0] == pytest.approx(losses[1], rel=1e-5)
     assert [int(r["n_partials"]) for r in _loss_rows(root / "ddp")] == [4, 4]  # 2 ranks x 2 partial shapes
     assert _state(root / "ddp", 2) == (2, 4, 2)
     # the same 4 samples, one a step, train otherwise: the comparison can fail
     assert main(_argv(root, "steps", 4)) == 0
-    assert _max_difference(ddp, _adapter(root / "steps", 4)) > 1e-4
+    assert _max_difference(ddp, _lora(root / "steps", 4)) > 1e-4
 
 
 def test_only_rank_zero_writes(runs):
     root, ranks = runs
     # rank 0: checkpoints of steps 0, 1, 2; validation at the start and the end; 2 log rows; the log check on start
-    assert ranks[0]["new"]["calls"] == {"save_adapter": 3, "validate": 2, "_validation_row": 2, "_log_row": 2, "_truncate_log": 1}
+    assert ranks[0]["new"]["calls"] == {"save_lora": 3, "validate": 2, "validation_row": 2, "step_row": 2, "_truncate_log": 1}
     assert ranks[1]["new"]["calls"] == {}
-    assert ranks[0]["new"]["stdout"] == f"adapter: {root / 'ddp' / 'checkpoints' / 'step_0000002'}\n"
+    assert ranks[0]["new"]["stdout"] == f"lora: {root / 'ddp' / 'checkpoints' / 'step_0000002'}\n"
     assert ranks[1]["new"]["stdout"] == ""
     with open(root / "ddp" / "log.csv", newline="") as handle:
         rows = list(csv.DictReader(handle))
     assert [(r["step"], bool(r["loss"]), bool(r["val_geodesic_error"])) for r in rows] == [
-        ("0", False, True), ("1", True, False), ("2", True, False), ("2", False, True),
-    ]  # fmt: skip
+        ("0", False, True),
+        ("1", True, False),
+        ("2", True, False),
+        ("2", False, True),
+    ]
 
 
 def test_one_process_resumes_a_two_rank_run(runs):
@@ -159,7 +185,7 @@ def test_one_process_resumes_a_two_rank_run(runs):
 def test_two_ranks_resume_a_one_process_run(runs):
     root, ranks = runs
     assert [r["grow"]["code"] for r in ranks] == [0, 0]
-    assert ranks[0]["grow"]["calls"]["save_adapter"] == 2 and "save_adapter" not in ranks[1]["grow"]["calls"]
+    assert ranks[0]["grow"]["calls"]["save_lora"] == 2 and "save_lora" not in ranks[1]["grow"]["calls"]
     assert [int(r["step"]) for r in _loss_rows(root / "grow")] == [1, 2, 3]
     assert [int(r["n_partials"]) for r in _loss_rows(root / "grow")] == [2, 4, 4]  # sample 0 | 1, 2 | 3, 4
     assert [_state(root / "grow", s) for s in (1, 2, 3)] == [(1, 1, 1), (2, 3, 2), (3, 5, 2)]

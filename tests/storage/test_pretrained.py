@@ -11,7 +11,7 @@ import torch
 from geofeat._version import __version__
 from geofeat.errors import HeadError, MissingDependencyError, StoreError
 from geofeat.storage import files
-from geofeat.storage.pretrained import CONFIG_FILE, WEIGHTS_FILE, Pretrained, from_pretrained, save_pretrained
+from geofeat.storage.pretrained import CONFIG_FILE, WEIGHTS_FILE, Pretrained, from_pretrained, save_pretrained, unread_layout
 
 
 def _tensors() -> dict[str, torch.Tensor]:
@@ -29,9 +29,13 @@ def test_round_trip(tmp_path):
     envelope = json.loads((folder / CONFIG_FILE).read_text())
     save_id = envelope.pop("save_id")  # the save's token, in the weights' metadata too
     assert envelope == {
-        "kind": "toy", "format_version": 1, "geofeat_version": __version__, "has_weights": True,
-        "config": {"rank": 4, "targets": ["q"]}, "info": {"step": 3},
-    }  # fmt: skip
+        "kind": "toy",
+        "format_version": 1,
+        "geofeat_version": __version__,
+        "has_weights": True,
+        "config": {"rank": 4, "targets": ["q"]},
+        "info": {"step": 3},
+    }
     assert (
         len(save_id) == 32
         and save_id != json.loads((save_pretrained(tmp_path / "n", "toy", {}) / CONFIG_FILE).read_text())["save_id"]
@@ -39,8 +43,12 @@ def test_round_trip(tmp_path):
     saved = from_pretrained(folder, "toy", HeadError)
     assert isinstance(saved, Pretrained)
     assert (saved.folder, saved.kind, saved.config, saved.info, saved.geofeat_version) == (
-        folder, "toy", {"rank": 4, "targets": ["q"]}, {"step": 3}, __version__,
-    )  # fmt: skip
+        folder,
+        "toy",
+        {"rank": 4, "targets": ["q"]},
+        {"step": 3},
+        __version__,
+    )
     assert saved.has_weights()
     loaded = saved.tensors()
     assert sorted(loaded) == ["a.weight", "b.bias"]
@@ -72,8 +80,21 @@ def test_weights_removed_after_a_save_with_weights_fail_the_load(tmp_path):
 
 def test_kind_mismatch_names_both_kinds(tmp_path):
     save_pretrained(tmp_path / "m", "head", {})
-    with pytest.raises(HeadError, match=r"holds a 'head', not a 'lora_adapter'"):
-        from_pretrained(tmp_path / "m", "lora_adapter", HeadError)
+    with pytest.raises(HeadError, match=r"holds a 'head', not a 'lora'"):
+        from_pretrained(tmp_path / "m", "lora", HeadError)
+
+
+def test_a_folder_of_a_kind_this_geofeat_does_not_read_says_what_it_holds_and_to_save_again(tmp_path):
+    save_pretrained(tmp_path / "m", "lora_adapter", {})
+    assert unread_layout(tmp_path / "m") == "a LoRA or trainer checkpoint of kind 'lora_adapter'"
+    with pytest.raises(
+        HeadError,
+        match=r"holds a LoRA or trainer checkpoint of kind 'lora_adapter', a layout this geofeat does not read; expected "
+        r"a 'lora' as config.json \+ weights.safetensors written by save_pretrained. Save it again",
+    ):
+        from_pretrained(tmp_path / "m", "lora", HeadError)
+    save_pretrained(tmp_path / "m", "lora", {})
+    assert unread_layout(tmp_path / "m") is None
 
 
 def test_missing_folder_missing_or_damaged_config(tmp_path):
@@ -91,13 +112,27 @@ def test_missing_folder_missing_or_damaged_config(tmp_path):
         from_pretrained(tmp_path / "m", "toy", StoreError)
 
 
-def test_older_layout_is_named_with_the_fix(tmp_path):
-    old = tmp_path / "adapter"
-    old.mkdir()
-    (old / "adapter_config.json").write_text("{}")
-    (old / "adapter.safetensors").write_bytes(b"")
-    with pytest.raises(HeadError, match="layout of an older geofeat.*convert it with X"):
-        from_pretrained(old, "lora_adapter", HeadError, older_layout_hint="convert it with X.")
+@pytest.mark.parametrize(
+    ("files", "found"),
+    [
+        (("adapter_config.json", "adapter.safetensors"), "a LoRA or trainer checkpoint as adapter_config.json"),
+        (("head_config.json", "weights.safetensors"), "a head as head_config.json"),
+    ],
+)
+def test_a_folder_of_another_layout_says_what_it_holds_and_to_save_again(tmp_path, files, found):
+    other = tmp_path / "other"
+    other.mkdir()
+    for name in files:
+        (other / name).write_bytes(b"{}")
+    assert unread_layout(other).startswith(found)
+    with pytest.raises(
+        HeadError,
+        match=rf"holds {found} .*, a layout this geofeat does not read; expected a 'head' as config.json \+ "
+        r"weights.safetensors written by save_pretrained. Save it again with this version of geofeat, into a new folder.",
+    ):
+        from_pretrained(other, "head", HeadError)
+    save_pretrained(tmp_path / "m", "toy", {})
+    assert unread_layout(tmp_path / "m") is None and unread_layout(tmp_path) is None
 
 
 def test_a_later_layout_version_is_refused(tmp_path):
@@ -132,8 +167,6 @@ def test_a_foreign_folder_or_a_file_is_refused(tmp_path):
     with pytest.raises(StoreError, match="is a file"):
         save_pretrained(tmp_path / "file", "toy", {})
     assert (tmp_path / "file").read_text() == "x"
-    save_pretrained(tmp_path / "mine", "toy", {}, overwrite=True)  # on purpose (a folder converted in place)
-    assert sorted(p.name for p in (tmp_path / "mine").iterdir()) == [CONFIG_FILE]
 
 
 @pytest.mark.parametrize("bad", [{"path": object()}, {"nan": float("nan")}, {1: "int key", "a": 2}])

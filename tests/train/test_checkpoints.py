@@ -15,7 +15,7 @@ pytest.importorskip("safetensors")
 
 from tiny_models import tiny_dinov3  # noqa: E402
 
-from geofeat.backbones import DinoBackbone, LoraSettings, add_lora, load_adapter, lora_state_dict  # noqa: E402
+from geofeat.backbones import DinoBackbone, LoraSettings, add_lora, load_lora, lora_state_dict  # noqa: E402
 from geofeat.errors import DamagedCheckpointError, TrainingError  # noqa: E402
 from geofeat.storage.pretrained import CONFIG_FILE, WEIGHTS_FILE  # noqa: E402
 from geofeat.train import checkpoints  # noqa: E402
@@ -33,7 +33,7 @@ def _write(run, step, backbone=None):
     return checkpoints.write_checkpoint(run, step, backbone or _backbone(), LoraSettings(training={"lr": 1e-4}), _state(step))
 
 
-def test_a_checkpoint_is_an_adapter_folder_with_the_trainer_state(tmp_path):
+def test_a_checkpoint_is_a_lora_folder_with_the_trainer_state(tmp_path):
     backbone = _backbone()
     folder = _write(tmp_path / "run", 5, backbone)
     assert folder == tmp_path / "run" / "checkpoints" / "step_0000005" == checkpoints.checkpoint_folder(tmp_path / "run", 5)
@@ -41,7 +41,7 @@ def test_a_checkpoint_is_an_adapter_folder_with_the_trainer_state(tmp_path):
     assert sorted(p.name for p in folder.parent.iterdir()) == ["step_0000005"]  # no temporary folder left
     assert json.loads((folder / CONFIG_FILE).read_text())["info"] == {"step": 5}
     assert checkpoints.read_checkpoint(folder)["step"] == 5
-    restored = load_adapter(DinoBackbone(tiny_dinov3(seed=0), kind="dinov3"), folder)  # what the geolora descriptor does
+    restored = load_lora(DinoBackbone(tiny_dinov3(seed=0), kind="dinov3"), folder)  # what the geolora descriptor does
     for name, value in lora_state_dict(backbone).items():
         assert torch.equal(lora_state_dict(restored)[name], value)
     assert checkpoints.latest_checkpoint(tmp_path / "run") == folder
@@ -79,15 +79,26 @@ def test_a_checkpoint_of_another_step_is_damaged(tmp_path):
         checkpoints.read_checkpoint(folder)
 
 
-def test_a_checkpoint_of_the_older_layout_is_not_set_aside_as_damaged(tmp_path):
+def test_a_checkpoint_of_another_layout_is_refused_not_set_aside_as_damaged(tmp_path):
     old = tmp_path / "run" / "checkpoints" / "step_0000002"
     old.mkdir(parents=True)
     (old / "adapter_config.json").write_text("{}")
     (old / "adapter.safetensors").write_bytes(b"")
     torch.save(_state(2), old / checkpoints.STATE_FILE)
-    with pytest.raises(TrainingError, match="older geofeat.*upgrade_adapter"):
+    with pytest.raises(TrainingError, match="a layout this geofeat does not read; expected config.json .*Train again") as info:
         checkpoints.readable_checkpoint(tmp_path / "run")
+    assert not isinstance(info.value, DamagedCheckpointError)
     assert old.is_dir()
+
+
+def test_a_checkpoint_of_kind_lora_adapter_is_refused_not_set_aside_as_damaged(tmp_path):
+    folder = _write(tmp_path / "run", 2)
+    envelope = json.loads((folder / CONFIG_FILE).read_text())
+    (folder / CONFIG_FILE).write_text(json.dumps({**envelope, "kind": "lora_adapter"}))
+    with pytest.raises(TrainingError, match="kind 'lora_adapter', a layout this geofeat does not read.*Train again") as info:
+        checkpoints.readable_checkpoint(tmp_path / "run")
+    assert not isinstance(info.value, DamagedCheckpointError)
+    assert folder.is_dir()
 
 
 def test_stale_temporary_folders_of_dead_saves_are_removed(tmp_path, caplog):

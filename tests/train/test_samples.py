@@ -33,9 +33,17 @@ def _shapes() -> list[Mesh]:
 
 def _config(tmp_path, **overrides) -> TrainConfig:
     settings = dict(
-        data="unused", out=str(tmp_path / "run"), image_size=32, backproject="face", steps=3, checkpoint_every=0,
-        validate_every=0, geodesic_cache=str(tmp_path / "geodesics"), progress=False, device="cpu",
-    )  # fmt: skip
+        data="unused",
+        out=str(tmp_path / "run"),
+        image_size=32,
+        backproject="face",
+        steps=3,
+        checkpoint_every=0,
+        validate_every=0,
+        geodesic_cache=str(tmp_path / "geodesics"),
+        progress=False,
+        device="cpu",
+    )
     settings.update(overrides)
     return TrainConfig(**settings)
 
@@ -99,7 +107,7 @@ def test_reference_samples_follow_the_official_loop(tmp_path):
     from geofeat.topology import triangle_areas
     from geofeat.train.samples import training_partial_reference
 
-    config = _config(tmp_path, preset="reference", seed=2)
+    config = _config(tmp_path, recipe="reference", seed=2)
     assert config.generators() == "reference"
     shapes = _shapes()
     store = TorchGeodesicStore(tmp_path / "geodesics")
@@ -130,7 +138,7 @@ def test_reference_samples_follow_the_official_loop(tmp_path):
 
 def test_partial_generators_setting(tmp_path):
     assert _config(tmp_path).generators() == "geofeat"
-    assert _config(tmp_path, preset="reference", partial_generators="geofeat").generators() == "geofeat"
+    assert _config(tmp_path, recipe="reference", partial_generators="geofeat").generators() == "geofeat"
     assert _config(tmp_path, partial_generators="reference").generators() == "reference"
     with pytest.raises(TrainingError, match="partial_generators must be one of"):
         _config(tmp_path, partial_generators="open3d")
@@ -232,22 +240,23 @@ def test_train_step_alone_starts_and_restarts_the_workers(tmp_path):
     sample_loss = trainer._sample_loss
 
     def recorded(sample, timer):
-        taken.append((sample.index, trainer._prefetcher is not None))
+        taken.append((sample.index, trainer.sample_stream.prefetcher is not None))
         return sample_loss(sample, timer)
 
     trainer._sample_loss = recorded
     first = trainer.train_step()
-    assert len(_children() - before) == 2 and trainer._prefetcher.next_step == 1
+    assert len(_children() - before) == 2 and trainer.sample_stream.prefetcher.next_step == 1
     trainer.train_step()
     trainer.step = 0  # moved back: the workers start again at the new position
     again = trainer.train_step()
-    assert trainer._prefetcher.next_step == 1 and np.isfinite(again.loss) and again.loss != first.loss  # the weights moved
+    assert trainer.sample_stream.prefetcher.next_step == 1
+    assert np.isfinite(again.loss) and again.loss != first.loss  # the weights moved
     trainer.close()
-    assert trainer._prefetcher is None and _children() - before == set()
+    assert trainer.sample_stream.prefetcher is None and _children() - before == set()
     trainer.step = 3  # past config.steps: prepared here
     trainer.train_step()
     assert taken == [(0, True), (1, True), (0, True), (3, False)]
-    assert trainer._prefetcher is None
+    assert trainer.sample_stream.prefetcher is None
 
 
 def test_workers_setting():

@@ -100,10 +100,21 @@ def test_train_geolora_command_trains_and_resumes(tmp_path, capsys):
         _write(bumpy(seed, 2), tmp_path / f"shape{seed}.off")
     (tmp_path / "settings.yaml").write_text(f"data: {tmp_path}\nimage_size: 32\nbackproject: face\nsteps: 2\n")
     argv = [
-        "train-geolora", "--config", str(tmp_path / "settings.yaml"), "--weights", str(tmp_path / "backbone"),
-        "--out", str(tmp_path / "run"), "--geodesic-cache", str(tmp_path / "geo"), "--no-progress", "--device", "cpu",
-        "--partial-kinds", "cuts,holes",
-    ]  # fmt: skip
+        "train-geolora",
+        "--config",
+        str(tmp_path / "settings.yaml"),
+        "--weights",
+        str(tmp_path / "backbone"),
+        "--out",
+        str(tmp_path / "run"),
+        "--geodesic-cache",
+        str(tmp_path / "geo"),
+        "--no-progress",
+        "--device",
+        "cpu",
+        "--partial-kinds",
+        "cuts,holes",
+    ]
     assert main(argv) == 0
     assert "step_0000002" in capsys.readouterr().out
     saved = json.loads((tmp_path / "run" / "config.json").read_text())

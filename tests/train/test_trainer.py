@@ -35,9 +35,17 @@ def _shapes():
 
 def _config(tmp_path, **overrides) -> TrainConfig:
     settings = dict(
-        data="unused", out=str(tmp_path / "run"), image_size=32, backproject="face", steps=4, checkpoint_every=2, validate_every=0,
-        geodesic_cache=str(tmp_path / "geodesics"), progress=False, device="cpu",
-    )  # fmt: skip
+        data="unused",
+        out=str(tmp_path / "run"),
+        image_size=32,
+        backproject="face",
+        steps=4,
+        checkpoint_every=2,
+        validate_every=0,
+        geodesic_cache=str(tmp_path / "geodesics"),
+        progress=False,
+        device="cpu",
+    )
     settings.update(overrides)
     return TrainConfig(**settings)
 
@@ -174,23 +182,23 @@ def test_plain_loss_and_single_kind(tmp_path):
 
 
 def test_reference_steps_rescale_rope_with_draws_seeded_by_the_sample(tmp_path):
-    trainer = _trainer(tmp_path, preset="reference", backproject="ball", image_size=64)
+    trainer = _trainer(tmp_path, recipe="reference", backproject="ball", image_size=64)
     assert trainer._rope_augmentation()
-    sample = trainer._samples.prepare(0)
+    sample = trainer.sample_stream.dataset.prepare(0)
     features = []
     for _ in range(2):
         with torch.no_grad(), trainer._training_mode(sample.index):
             assert trainer.backbone.rope_augmentation
             features.append(
-                trainer._sample_features(sample.full, [m for m, _ in sample.partials], lambda phase: contextlib.nullcontext())
+                trainer.sample_features(sample.full, [m for m, _ in sample.partials], lambda phase: contextlib.nullcontext())
             )
     assert not trainer.backbone.rope_augmentation  # validation and inference see eval() mode
     for (a, _), (b, _) in zip(features[0], features[1], strict=True):
         assert torch.equal(a, b)  # the same sample draws the same rescaling
     with torch.no_grad():
-        plain = trainer._sample_features(sample.full, [m for m, _ in sample.partials], lambda phase: contextlib.nullcontext())
+        plain = trainer.sample_features(sample.full, [m for m, _ in sample.partials], lambda phase: contextlib.nullcontext())
     assert plain[0].seen.any() and not torch.equal(plain[0][0], features[0][0][0])  # eval() mode: no rescaling
-    assert not _trainer(tmp_path / "off", preset="reference", backproject=None, rope_augmentation=False)._rope_augmentation()
+    assert not _trainer(tmp_path / "off", recipe="reference", backproject=None, rope_augmentation=False)._rope_augmentation()
     assert not _trainer(tmp_path / "default")._rope_augmentation()
 
 
@@ -226,9 +234,9 @@ def test_geodesic_store_round_trip_and_repair(tmp_path, caplog):
     assert "recomputing" in caplog.text
 
 
-def test_reference_preset_trains_one_shared_a_per_block_and_resumes_exactly(tmp_path):
-    """``preset="reference"``: the official recipe, whose fused-qkv LoRA has one A per block; resume stays exact."""
-    overrides = {"preset": "reference", "backproject": None, "image_size": 32, "steps": 2, "checkpoint_every": 1}
+def test_reference_recipe_trains_one_shared_a_per_block_and_resumes_exactly(tmp_path):
+    """``recipe="reference"``: the official recipe, whose fused-qkv LoRA has one A per block; resume stays exact."""
+    overrides = {"recipe": "reference", "backproject": None, "image_size": 32, "steps": 2, "checkpoint_every": 1}
     straight = _trainer(tmp_path / "a", **overrides)
     straight.fit()
     named = dict(straight.backbone.model.named_parameters(remove_duplicate=False))
@@ -238,7 +246,7 @@ def test_reference_preset_trains_one_shared_a_per_block_and_resumes_exactly(tmp_
     state = lora_state_dict(straight.backbone)
     assert torch.count_nonzero(state["layer.0.q_proj.lora_B.weight"]) > 0  # it trained
     torch.testing.assert_close(state["layer.0.q_proj.lora_A.weight"], state["layer.0.v_proj.lora_A.weight"], rtol=0, atol=0)
-    # every checkpoint also holds the adapter as a release checkpoint, which loads back to the same tensors
+    # every checkpoint also holds the LoRA as a release checkpoint, which loads back to the same tensors
     from geofeat.backbones import load_official_lora
     from geofeat.train.checkpoints import RELEASE_FILE
 
@@ -253,10 +261,10 @@ def test_reference_preset_trains_one_shared_a_per_block_and_resumes_exactly(tmp_
         torch.testing.assert_close(value, state[name], rtol=0, atol=1e-6)
 
 
-@pytest.mark.parametrize(("preset", "used"), [("default", 1), ("reference", 0)])
-def test_a_partial_shape_without_a_loss_is_left_out_or_skips_the_sample(tmp_path, monkeypatch, preset, used):
-    """geofeat leaves out the partial shape; the reference preset, like the official loop, the whole sample."""
-    trainer = _trainer(tmp_path, preset=preset, partials_per_shape=2, image_size=32)
+@pytest.mark.parametrize(("recipe", "used"), [("default", 1), ("reference", 0)])
+def test_a_partial_shape_without_a_loss_is_left_out_or_skips_the_sample(tmp_path, monkeypatch, recipe, used):
+    """geofeat leaves out the partial shape; the reference recipe, like the official loop, the whole sample."""
+    trainer = _trainer(tmp_path, recipe=recipe, partials_per_shape=2, image_size=32)
     real_loss, calls = trainer._loss, []
 
     def second_fails(*args):
@@ -266,6 +274,6 @@ def test_a_partial_shape_without_a_loss_is_left_out_or_skips_the_sample(tmp_path
         return real_loss(*args)
 
     monkeypatch.setattr(trainer, "_loss", second_fails)
-    sample = trainer._samples.prepare(0)
+    sample = trainer.sample_stream.dataset.prepare(0)
     loss, count = trainer._sample_loss(sample, lambda phase: contextlib.nullcontext())
     assert count == used and (loss is None) == (used == 0)

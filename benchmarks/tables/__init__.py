@@ -1,0 +1,1 @@
+"""The tables and figures of the docs, made from result files and runs (``python -m benchmarks.tables.NAME``)."""
