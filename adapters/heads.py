@@ -62,7 +62,7 @@ def preset_settings(cls: type[Head], preset: str | None) -> dict[str, Any]:
 
 
 def load_head(
-    source: str | os.PathLike, checkpoint: str | os.PathLike | None = None, preset: str = "reference", **settings: Any
+    source: str | os.PathLike, checkpoint: str | os.PathLike | None = None, preset: str | None = None, **settings: Any
 ) -> Head:
     """A head saved by `Head.save`, or a head built from the authors' release checkpoint.
 
@@ -75,12 +75,13 @@ def load_head(
         A release checkpoint of the authors' code (a ``torch.save`` file). The head gets its
         ``"reference"`` preset, its sizes read from the tensors, and the weights through an
         exact key mapping (see the head's ``release_state``).
-    preset : str
+    preset : str, optional
         With ``checkpoint``: the head's preset, whose values fill in every setting that the
-        checkpoint's tensors and ``settings`` do not give. The default is ``"reference"``
-        (`make_head`'s is None) because the released weights were trained with the authors'
-        settings (input descriptor, mesh normalisation, operators). DPFM also has
-        ``"reference_shrec16_cuts"`` and ``"reference_shrec16_holes"``.
+        checkpoint's tensors and ``settings`` do not give. None (the default) means
+        ``"reference"`` (`make_head`'s None means no preset) because the released weights were
+        trained with the authors' settings (input descriptor, mesh normalisation, operators).
+        DPFM also has ``"reference_shrec16_cuts"`` and ``"reference_shrec16_holes"``. A saved
+        folder carries its own settings: a preset without ``checkpoint`` is refused.
     **settings
         With ``checkpoint``: settings that override the preset (e.g. ``tta_steps=5``).
 
@@ -91,7 +92,9 @@ def load_head(
         (each named).
     """
     if checkpoint is not None:
-        return _from_release(str(source), Path(checkpoint), preset, settings)
+        return _from_release(str(source), Path(checkpoint), "reference" if preset is None else preset, settings)
+    if preset is not None:
+        raise HeadError(f"preset {preset!r} only applies with a release checkpoint; a saved head folder keeps its own settings.")
     if settings:
         raise HeadError(f"settings {sorted(settings)} only apply with a release checkpoint; change head.config instead.")
     saved = from_pretrained(source, HEAD_KIND, HeadError)

@@ -49,7 +49,7 @@ log = logging.getLogger(__name__)
 
 #: What `FeatureCache.info` returns (the summary every store folder gives).
 CacheInfo = StoreInfo
-#: Start of the names of probe files (`FeatureCache.check_writable`) and of the temporary files of older geofeat writers.
+#: Start of the names of probe files (`FeatureCache.check_writable`); one left behind by a killed process is temporary.
 TMP_PREFIX = ".tmp-"
 #: File name of an entry: the 64 hex digits of its key and ``.h5``.
 _ENTRY_NAME = re.compile(r"[0-9a-f]{64}\.h5")

@@ -147,8 +147,8 @@ def _write_and_rename(path: Path, write: Callable[[Path], object], durable: bool
 
 
 #: ``.<name>.tmp-<pid>-<token>`` (a folder being written) and ``.<name>.old-<pid>-<token>`` (the folder it
-#: replaces, during the swap) of `atomic_folder`; ``.<name>.tmp-<pid>`` is the older trainer's temporary folder.
-_FOLDER_SIBLING = re.compile(r"\.(?P<name>.+)\.(?P<role>tmp|old)-(?P<pid>\d+)(?:-[0-9a-f]+)?")
+#: replaces, during the swap) of `atomic_folder`.
+_FOLDER_SIBLING = re.compile(r"\.(?P<name>.+)\.(?P<role>tmp|old)-(?P<pid>\d+)-[0-9a-f]+")
 #: Sibling folders this process is writing now (other threads' saves are not leftovers).
 _IN_FLIGHT: set[Path] = set()
 _IN_FLIGHT_LOCK = threading.Lock()

@@ -8,7 +8,6 @@ the training shapes are those the checkpoint recorded (names and content hashes,
 
 from __future__ import annotations
 
-import logging
 from pathlib import Path
 
 import torch
@@ -17,8 +16,6 @@ from geofeat.errors import TrainingError
 from geofeat.mesh import Mesh
 from geofeat.train import checkpoints
 from geofeat.train.config import RESUMABLE_CHANGES, TrainConfig
-
-log = logging.getLogger(__name__)
 
 __all__ = ["check_same_shapes", "checkpoint_to_resume", "shape_records"]
 
@@ -79,8 +76,7 @@ def check_same_shapes(saved: list | None, mine: list[list[str]], checkpoint: Pat
     Parameters
     ----------
     saved : list or None
-        The checkpoint's `shape_records`; None for a checkpoint that records none (then a
-        warning, and nothing is compared).
+        The checkpoint's `shape_records`; None for a checkpoint that records none (refused).
     mine : list of [str, str]
         `shape_records` of the shapes of the run being started.
     checkpoint : Path
@@ -93,11 +89,14 @@ def check_same_shapes(saved: list | None, mine: list[list[str]], checkpoint: Pat
     Raises
     ------
     TrainingError
-        Shapes added, removed, reordered or changed since the checkpoint, named.
+        Shapes added, removed, reordered or changed since the checkpoint, named; or no
+        shapes recorded.
     """
-    if saved is None:  # a checkpoint of an older geofeat: nothing to compare with
-        log.warning("%s records no training shapes; resuming without checking that they are the same", checkpoint)
-        return
+    if saved is None:
+        raise TrainingError(
+            f"{checkpoint} records no training shapes, so resuming cannot check that {data!r} holds the same ones; "
+            f"every checkpoint this trainer writes records them. Train again into a new out folder."
+        )
     if [list(r) for r in saved] == mine:
         return
     before, now = dict((n, h) for n, h in saved), dict(mine)

@@ -229,6 +229,10 @@ def test_saved_folder_layout_and_a_folder_of_another_layout(tmp_path, monkeypatc
     make_head("fmap", k=12).save(tmp_path / "fmap")
     assert [p.name for p in (tmp_path / "fmap").iterdir()] == ["config.json"]
     assert load_head(tmp_path / "fmap").config.k == 12
+    with pytest.raises(HeadError, match="preset 'reference' only applies with a release checkpoint"):
+        load_head(tmp_path / "fmap", preset="reference")
+    with pytest.raises(HeadError, match=r"settings \['k'\] only apply with a release checkpoint"):
+        load_head(tmp_path / "fmap", k=3)
 
     old = tmp_path / "old"  # head_config.json + weights.safetensors: not read, refused with a message
     old.mkdir()

@@ -86,7 +86,7 @@ def test_dead_leftovers_are_removed_or_restored_and_live_ones_kept(tmp_path):
         f".kept.tmp-{dead}-00aa": "removed",  # a killed write
         f".kept.old-{dead}-00bb": "removed",  # set aside, and the new folder is in place
         f".gone.old-{dead}-00cc": "restored",  # set aside, killed before the new folder was renamed in
-        f".step_0000002.tmp-{dead}": "removed",  # the trainer's older name
+        f".step_0000002.tmp-{dead}": "kept",  # no token: not a name atomic_folder writes
         f".kept.tmp-{alive}-00dd": "kept",  # a process still writing
         f".kept.tmp-{os.getpid()}-00ee": "removed",  # this process's id, but no save of it under way: an earlier process's
         "other": "kept",
@@ -98,8 +98,10 @@ def test_dead_leftovers_are_removed_or_restored_and_live_ones_kept(tmp_path):
         tmp_path / n for n in (f".kept.tmp-{dead}-00aa", f".kept.old-{dead}-00bb", f".kept.tmp-{os.getpid()}-00ee")
     )
     removed = remove_dead_temporary_folders(tmp_path)
-    assert removed == sorted([tmp_path / f".gone.old-{dead}-00cc", tmp_path / f".step_0000002.tmp-{dead}"])
-    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(["kept", "gone", f".kept.tmp-{alive}-00dd", "other"])
+    assert removed == [tmp_path / f".gone.old-{dead}-00cc"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(
+        ["kept", "gone", f".kept.tmp-{alive}-00dd", f".step_0000002.tmp-{dead}", "other"]
+    )
     assert (tmp_path / "gone" / "a").read_text() == "old"
     assert remove_dead_temporary_folders(tmp_path / "missing") == []
 
