@@ -5,7 +5,7 @@ message that says what was expected and how to fix it; or argparse's exit) or eq
 a reference result computed the ordinary way. Rows cover bad mesh files, parameters at the
 boundary, non-finite features, read-only and odd cache stores, small point clouds, mesh-like
 inputs, damaged and pickle-only weights, concurrent cache writers and killed training runs (a cache
-writer killed in the middle of an entry: tests/test_cache.py), and faults that would
+writer killed in the middle of an entry: tests/descriptors/test_cache.py), and faults that would
 otherwise go unnoticed: features of a mesh no view sees, or moved far from the origin; loads
 racing a save; resumes on changed data; Ctrl-C and kill -9 reaching worker processes; command
 lines that must end in one line, not a traceback; messages that must give the right advice.

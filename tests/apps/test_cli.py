@@ -358,7 +358,7 @@ def becos_sample(tmp_path_factory) -> Path:
     """The generator-written BeCoS sample of tests/data, unpacked (partial_full, partial_partial, full_full test pairs)."""
     import tarfile
 
-    archive = Path(__file__).parent / "data" / "becos_sample" / "becos_sample.tar.xz"
+    archive = Path(__file__).parents[1] / "data" / "becos_sample" / "becos_sample.tar.xz"
     folder = tmp_path_factory.mktemp("becos")
     with tarfile.open(archive) as tar:
         if hasattr(tarfile, "data_filter"):  # Python 3.10.12+: refuse links and paths out of the folder
