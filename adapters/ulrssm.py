@@ -79,17 +79,14 @@ import torch.nn.functional as F
 
 from geofeat.adapters.base import HeadConfig, check_integers, check_numbers
 from geofeat.adapters.blocks.diffusion_net import GRADIENT_MIXINGS, DiffusionNet
-from geofeat.adapters.blocks.fmap_layers import (
+from geofeat.adapters.blocks.fmap_layers import pointmap_to_fmap, regularized_fmap, soft_pointmap, soft_pointmaps
+from geofeat.adapters.blocks.fmap_losses import (
     coupling_loss,
     fmap_bijectivity_loss,
     fmap_orthogonality_loss,
     laplacian_commutativity_loss,
     partial_bijectivity_loss,
     partial_orthogonality_loss,
-    pointmap_to_fmap,
-    regularized_fmap,
-    soft_pointmap,
-    soft_pointmaps,
 )
 from geofeat.adapters.blocks.functional_maps import nearest_neighbors
 from geofeat.adapters.blocks.operators import SurfaceOperators

@@ -1,4 +1,4 @@
-"""Differentiable (torch) functional-map layers and losses for learned matching heads.
+"""Differentiable (torch) functional-map layers for learned matching heads: regularised maps and soft point maps.
 
 Convention (that of `geofeat.adapters.blocks.functional_maps`): a functional map ``C`` has shape
 ``(k_y, k_x)`` and pulls functions back from ``x`` to ``y``, ``coeffs_y = C @ coeffs_x``;
@@ -13,9 +13,8 @@ it are shared by every batch element. Computations use the floating dtype and de
 first feature or map argument; spectral data are converted to them. Eigenvalues are treated
 as constants (no gradient flows to them through the Laplacian mask).
 
-Losses are squared Frobenius norms summed over each matrix and averaged over the batch, as
-ULRSSM's ``SquaredFrobeniusLoss`` (Cao et al. 2023, "Unsupervised Learning of Robust
-Spectral Shape Matching").
+The losses built on these layers are `geofeat.adapters.blocks.fmap_losses`; the conversion
+and checks of the inputs are `geofeat.adapters.blocks.fmap_inputs`.
 """
 
 from __future__ import annotations
@@ -25,129 +24,27 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from geofeat.adapters.blocks.fmap_inputs import (
+    batch_inputs,
+    check_basis,
+    check_dim,
+    dtype_device,
+    positive,
+    to_tensor,
+    unbatch,
+)
 from geofeat.adapters.blocks.functional_maps import MASK_KINDS, laplacian_mask
-from geofeat.checks import check_number
 from geofeat.errors import FunctionalMapError
 
 __all__ = [
     "RegularizedFMap",
-    "coupling_loss",
-    "fmap_bijectivity_loss",
-    "fmap_orthogonality_loss",
     "fmap_to_pointmap_soft",
-    "laplacian_commutativity_loss",
-    "partial_bijectivity_loss",
-    "partial_orthogonality_loss",
-    "partial_rank",
     "pointmap_to_fmap",
     "regularized_fmap",
     "resolvent_mask",
     "soft_pointmap",
     "soft_pointmaps",
 ]
-
-
-# ----------------------------------------------------------------------------- input handling
-
-
-def _to_tensor(value) -> torch.Tensor:
-    """A tensor as it is; an array_like as a tensor (copied when read-only, like `SpectralBasis` arrays)."""
-    if isinstance(value, torch.Tensor):
-        return value
-    try:
-        arr = np.asarray(value)
-        return torch.from_numpy(arr if arr.flags.writeable else arr.copy()) if arr.dtype != object else torch.as_tensor(value)
-    except (TypeError, ValueError, RuntimeError) as err:
-        raise FunctionalMapError(f"expected a tensor or an array of numbers; found {type(value).__name__} ({err}).") from err
-
-
-def _dtype_device(reference) -> tuple[torch.dtype, torch.device]:
-    """Floating dtype and device of the computation: those of ``reference`` (default dtype if not floating)."""
-    t = _to_tensor(reference)
-    dtype = t.dtype if t.is_floating_point() else torch.get_default_dtype()
-    return dtype, t.device
-
-
-def _batched(
-    items: dict[str, tuple[object, int]],
-    dtype: torch.dtype,
-    device: torch.device,
-    integer: tuple[str, ...] = (),
-    host: tuple[str, ...] = (),
-) -> tuple[dict[str, torch.Tensor], bool]:
-    """Convert inputs to tensors with a leading batch dimension shared by all.
-
-    ``items`` maps a name to ``(value, core_ndim)``: a value with ``core_ndim`` dimensions is
-    unbatched (it is expanded to the common batch size), one with ``core_ndim + 1`` is batched.
-    The items named in ``host`` go to the CPU instead of ``device`` (they are read there).
-    Returns the tensors, shape ``(B, *core)``, and whether any input was batched.
-    """
-    tensors: dict[str, torch.Tensor] = {}
-    batch_sizes: dict[str, int] = {}
-    for name, (value, core_ndim) in items.items():
-        t = _to_tensor(value)
-        target = torch.device("cpu") if name in host else device
-        if name in integer and not t.is_floating_point():
-            t = t.to(device=target, dtype=torch.int64)
-        else:
-            if t.is_complex() or t.dtype == torch.bool:
-                raise FunctionalMapError(f"{name} must hold real numbers; found dtype {t.dtype}.")
-            t = t.to(device=target, dtype=dtype)
-        if t.ndim == core_ndim:
-            t = t.unsqueeze(0)
-        elif t.ndim == core_ndim + 1:
-            batch_sizes[name] = t.shape[0]
-        else:
-            raise FunctionalMapError(
-                f"{name} must have {core_ndim} dimensions, or {core_ndim + 1} with a leading batch dimension; "
-                f"found shape {tuple(t.shape)}."
-            )
-        tensors[name] = t
-    sizes = set(batch_sizes.values())
-    if len(sizes) > 1:
-        found = ", ".join(f"{name}: {size}" for name, size in batch_sizes.items())
-        raise FunctionalMapError(f"batched inputs must have the same batch size; found {found}.")
-    size = sizes.pop() if sizes else 1
-    for name, t in tensors.items():
-        if t.shape[0] != size:
-            tensors[name] = t.expand(size, *t.shape[1:])
-    return tensors, bool(batch_sizes)
-
-
-def _check_dim(t: torch.Tensor, axis: int, expected: int, name: str, what: str) -> None:
-    if t.shape[axis] != expected:
-        raise FunctionalMapError(
-            f"{name} must have {what} = {expected}; found shape {tuple(t.shape[1:])} (batch dimension dropped)."
-        )
-
-
-def _check_basis(evecs: torch.Tensor, mass: torch.Tensor | None, evals: torch.Tensor | None, n_vertices: int, side: str) -> None:
-    """Check (B, V, k) eigenvectors, (B, V) mass and (B, k) eigenvalues against ``n_vertices``."""
-    _check_dim(evecs, 1, n_vertices, f"evecs_{side}", f"one row per vertex of {side}, rows")
-    k = evecs.shape[2]
-    if mass is not None:
-        _check_dim(mass, 1, n_vertices, f"mass_{side}", f"one entry per vertex of {side}, length")
-    if evals is not None:
-        _check_dim(evals, 1, k, f"evals_{side}", f"one eigenvalue per column of evecs_{side}, length")
-
-
-def _positive(value: float, name: str, allow_zero: bool = False) -> float:
-    return check_number(value, name, low=0, low_open=not allow_zero, error=FunctionalMapError)
-
-
-def _unbatch(t: torch.Tensor, batched: bool) -> torch.Tensor:
-    return t if batched else t[0]
-
-
-def _squared_frobenius(diff: torch.Tensor) -> torch.Tensor:
-    """Mean over the batch of the squared Frobenius norm of each (B, m, n) matrix."""
-    return diff.square().sum(dim=(-2, -1)).mean()
-
-
-def _fmaps(items: dict[str, object]) -> tuple[dict[str, torch.Tensor], bool]:
-    """Convert functional maps (k_rows, k_cols) or (B, k_rows, k_cols) to batched tensors of the first map's dtype."""
-    dtype, device = _dtype_device(next(iter(items.values())))
-    return _batched({name: (value, 2) for name, value in items.items()}, dtype, device)
 
 
 # ----------------------------------------------------------------------------- regularised functional map
@@ -178,13 +75,13 @@ def resolvent_mask(evals_x, evals_y, gamma: float = 0.5, kind: str = "resolvent"
     torch.Tensor, shape (k_y, k_x) or (B, k_y, k_x)
         Constant (no gradient); dtype and device of ``evals_x`` (float64 for arrays).
     """
-    dtype, device = _dtype_device(evals_x)
+    dtype, device = dtype_device(evals_x)
     if kind not in MASK_KINDS:
         raise FunctionalMapError(f"mask kind must be one of {MASK_KINDS}; found {kind!r}.")
-    t, batched = _batched({"evals_x": (evals_x, 1), "evals_y": (evals_y, 1)}, torch.float64, torch.device("cpu"))
+    t, batched = batch_inputs({"evals_x": (evals_x, 1), "evals_y": (evals_y, 1)}, torch.float64, torch.device("cpu"))
     ex, ey = t["evals_x"].detach().numpy(), t["evals_y"].detach().numpy()
     masks = np.stack([laplacian_mask(ex[b], ey[b], kind=kind, gamma=gamma) for b in range(ex.shape[0])])
-    return _unbatch(torch.as_tensor(masks, dtype=dtype, device=device), batched)
+    return unbatch(torch.as_tensor(masks, dtype=dtype, device=device), batched)
 
 
 def _solve_fmap(a: torch.Tensor, b: torch.Tensor, weights: torch.Tensor, lambda_: float) -> torch.Tensor:
@@ -313,9 +210,9 @@ def regularized_fmap(
     C_yx : torch.Tensor, shape (k_x, k_y) or (B, k_x, k_y)
         Only if ``bidirectional``: ``coeffs_x = C_yx @ coeffs_y``.
     """
-    lambda_ = _positive(lambda_, "lambda_", allow_zero=True)
-    dtype, device = _dtype_device(feat_x)
-    t, batched = _batched(
+    lambda_ = positive(lambda_, "lambda_", allow_zero=True)
+    dtype, device = dtype_device(feat_x)
+    t, batched = batch_inputs(
         {
             "feat_x": (feat_x, 2),
             "feat_y": (feat_y, 2),
@@ -335,8 +232,8 @@ def regularized_fmap(
         raise FunctionalMapError(
             f"feat_x and feat_y must have the same number of channels; found {fx.shape[2]} and {fy.shape[2]}."
         )
-    _check_basis(t["evecs_x"], t["mass_x"], t["evals_x"], fx.shape[1], "x")
-    _check_basis(t["evecs_y"], t["mass_y"], t["evals_y"], fy.shape[1], "y")
+    check_basis(t["evecs_x"], t["mass_x"], t["evals_x"], fx.shape[1], "x")
+    check_basis(t["evecs_y"], t["mass_y"], t["evals_y"], fy.shape[1], "y")
     host_weights = resolvent_mask(t["evals_x"], t["evals_y"], gamma=gamma, kind=mask)  # (B, k_y, k_x), on the CPU
     _check_not_singular(host_weights, lambda_, fx.shape[2])
     if bidirectional:
@@ -344,11 +241,11 @@ def regularized_fmap(
     weights = host_weights.to(device)
     a = t["evecs_x"].transpose(1, 2) @ (t["mass_x"].unsqueeze(-1) * fx)  # (B, k_x, p)
     b = t["evecs_y"].transpose(1, 2) @ (t["mass_y"].unsqueeze(-1) * fy)  # (B, k_y, p)
-    c_xy = _unbatch(_solve_fmap(a, b, weights, lambda_), batched)
+    c_xy = unbatch(_solve_fmap(a, b, weights, lambda_), batched)
     if not bidirectional:
         return c_xy
     c_yx = _solve_fmap(b, a, weights.transpose(1, 2), lambda_)
-    return c_xy, _unbatch(c_yx, batched)
+    return c_xy, unbatch(c_yx, batched)
 
 
 class RegularizedFMap(nn.Module):
@@ -362,7 +259,7 @@ class RegularizedFMap(nn.Module):
 
     def __init__(self, lambda_: float = 100.0, gamma: float = 0.5, mask: str = "resolvent", bidirectional: bool = False):
         super().__init__()
-        self.lambda_ = _positive(lambda_, "lambda_", allow_zero=True)
+        self.lambda_ = positive(lambda_, "lambda_", allow_zero=True)
         if mask not in MASK_KINDS:
             raise FunctionalMapError(f"mask must be one of {MASK_KINDS}; found {mask!r}.")
         self.gamma, self.mask, self.bidirectional = gamma, mask, bidirectional
@@ -412,9 +309,9 @@ def soft_pointmap(feat_x, feat_y, temperature: float = 0.07, normalize: bool = T
     torch.Tensor, shape (V_y, V_x) or (B, V_y, V_x)
         Non-negative, rows sum to one. Dense: memory grows as ``V_y * V_x``.
     """
-    temperature = _positive(temperature, "temperature")
-    dtype, device = _dtype_device(feat_x)
-    t, batched = _batched({"feat_x": (feat_x, 2), "feat_y": (feat_y, 2)}, dtype, device)
+    temperature = positive(temperature, "temperature")
+    dtype, device = dtype_device(feat_x)
+    t, batched = batch_inputs({"feat_x": (feat_x, 2), "feat_y": (feat_y, 2)}, dtype, device)
     fx, fy = t["feat_x"], t["feat_y"]
     if fx.shape[2] != fy.shape[2]:
         raise FunctionalMapError(
@@ -423,7 +320,7 @@ def soft_pointmap(feat_x, feat_y, temperature: float = 0.07, normalize: bool = T
     if normalize:
         fx, fy = F.normalize(fx, p=2, dim=-1), F.normalize(fy, p=2, dim=-1)
     similarity = fy @ fx.transpose(1, 2)  # (B, V_y, V_x)
-    return _unbatch(torch.softmax(similarity / temperature, dim=-1), batched)
+    return unbatch(torch.softmax(similarity / temperature, dim=-1), batched)
 
 
 def soft_pointmaps(feat_x, feat_y, temperature: float = 0.07, normalize: bool = True) -> tuple[torch.Tensor, torch.Tensor]:
@@ -449,9 +346,9 @@ def soft_pointmaps(feat_x, feat_y, temperature: float = 0.07, normalize: bool = 
     P_xy : torch.Tensor, shape (V_x, V_y) or (B, V_x, V_y)
         Soft map x -> y, rows sum to one.
     """
-    temperature = _positive(temperature, "temperature")
-    dtype, device = _dtype_device(feat_x)
-    t, batched = _batched({"feat_x": (feat_x, 2), "feat_y": (feat_y, 2)}, dtype, device)
+    temperature = positive(temperature, "temperature")
+    dtype, device = dtype_device(feat_x)
+    t, batched = batch_inputs({"feat_x": (feat_x, 2), "feat_y": (feat_y, 2)}, dtype, device)
     fx, fy = t["feat_x"], t["feat_y"]
     if fx.shape[2] != fy.shape[2]:
         raise FunctionalMapError(
@@ -462,7 +359,7 @@ def soft_pointmaps(feat_x, feat_y, temperature: float = 0.07, normalize: bool = 
     similarity = fy @ fx.transpose(1, 2)  # (B, V_y, V_x)
     p_yx = torch.softmax(similarity / temperature, dim=-1)
     p_xy = torch.softmax(similarity.transpose(1, 2) / temperature, dim=-1)  # (B, V_x, V_y)
-    return _unbatch(p_yx, batched), _unbatch(p_xy, batched)
+    return unbatch(p_yx, batched), unbatch(p_xy, batched)
 
 
 def pointmap_to_fmap(P, evecs_x, evecs_y, mass_y) -> torch.Tensor:
@@ -485,13 +382,13 @@ def pointmap_to_fmap(P, evecs_x, evecs_y, mass_y) -> torch.Tensor:
     torch.Tensor, shape (k_y, k_x) or (B, k_y, k_x)
         Differentiable with respect to a soft ``P`` (and the bases).
     """
-    p_in = _to_tensor(P)
+    p_in = to_tensor(P)
     hard = not p_in.is_floating_point()
     if hard:
-        dtype, device = _dtype_device(evecs_x)
+        dtype, device = dtype_device(evecs_x)
     else:
-        dtype, device = _dtype_device(p_in)
-    t, batched = _batched(
+        dtype, device = dtype_device(p_in)
+    t, batched = batch_inputs(
         {"P": (p_in, 1 if hard else 2), "evecs_x": (evecs_x, 2), "evecs_y": (evecs_y, 2), "mass_y": (mass_y, 1)},
         dtype,
         device,
@@ -499,8 +396,8 @@ def pointmap_to_fmap(P, evecs_x, evecs_y, mass_y) -> torch.Tensor:
     )
     p, ex, ey = t["P"], t["evecs_x"], t["evecs_y"]
     n_y = ey.shape[1]
-    _check_dim(p, 1, n_y, "P", "one row per vertex of y, rows")
-    _check_basis(ey, t["mass_y"], None, n_y, "y")
+    check_dim(p, 1, n_y, "P", "one row per vertex of y, rows")
+    check_basis(ey, t["mass_y"], None, n_y, "y")
     if hard:
         if p.numel() and (int(p.min()) < 0 or int(p.max()) >= ex.shape[1]):
             raise FunctionalMapError(
@@ -508,9 +405,9 @@ def pointmap_to_fmap(P, evecs_x, evecs_y, mass_y) -> torch.Tensor:
             )
         pulled = torch.gather(ex, 1, p.unsqueeze(-1).expand(-1, -1, ex.shape[2]))  # (B, V_y, k_x)
     else:
-        _check_dim(p, 2, ex.shape[1], "P", "one column per vertex of x, columns")
+        check_dim(p, 2, ex.shape[1], "P", "one column per vertex of x, columns")
         pulled = p @ ex
-    return _unbatch(ey.transpose(1, 2) @ (t["mass_y"].unsqueeze(-1) * pulled), batched)
+    return unbatch(ey.transpose(1, 2) @ (t["mass_y"].unsqueeze(-1) * pulled), batched)
 
 
 def fmap_to_pointmap_soft(C, evecs_x, evecs_y, temperature: float = 1.0) -> torch.Tensor:
@@ -535,225 +432,13 @@ def fmap_to_pointmap_soft(C, evecs_x, evecs_y, temperature: float = 1.0) -> torc
     torch.Tensor, shape (V_y, V_x) or (B, V_y, V_x)
         Rows sum to one; differentiable with respect to ``C``. Dense.
     """
-    temperature = _positive(temperature, "temperature")
-    dtype, device = _dtype_device(C)
-    t, batched = _batched({"C": (C, 2), "evecs_x": (evecs_x, 2), "evecs_y": (evecs_y, 2)}, dtype, device)
+    temperature = positive(temperature, "temperature")
+    dtype, device = dtype_device(C)
+    t, batched = batch_inputs({"C": (C, 2), "evecs_x": (evecs_x, 2), "evecs_y": (evecs_y, 2)}, dtype, device)
     c = t["C"]
-    _check_dim(t["evecs_x"], 2, c.shape[2], "evecs_x", "one column per column of C (k_x), columns")
-    _check_dim(t["evecs_y"], 2, c.shape[1], "evecs_y", "one column per row of C (k_y), columns")
+    check_dim(t["evecs_x"], 2, c.shape[2], "evecs_x", "one column per column of C (k_x), columns")
+    check_dim(t["evecs_y"], 2, c.shape[1], "evecs_y", "one column per row of C (k_y), columns")
     emb_x, emb_y = t["evecs_x"] @ c.transpose(1, 2), t["evecs_y"]  # (B, V_x, k_y), (B, V_y, k_y)
     # |a - b|^2 = |a|^2 + |b|^2 - 2 a.b, without the square root (smooth where distances vanish)
     sq_dist = emb_y.square().sum(-1, keepdim=True) + emb_x.square().sum(-1).unsqueeze(1) - 2.0 * emb_y @ emb_x.transpose(1, 2)
-    return _unbatch(torch.softmax(-sq_dist / temperature, dim=-1), batched)
-
-
-# ----------------------------------------------------------------------------- losses
-
-
-def fmap_bijectivity_loss(C_xy, C_yx) -> torch.Tensor:
-    """Bijectivity penalty ``||C_xy C_yx - I||^2 + ||C_yx C_xy - I||^2`` (SURFMNet, ULRSSM).
-
-    Parameters
-    ----------
-    C_xy : torch.Tensor, shape (k_y, k_x) or (B, k_y, k_x)
-    C_yx : torch.Tensor, shape (k_x, k_y) or (B, k_x, k_y)
-
-    Returns
-    -------
-    torch.Tensor, shape ()
-        Squared Frobenius norms, averaged over the batch.
-    """
-    t, _ = _fmaps({"C_xy": C_xy, "C_yx": C_yx})
-    c_xy, c_yx = t["C_xy"], t["C_yx"]
-    if c_yx.shape[1:] != c_xy.shape[1:][::-1]:
-        raise FunctionalMapError(
-            f"C_yx must have the transposed shape of C_xy, (k_x, k_y) = {tuple(c_xy.shape[1:][::-1])}; found {tuple(c_yx.shape[1:])}."
-        )
-    eye_y = torch.eye(c_xy.shape[1], dtype=c_xy.dtype, device=c_xy.device)
-    eye_x = torch.eye(c_xy.shape[2], dtype=c_xy.dtype, device=c_xy.device)
-    return _squared_frobenius(c_xy @ c_yx - eye_y) + _squared_frobenius(c_yx @ c_xy - eye_x)
-
-
-def fmap_orthogonality_loss(C) -> torch.Tensor:
-    """Orthogonality (area preservation) penalty ``||C^T C - I||^2`` of one map.
-
-    ULRSSM's ``SURFMNetLoss`` adds this term for both ``C_xy`` and ``C_yx``.
-
-    Parameters
-    ----------
-    C : torch.Tensor, shape (k_y, k_x) or (B, k_y, k_x)
-
-    Returns
-    -------
-    torch.Tensor, shape ()
-        Squared Frobenius norm of the (k_x, k_x) residual, averaged over the batch.
-    """
-    t, _ = _fmaps({"C": C})
-    c = t["C"]
-    eye = torch.eye(c.shape[2], dtype=c.dtype, device=c.device)
-    return _squared_frobenius(c.transpose(1, 2) @ c - eye)
-
-
-def laplacian_commutativity_loss(C, evals_x, evals_y) -> torch.Tensor:
-    """Laplacian commutativity penalty ``||C diag(evals_x) - diag(evals_y) C||^2`` of one map.
-
-    On the raw eigenvalues, as ULRSSM's ``SURFMNetLoss`` (which adds the term for both
-    directions and weights it by 1e-3 by default): the loss grows as the fourth power of
-    the largest eigenvalue, so keep its weight small or the shapes at unit area.
-
-    Parameters
-    ----------
-    C : torch.Tensor, shape (k_y, k_x) or (B, k_y, k_x)
-    evals_x : array_like, shape (k_x,) or (B, k_x)
-    evals_y : array_like, shape (k_y,) or (B, k_y)
-
-    Returns
-    -------
-    torch.Tensor, shape ()
-        Squared Frobenius norm, averaged over the batch.
-    """
-    dtype, device = _dtype_device(C)
-    t, _ = _batched({"C": (C, 2), "evals_x": (evals_x, 1), "evals_y": (evals_y, 1)}, dtype, device)
-    c = t["C"]
-    _check_dim(t["evals_x"], 1, c.shape[2], "evals_x", "one eigenvalue per column of C (k_x), length")
-    _check_dim(t["evals_y"], 1, c.shape[1], "evals_y", "one eigenvalue per row of C (k_y), length")
-    return _squared_frobenius(c * t["evals_x"].unsqueeze(1) - t["evals_y"].unsqueeze(2) * c)
-
-
-def coupling_loss(C, P, evecs_x, evecs_y, mass_y) -> torch.Tensor:
-    """Coupling (alignment) penalty ``||C - Phi_y^+ P Phi_x||^2`` between a functional map and a point map.
-
-    ULRSSM's ``align_loss`` between ``Cxy`` and ``evecs_trans_y @ Pyx @ evecs_x``; the map
-    of ``P`` is `pointmap_to_fmap`. ULRSSM adds the same term for ``C_yx`` and ``P_xy``
-    on full shapes (call again with the roles swapped).
-
-    Parameters
-    ----------
-    C : torch.Tensor, shape (k_y, k_x) or (B, k_y, k_x)
-    P : torch.Tensor, shape (V_y, V_x) or (B, V_y, V_x)
-        Soft point map y -> x (for example from `soft_pointmap`), or integer indices.
-    evecs_x : array_like, shape (V_x, k_x) or (B, V_x, k_x)
-    evecs_y : array_like, shape (V_y, k_y) or (B, V_y, k_y)
-    mass_y : array_like, shape (V_y,) or (B, V_y)
-
-    Returns
-    -------
-    torch.Tensor, shape ()
-        Squared Frobenius norm, averaged over the batch.
-    """
-    c_p = pointmap_to_fmap(P, evecs_x, evecs_y, mass_y)
-    t, _ = _fmaps({"C": C, "C_P": c_p})
-    if t["C"].shape != t["C_P"].shape:
-        raise FunctionalMapError(
-            f"C must have shape (k_y, k_x) = {tuple(t['C_P'].shape[1:])} of the bases; found {tuple(t['C'].shape[1:])}."
-        )
-    return _squared_frobenius(t["C"] - t["C_P"])
-
-
-# ----------------------------------------------------------------------------- partial shapes
-
-
-def partial_rank(evals_x, evals_y) -> torch.Tensor:
-    """Estimated rank of the functional map of a partial shape ``y`` into a full shape ``x``.
-
-    ULRSSM's ``PartialFmapsLoss``: with ``n`` the number of eigenvalues of the part ``y``
-    below the largest eigenvalue of the full ``x`` (a part of relative area ``a`` has
-    eigenvalues about ``1/a`` times larger, so the slope ratio of the spectra estimates the
-    area ratio), the first ``r = min(n + 1, k_y)`` basis functions of ``y`` are taken as
-    representable (ULRSSM puts ones on the diagonal at indices ``0 .. min(n, k - 1)``).
-
-    Parameters
-    ----------
-    evals_x : array_like, shape (k_x,) or (B, k_x)
-        Eigenvalues of the full shape.
-    evals_y : array_like, shape (k_y,) or (B, k_y)
-        Eigenvalues of the partial shape.
-
-    Returns
-    -------
-    torch.Tensor, shape () or (B,), int64
-        ``r`` in ``[1, k_y]``.
-    """
-    t, batched = _batched({"evals_x": (evals_x, 1), "evals_y": (evals_y, 1)}, torch.float64, torch.device("cpu"))
-    ex, ey = t["evals_x"].detach(), t["evals_y"].detach()
-    n = (ey < ex.max(dim=1, keepdim=True).values).sum(dim=1)
-    r = torch.clamp(n + 1, max=ey.shape[1])
-    return _unbatch(r, batched)
-
-
-def _partial_eye(evals_x, evals_y, k_y: int, n_batch: int, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
-    """(B, k_y, k_y) diagonal matrices with ``partial_rank`` leading ones."""
-    r = partial_rank(evals_x, evals_y)
-    r = r.reshape(-1).expand(n_batch) if r.ndim == 0 or r.shape[0] == 1 else r
-    if r.shape[0] != n_batch:
-        raise FunctionalMapError(f"the eigenvalues have batch size {r.shape[0]} but the functional maps {n_batch}.")
-    ones = (torch.arange(k_y).unsqueeze(0) < r.unsqueeze(1)).to(dtype=dtype)
-    return torch.diag_embed(ones).to(device)
-
-
-def partial_orthogonality_loss(C, evals_x, evals_y) -> torch.Tensor:
-    """Orthogonality penalty of a partial-to-full map: ``||C C^T - diag(1_r, 0)||^2``.
-
-    ``y`` is the partial shape and ``x`` the full one, so the point map y -> x is defined
-    everywhere and ``C`` (k_y, k_x) has (nearly) orthonormal rows for the ``r`` basis
-    functions of ``y`` that the ``k_x`` functions of ``x`` can represent, and rows near zero
-    beyond (the slanted diagonal of partial functional maps). ``r`` is `partial_rank`. As in
-    ULRSSM's ``PartialFmapsLoss`` the whole (k_y, k_y) product is compared with that
-    truncated identity.
-
-    Parameters
-    ----------
-    C : torch.Tensor, shape (k_y, k_x) or (B, k_y, k_x)
-        Map pulling functions back from the full ``x`` to the part ``y``.
-    evals_x : array_like, shape (k_x,) or (B, k_x)
-        Eigenvalues of the full shape.
-    evals_y : array_like, shape (k_y,) or (B, k_y)
-        Eigenvalues of the partial shape.
-
-    Returns
-    -------
-    torch.Tensor, shape ()
-        Squared Frobenius norm, averaged over the batch.
-    """
-    t, _ = _fmaps({"C": C})
-    c = t["C"]
-    _check_partial_evals(c, evals_x, evals_y)
-    eye = _partial_eye(evals_x, evals_y, c.shape[1], c.shape[0], c.dtype, c.device)
-    return _squared_frobenius(c @ c.transpose(1, 2) - eye)
-
-
-def partial_bijectivity_loss(C_xy, C_yx, evals_x, evals_y) -> torch.Tensor:
-    """Bijectivity penalty of a partial-to-full pair: ``||C_xy C_yx - diag(1_r, 0)||^2``.
-
-    ULRSSM's ``PartialFmapsLoss`` bijectivity term (``C_fp C_pf``), with ``y`` the part,
-    ``x`` the full shape and ``r`` from `partial_rank`.
-
-    Parameters
-    ----------
-    C_xy : torch.Tensor, shape (k_y, k_x) or (B, k_y, k_x)
-    C_yx : torch.Tensor, shape (k_x, k_y) or (B, k_x, k_y)
-    evals_x : array_like, shape (k_x,) or (B, k_x)
-        Eigenvalues of the full shape.
-    evals_y : array_like, shape (k_y,) or (B, k_y)
-        Eigenvalues of the partial shape.
-
-    Returns
-    -------
-    torch.Tensor, shape ()
-        Squared Frobenius norm, averaged over the batch.
-    """
-    t, _ = _fmaps({"C_xy": C_xy, "C_yx": C_yx})
-    c_xy, c_yx = t["C_xy"], t["C_yx"]
-    if c_yx.shape[1:] != c_xy.shape[1:][::-1]:
-        raise FunctionalMapError(
-            f"C_yx must have the transposed shape of C_xy, (k_x, k_y) = {tuple(c_xy.shape[1:][::-1])}; found {tuple(c_yx.shape[1:])}."
-        )
-    _check_partial_evals(c_xy, evals_x, evals_y)
-    eye = _partial_eye(evals_x, evals_y, c_xy.shape[1], c_xy.shape[0], c_xy.dtype, c_xy.device)
-    return _squared_frobenius(c_xy @ c_yx - eye)
-
-
-def _check_partial_evals(c: torch.Tensor, evals_x, evals_y) -> None:
-    t, _ = _batched({"evals_x": (evals_x, 1), "evals_y": (evals_y, 1)}, torch.float64, torch.device("cpu"))
-    _check_dim(t["evals_x"], 1, c.shape[2], "evals_x", "one eigenvalue per column of C (k_x), length")
-    _check_dim(t["evals_y"], 1, c.shape[1], "evals_y", "one eigenvalue per row of C (k_y), length")
+    return unbatch(torch.softmax(-sq_dist / temperature, dim=-1), batched)

@@ -2,7 +2,7 @@
 
 The descriptors hold the parameters and the backbone; the path itself (cameras -> rasterize +
 gray Phong shading -> backbone -> patch features sampled at the foreground pixels ->
-back-projection to vertices, in batches of views) is `geofeat.render.multiview_features`, the
+back-projection to vertices, in batches of views) is `geofeat.multiview.multiview_features`, the
 one the GeoLoRA trainer uses too.
 """
 
@@ -33,7 +33,8 @@ from geofeat.multiview.pipeline import (
     render_batches,
 )
 from geofeat.render import make_cameras
-from geofeat.render.cameras import CAMERA_LAYOUTS, Cameras
+from geofeat.render.camera_layouts import CAMERA_LAYOUTS
+from geofeat.render.cameras import Cameras
 
 if TYPE_CHECKING:
     from geofeat.backbones.dino import DinoBackbone

@@ -11,12 +11,9 @@ The rasterizer and the shader run on ``cameras.device`` (CPU or CUDA) with no co
 renders to the vertices are `geofeat.multiview`'s.
 """
 
-from geofeat.render.cameras import (
+from geofeat.render.camera_layouts import (
     CAMERA_LAYOUTS,
     OFFICIAL_DISTANCE_FACTOR,
-    OFFICIAL_FOV_DEGREES,
-    Cameras,
-    ProjectedPoints,
     fibonacci_cameras,
     fibonacci_directions,
     look_at_rotation,
@@ -25,6 +22,7 @@ from geofeat.render.cameras import (
     official_grid_cameras,
     orbit_cameras,
 )
+from geofeat.render.cameras import OFFICIAL_FOV_DEGREES, Cameras, ProjectedPoints
 from geofeat.render.pyrender_backend import gl_platform, pyrender_depth
 from geofeat.render.rasterizer import Fragments, MeshRasterizer, RasterSettings, rasterize
 from geofeat.render.shading import PhongSettings, Rendering, render_phong, shade_phong, vertex_normals

@@ -7,6 +7,7 @@ from shapes import bumpy
 
 import geofeat
 from geofeat.adapters.blocks import fmap_layers as fl
+from geofeat.adapters.blocks import fmap_losses as fls
 from geofeat.adapters.blocks import functional_maps as fm
 from geofeat.errors import FunctionalMapError, GeofeatError
 from geofeat.geometry.spectral import spectral_basis
@@ -73,12 +74,12 @@ def test_regularized_fmap_recovers_the_true_map(pair):
     assert c32.dtype == torch.float32
     np.testing.assert_allclose(c32.numpy(), pair.c_true, atol=5e-3)
     # the losses of the true map are about zero
-    assert fl.fmap_bijectivity_loss(c_xy, c_yx) < 1e-4
-    assert fl.fmap_orthogonality_loss(c_xy) < 1e-4 and fl.fmap_orthogonality_loss(c_yx) < 1e-4
-    assert fl.laplacian_commutativity_loss(c_xy, pair.basis_x.evals, pair.basis_y.evals) < 1e-2
+    assert fls.fmap_bijectivity_loss(c_xy, c_yx) < 1e-4
+    assert fls.fmap_orthogonality_loss(c_xy) < 1e-4 and fls.fmap_orthogonality_loss(c_yx) < 1e-4
+    assert fls.laplacian_commutativity_loss(c_xy, pair.basis_x.evals, pair.basis_y.evals) < 1e-2
     hard = torch.zeros(pair.y.n_vertices, pair.x.n_vertices, dtype=torch.float64)
     hard[torch.arange(pair.y.n_vertices), torch.as_tensor(pair.perm)] = 1.0
-    assert fl.coupling_loss(c_xy, hard, pair.basis_x.evecs, pair.basis_y.evecs, pair.basis_y.mass) < 1e-4
+    assert fls.coupling_loss(c_xy, hard, pair.basis_x.evecs, pair.basis_y.evecs, pair.basis_y.mass) < 1e-4
 
 
 def test_regularized_fmap_matches_the_numpy_solver(pair):
@@ -137,7 +138,7 @@ def test_gradients_flow_and_match_finite_differences():
 
     assert torch.autograd.gradcheck(both_maps, (feat_x, feat_y), eps=1e-6, atol=1e-6)
     c_xy, c_yx = both_maps(feat_x, feat_y)
-    loss = fl.fmap_bijectivity_loss(c_xy, c_yx) + fl.fmap_orthogonality_loss(c_xy)
+    loss = fls.fmap_bijectivity_loss(c_xy, c_yx) + fls.fmap_orthogonality_loss(c_xy)
     loss.backward()
     assert feat_x.grad.abs().sum() > 0 and feat_y.grad.abs().sum() > 0
 
@@ -145,7 +146,7 @@ def test_gradients_flow_and_match_finite_differences():
 
     def coupled(fx, fy):
         c = fl.regularized_fmap(fx, fy, *spectral, lambda_=0.5)
-        return fl.coupling_loss(c, fl.soft_pointmap(fx, fy, temperature=0.5), evecs_x, evecs_y, mass_y)
+        return fls.coupling_loss(c, fl.soft_pointmap(fx, fy, temperature=0.5), evecs_x, evecs_y, mass_y)
 
     assert torch.autograd.gradcheck(coupled, (feat_x, feat_y), eps=1e-6, atol=1e-6)
 
@@ -166,10 +167,10 @@ def test_batched_equals_unbatched():
     # losses of a batch are the means of the single losses
     evals_x, evals_y = stacked[6], stacked[7]
     for loss, args, single in [
-        (fl.fmap_bijectivity_loss, (c_xy, c_yx), lambda b: (c_xy[b], c_yx[b])),
-        (fl.fmap_orthogonality_loss, (c_xy,), lambda b: (c_xy[b],)),
-        (fl.laplacian_commutativity_loss, (c_xy, evals_x, evals_y), lambda b: (c_xy[b], evals_x[b], evals_y[b])),
-        (fl.partial_orthogonality_loss, (c_xy, evals_x, evals_y), lambda b: (c_xy[b], evals_x[b], evals_y[b])),
+        (fls.fmap_bijectivity_loss, (c_xy, c_yx), lambda b: (c_xy[b], c_yx[b])),
+        (fls.fmap_orthogonality_loss, (c_xy,), lambda b: (c_xy[b],)),
+        (fls.laplacian_commutativity_loss, (c_xy, evals_x, evals_y), lambda b: (c_xy[b], evals_x[b], evals_y[b])),
+        (fls.partial_orthogonality_loss, (c_xy, evals_x, evals_y), lambda b: (c_xy[b], evals_x[b], evals_y[b])),
     ]:
         torch.testing.assert_close(loss(*args), (loss(*single(0)) + loss(*single(1))) / 2)
     p = fl.soft_pointmap(stacked[0], stacked[1])
@@ -248,36 +249,36 @@ def test_losses_are_zero_for_the_identity_and_positive_for_a_random_map():
     k = 6
     eye = torch.eye(k, dtype=torch.float64)
     evals = torch.linspace(0.0, 5.0, k, dtype=torch.float64)
-    assert fl.fmap_bijectivity_loss(eye, eye) == 0
-    assert fl.fmap_orthogonality_loss(eye) == 0
-    assert fl.laplacian_commutativity_loss(eye, evals, evals) == 0
+    assert fls.fmap_bijectivity_loss(eye, eye) == 0
+    assert fls.fmap_orthogonality_loss(eye) == 0
+    assert fls.laplacian_commutativity_loss(eye, evals, evals) == 0
     random = torch.randn(k, k, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
-    assert fl.fmap_bijectivity_loss(random, random.T) > 0.1
-    assert fl.fmap_orthogonality_loss(random) > 0.1
-    assert fl.laplacian_commutativity_loss(random, evals, evals) > 0.1
+    assert fls.fmap_bijectivity_loss(random, random.T) > 0.1
+    assert fls.fmap_orthogonality_loss(random) > 0.1
+    assert fls.laplacian_commutativity_loss(random, evals, evals) > 0.1
     # values by hand: C = 2 I gives ||4 I - I||^2 = 9 k for each product
-    assert fl.fmap_orthogonality_loss(2 * eye).item() == pytest.approx(9 * k)
-    assert fl.fmap_bijectivity_loss(2 * eye, eye).item() == pytest.approx(2 * k)
+    assert fls.fmap_orthogonality_loss(2 * eye).item() == pytest.approx(9 * k)
+    assert fls.fmap_bijectivity_loss(2 * eye, eye).item() == pytest.approx(2 * k)
     swap = torch.tensor([[0.0, 1.0], [1.0, 0.0]], dtype=torch.float64)  # ||C diag(0, 1) - diag(0, 1) C||^2 = 2
-    assert fl.laplacian_commutativity_loss(swap, [0.0, 1.0], [0.0, 1.0]).item() == pytest.approx(2.0)
+    assert fls.laplacian_commutativity_loss(swap, [0.0, 1.0], [0.0, 1.0]).item() == pytest.approx(2.0)
 
 
 def test_partial_rank_and_losses():
     evals_full = torch.tensor([0.0, 1.0, 2.0, 3.0, 4.0])
     evals_part = torch.tensor([0.0, 2.5, 3.9, 6.0, 9.0])  # two below 4 besides 0: n = 3, r = n + 1 = 4
-    assert fl.partial_rank(evals_full, evals_part).item() == 4
-    assert fl.partial_rank(evals_full, evals_full * 10).item() == 2  # n = 1 (only the zero eigenvalue)
-    assert fl.partial_rank(evals_full, evals_full).item() == 5  # n = 4, clamped at k_y = 5
-    batched = fl.partial_rank(torch.stack([evals_full, evals_full]), torch.stack([evals_part, evals_full]))
+    assert fls.partial_rank(evals_full, evals_part).item() == 4
+    assert fls.partial_rank(evals_full, evals_full * 10).item() == 2  # n = 1 (only the zero eigenvalue)
+    assert fls.partial_rank(evals_full, evals_full).item() == 5  # n = 4, clamped at k_y = 5
+    batched = fls.partial_rank(torch.stack([evals_full, evals_full]), torch.stack([evals_part, evals_full]))
     assert batched.tolist() == [4, 5]
     truncated = torch.diag(torch.tensor([1.0, 1.0, 1.0, 1.0, 0.0]))
-    assert fl.partial_orthogonality_loss(truncated, evals_full, evals_part) == 0
-    assert fl.partial_bijectivity_loss(truncated, truncated, evals_full, evals_part) == 0
-    assert fl.partial_orthogonality_loss(torch.eye(5), evals_full, evals_part).item() == pytest.approx(1.0)
+    assert fls.partial_orthogonality_loss(truncated, evals_full, evals_part) == 0
+    assert fls.partial_bijectivity_loss(truncated, truncated, evals_full, evals_part) == 0
+    assert fls.partial_orthogonality_loss(torch.eye(5), evals_full, evals_part).item() == pytest.approx(1.0)
     # a non-square map (k_y = 3 rows of the part, k_x = 5 columns of the full shape): C C^T is (3, 3)
     wide = torch.zeros(3, 5)
     wide[0, 0] = wide[1, 1] = 1.0
-    assert fl.partial_orthogonality_loss(wide, evals_full, torch.tensor([0.0, 5.0, 8.0])) == 0  # n = 1, r = 2
+    assert fls.partial_orthogonality_loss(wide, evals_full, torch.tensor([0.0, 5.0, 8.0])) == 0  # n = 1, r = 2
 
 
 def test_partial_orthogonality_of_a_real_part():
@@ -291,10 +292,10 @@ def test_partial_orthogonality_of_a_real_part():
     k = 20
     bx, by = spectral_basis(x, k), spectral_basis(y, k)
     c = fm.fmap_from_pointmap(keep, bx, by, k)  # map_yx: vertex i of the part is vertex keep[i] of x
-    partial = fl.partial_orthogonality_loss(c, bx.evals, by.evals).item()
-    full = fl.fmap_orthogonality_loss(torch.tensor(c).T).item()  # ||C C^T - I||^2
+    partial = fls.partial_orthogonality_loss(c, bx.evals, by.evals).item()
+    full = fls.fmap_orthogonality_loss(torch.tensor(c).T).item()  # ||C C^T - I||^2
     area_ratio = y.area() / x.area()
-    assert abs(fl.partial_rank(bx.evals, by.evals).item() - area_ratio * k) <= 0.25 * k  # r follows the area ratio
+    assert abs(fls.partial_rank(bx.evals, by.evals).item() - area_ratio * k) <= 0.25 * k  # r follows the area ratio
     assert partial < 0.5 * full
 
 
@@ -330,14 +331,14 @@ def test_bad_inputs_raise_clear_errors():
         (lambda: fl.pointmap_to_fmap(torch.zeros(8, 7), evecs_x, evecs_y, mass_y), "columns"),
         (lambda: fl.pointmap_to_fmap(torch.full((8,), 9), evecs_x, evecs_y, mass_y), r"\[0, 8\]"),
         (lambda: fl.fmap_to_pointmap_soft(torch.eye(3), evecs_x[:, :2], evecs_y), "evecs_x"),
-        (lambda: fl.fmap_bijectivity_loss(torch.eye(3), torch.zeros(3, 4)), "transposed shape"),
-        (lambda: fl.laplacian_commutativity_loss(torch.eye(3), evals_x[:2], evals_y), "evals_x"),
-        (lambda: fl.coupling_loss(torch.eye(2), torch.eye(8, 9), evecs_x, evecs_y, mass_y), "shape"),
-        (lambda: fl.partial_orthogonality_loss(torch.eye(3), evals_x, evals_y[:2]), "evals_y"),
+        (lambda: fls.fmap_bijectivity_loss(torch.eye(3), torch.zeros(3, 4)), "transposed shape"),
+        (lambda: fls.laplacian_commutativity_loss(torch.eye(3), evals_x[:2], evals_y), "evals_x"),
+        (lambda: fls.coupling_loss(torch.eye(2), torch.eye(8, 9), evecs_x, evecs_y, mass_y), "shape"),
+        (lambda: fls.partial_orthogonality_loss(torch.eye(3), evals_x, evals_y[:2]), "evals_y"),
         (lambda: fl.resolvent_mask(evals_x, evals_y, gamma=2.0), "gamma"),
         (lambda: fl.RegularizedFMap(mask="cubic"), "mask"),
-        (lambda: fl.fmap_orthogonality_loss([["a", "b"], ["c", "d"]]), "array of numbers"),
-        (lambda: fl.fmap_orthogonality_loss(torch.ones(2, 2, dtype=torch.bool)), "real numbers"),
+        (lambda: fls.fmap_orthogonality_loss([["a", "b"], ["c", "d"]]), "array of numbers"),
+        (lambda: fls.fmap_orthogonality_loss(torch.ones(2, 2, dtype=torch.bool)), "real numbers"),
     ]
     for call, message in cases:
         with pytest.raises(FunctionalMapError, match=message) as info:
