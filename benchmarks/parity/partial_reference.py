@@ -416,6 +416,8 @@ def main() -> None:
     parser.add_argument("--work", help="folder for the official side's arrays (kept; reused when present)")
     parser.add_argument("--out", default=str(RESULTS / "partial_reference" / "parity"))
     args = parser.parse_args()
+    if args.draws < 1 or args.free < 2:
+        parser.error(f"--draws must be at least 1 and --free at least 2 (a distribution); found {args.draws} and {args.free}")
     args.data = str(data_folder(args.data))
     # the official shapes have what Mesh warns about (non-manifold edges where the clip merged
     # vertices, zero-area triangles beside a vertex near the plane): expected here, not news
