@@ -16,6 +16,8 @@ RESULTS = BENCHMARKS / "results"
 REPO = BENCHMARKS.parent
 #: The default of the scripts' data option: ``$GEOFEAT_DATA``, the library's setting (None when it is not set).
 DEFAULT_DATA = os.environ.get(DATA_ENV)
+#: The default of the reference scripts' ``--data-ext`` (the folder holding PSMAL/ and BeCoS/): ``$GEOFEAT_DATA_EXT``.
+DEFAULT_DATA_EXT = os.environ.get("GEOFEAT_DATA_EXT")
 
 
 def data_folder(given: str | os.PathLike | None, option: str = "--data") -> Path:
@@ -28,9 +30,8 @@ def data_folder(given: str | os.PathLike | None, option: str = "--data") -> Path
         is not set.
     """
     if not given:
-        raise SystemExit(
-            f"no data folder: pass {option} (the folder that holds FAUST_r/ and the other datasets) or set ${DATA_ENV}"
-        )
+        variable = "GEOFEAT_DATA_EXT" if option == "--data-ext" else DATA_ENV
+        raise SystemExit(f"no data folder: pass {option} (the folder that holds the datasets) or set ${variable}")
     return Path(given).expanduser()
 
 

@@ -32,8 +32,8 @@ the boundary length over the square root of the area and the number of component
 largest is kept. Time per partial shape: the median over the seeded draws, of the
 official generator, of its ground truth and of geofeat's draw (both in one call).
 
-    python -m benchmarks.parity.partial_reference --official-python /work/ref/venv/bin/python \\
-        --harness /work/ref/partial_harness.py --out benchmarks/results/partial_reference/parity
+    python -m benchmarks.parity.partial_reference --official-python /ref/venv/bin/python --data-ext /data_ext \\
+        --harness /ref/partial_harness.py --out benchmarks/results/partial_reference/parity
 """
 
 from __future__ import annotations
@@ -52,13 +52,12 @@ import torch
 from scipy.spatial import cKDTree
 from scipy.stats import ks_2samp
 
-from benchmarks.common import DEFAULT_DATA, REPO, RESULTS, data_folder, machine, write_results
+from benchmarks.common import DEFAULT_DATA, DEFAULT_DATA_EXT, RESULTS, data_folder, machine, write_results
 from geofeat import Mesh
 from geofeat.geometry.clip import clip_plane
 from geofeat.geometry.partial_reference import cut_partial_reference, draw_holes, holes_partial_reference
 from geofeat.topology import face_components, triangle_areas
 
-DEFAULT_EXT = os.environ.get("GEOFEAT_DATA_EXT", str(REPO.parent / "data_ext"))
 #: Vertices farther apart than this count as different.
 TOLERANCE = 1e-6
 METHODS = ("cuts", "holes")
@@ -410,7 +409,7 @@ def main() -> None:
     parser.add_argument("--official-python", required=True, help="python of the official environment (open3d, libigl, torch)")
     parser.add_argument("--harness", required=True, help="the official-side harness (kept outside this repository)")
     parser.add_argument("--data", default=DEFAULT_DATA, help="folder with FAUST_r/ (default $GEOFEAT_DATA)")
-    parser.add_argument("--data-ext", default=DEFAULT_EXT, help="folder with PSMAL/ and BeCoS/")
+    parser.add_argument("--data-ext", default=DEFAULT_DATA_EXT, help="folder with PSMAL/ and BeCoS/ (default $GEOFEAT_DATA_EXT)")
     parser.add_argument("--draws", type=int, default=200, help="seeded draws per method and shape")
     parser.add_argument("--free", type=int, default=500, help="free draws per method and shape")
     parser.add_argument("--work", help="folder for the official side's arrays (kept; reused when present)")
@@ -419,6 +418,7 @@ def main() -> None:
     if args.draws < 1 or args.free < 2:
         parser.error(f"--draws must be at least 1 and --free at least 2 (a distribution); found {args.draws} and {args.free}")
     args.data = str(data_folder(args.data))
+    args.data_ext = str(data_folder(args.data_ext, "--data-ext"))
     # the official shapes have what Mesh warns about (non-manifold edges where the clip merged
     # vertices, zero-area triangles beside a vertex near the plane): expected here, not news
     logging.getLogger("geofeat.mesh").setLevel(logging.ERROR)

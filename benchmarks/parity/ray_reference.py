@@ -17,8 +17,8 @@ distributions of the official RAY (kept vertex fraction, boundary length / sqrt(
 components of the hit faces), beside geofeat's own RAY (`geofeat.geometry.partial.ray_partial`,
 seeds 0 .. N-1, one free draw each). Last, the time per partial shape on the first shape.
 
-    python -m benchmarks.parity.ray_reference --official-python /work/ref/venv/bin/python \\
-        --harness /work/ref/ray_harness.py --out benchmarks/results/partial_reference/ray
+    python -m benchmarks.parity.ray_reference --official-python /ref/venv/bin/python --data-ext /data_ext \\
+        --harness /ref/ray_harness.py --out benchmarks/results/partial_reference/ray
 """
 
 from __future__ import annotations
@@ -35,7 +35,7 @@ from pathlib import Path
 import numpy as np
 
 import geofeat
-from benchmarks.common import DEFAULT_DATA, data_folder, machine, write_results
+from benchmarks.common import DEFAULT_DATA, DEFAULT_DATA_EXT, data_folder, machine, write_results
 from geofeat.geometry.partial import ray_partial
 from geofeat.geometry.visibility import visible_faces
 from geofeat.render.rasterizer import RasterSettings
@@ -47,12 +47,12 @@ GRAZE = 1e-3  # a ray this close (in pixels) to a triangle's boundary grazes it
 MISS = 65535  # the harness's triangle id of a ray that hits nothing
 
 
-def compared_shapes(data: Path) -> dict[str, Path]:
-    """The shapes compared, by name: FAUST_r tr_reg_080 of the ``--data`` folder, a PSMAL and a BeCoS-TOSCA shape."""
+def compared_shapes(data: Path, data_ext: Path) -> dict[str, Path]:
+    """The shapes compared, by name: FAUST_r tr_reg_080 of ``--data``, a PSMAL and a BeCoS-TOSCA shape of ``--data-ext``."""
     return {
         "FAUST_r tr_reg_080": data / "FAUST_r" / "off" / "tr_reg_080.off",
-        "PSMAL cuts_0_horse_01": Path("/work/data_ext/PSMAL/PARTIALSMAL/test/shapes/cuts_0_horse_01.off"),
-        "BeCoS-TOSCA 0_michael0": Path("/work/data_ext/BeCoS/partial_full/test/0/0_michael0.off"),
+        "PSMAL cuts_0_horse_01": data_ext / "PSMAL" / "PARTIALSMAL" / "test" / "shapes" / "cuts_0_horse_01.off",
+        "BeCoS-TOSCA 0_michael0": data_ext / "BeCoS" / "partial_full" / "test" / "0" / "0_michael0.off",
     }
 
 
@@ -347,9 +347,12 @@ def main(argv=None) -> int:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--repeats", type=int, default=50, help="draws timed on the first shape")
     parser.add_argument("--data", default=DEFAULT_DATA, help="the folder that holds FAUST_r/ (default $GEOFEAT_DATA)")
+    parser.add_argument(
+        "--data-ext", default=DEFAULT_DATA_EXT, help="the folder that holds PSMAL/ and BeCoS/ (default $GEOFEAT_DATA_EXT)"
+    )
     parser.add_argument("--out", default="benchmarks/results/partial_reference/ray")
     args = parser.parse_args(argv)
-    paths = compared_shapes(data_folder(args.data))
+    paths = compared_shapes(data_folder(args.data), data_folder(args.data_ext, "--data-ext"))
     missing = [str(path) for path in paths.values() if not path.is_file()]
     if missing:
         raise SystemExit(f"shapes not found: {missing}")
