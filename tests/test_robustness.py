@@ -1424,7 +1424,7 @@ POOL_SCRIPT = textwrap.dedent(
             threading.Thread(target=lambda: list(results), daemon=True).start()
         if which == "compute":
             from shapes import bumpy
-            from geofeat.descriptors.compute import compute_many
+            from geofeat.descriptors.collection import compute_many
             meshes = [bumpy(s, 4) for s in range(200)]
             threading.Thread(target=lambda: compute_many(meshes, "hks", n_jobs=2, cache=False), daemon=True).start()
 

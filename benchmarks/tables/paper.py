@@ -55,7 +55,7 @@ import geofeat
 from benchmarks.common import RESULTS, machine
 from geofeat.datasets.records import Match
 from geofeat.descriptors import make_descriptor
-from geofeat.descriptors.compute import compute_each
+from geofeat.descriptors.collection import compute_each
 from geofeat.errors import GeofeatError
 from geofeat.evaluation import evaluate_dataset, summarize
 from geofeat.evaluation.paper_benchmarks import (

@@ -43,7 +43,7 @@ from geofeat._version import __version__
 from geofeat.checks import check_integer, parse_key_values
 from geofeat.descriptors.base import Descriptor
 from geofeat.descriptors.cache import MANIFEST_SUFFIX, FeatureCache
-from geofeat.descriptors.compute import Computed, compute_each, default_prefetch
+from geofeat.descriptors.collection import Computed, compute_each, default_prefetch
 from geofeat.descriptors.registry import make_descriptor
 from geofeat.errors import ExtractError, GeofeatError
 from geofeat.mesh import MESH_SUFFIXES, Mesh, load_mesh
@@ -471,7 +471,7 @@ def extract(
         Shapes read, looked up and prepared (for the DINO descriptors: rendered) on a
         background thread ahead of the one being computed, so that the GPU is not left
         waiting for them; 0: none. None: 2 for the DINO descriptors, 0 for the others (see
-        `geofeat.descriptors.compute.compute_each`, which also gives the memory it costs).
+        `geofeat.descriptors.collection.compute_each`, which also gives the memory it costs).
         The features and the records are the same whatever its value.
     progress : bool
         Show a progress bar (rank 0's shard; on a terminal only, see `geofeat.runtime.progress`).

@@ -1,7 +1,8 @@
 """Descriptors: the `Descriptor` contract, the registry and `compute`."""
 
 from geofeat.descriptors.base import Descriptor
-from geofeat.descriptors.compute import compute, compute_many
+from geofeat.descriptors.collection import compute_many
+from geofeat.descriptors.compute import compute
 from geofeat.descriptors.registry import (
     DescriptorInfo,
     RegistryEntry,

@@ -9,7 +9,7 @@ from shapes import bumpy, sphere
 
 import geofeat
 from geofeat.descriptors import Descriptor, as_descriptor, make_descriptor
-from geofeat.descriptors.compute import compute_each, default_prefetch
+from geofeat.descriptors.collection import compute_each, default_prefetch
 from geofeat.descriptors.spectral import HKS, WKS
 from geofeat.errors import DescriptorError, MeshError
 
