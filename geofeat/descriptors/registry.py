@@ -53,6 +53,9 @@ def register(entry: RegistryEntry, overwrite: bool = False) -> None:
 register(RegistryEntry("hks", "geofeat.descriptors.spectral:HKS", summary="Heat Kernel Signature, log-spaced times"))
 register(RegistryEntry("wks", "geofeat.descriptors.spectral:WKS", summary="Wave Kernel Signature (ULRSSM/pyFM definition)"))
 register(
+    RegistryEntry("shot", "geofeat.descriptors.shot:SHOT", summary="SHOT histograms of normal orientations (pyshot definition)")
+)
+register(
     RegistryEntry(
         "dinov2",
         "geofeat.descriptors.dino:DINOv2",
