@@ -145,7 +145,7 @@ def _frames(q: np.ndarray, sq: np.ndarray, qi: np.ndarray, n_query: int, radius:
     x_axis, z_axis = vecs[:, :, 2], vecs[:, :, 0]
     tie = np.zeros(n_query, dtype=bool)
     for axis in (x_axis, z_axis):
-        positive = np.bincount(qi, weights=np.einsum("pd,pd->p", q, axis[qi]) >= 0, minlength=n_query)
+        positive = np.bincount(qi, weights=np.einsum("pd,pd->p", q, axis[qi]) > 0, minlength=n_query)
         axis[positive < n - positive] *= -1
         tie |= 2 * positive == n
     frames = np.stack([x_axis, np.cross(z_axis, x_axis), z_axis], axis=1)
@@ -240,6 +240,7 @@ def shot_descriptors(
     pairs_per_chunk: int = PAIRS_PER_CHUNK,
     progress: bool = False,
     return_frames: bool = False,
+    queries: np.ndarray | None = None,
 ) -> tuple[np.ndarray, dict]:
     """SHOT histograms of every vertex, as the reference computes them.
 
@@ -259,10 +260,13 @@ def shot_descriptors(
         Show a progress bar over the chunks.
     return_frames : bool
         Add the frames of every vertex to the report (``"frames"``: a `ShotFrames`).
+    queries : numpy.ndarray of int, shape (Q,), optional
+        Describe only these vertices (their neighbours are still all vertices); rows and
+        report entries follow this order. Default: every vertex.
 
     Returns
     -------
-    features : numpy.ndarray, shape (V, n_volumes * (n_bins + 1)), float64
+    features : numpy.ndarray, shape (V, n_volumes * (n_bins + 1)) or (Q, ...), float64
         n_volumes = 32 with ``double_volumes_sectors``, else 16. Rows of vertices with fewer
         than ``max(5, min_neighbors)`` neighbours, or with every neighbour closer than 1e-3,
         are zero.
@@ -271,9 +275,10 @@ def shot_descriptors(
         (bool, shape (V,)), and ``"frames"`` when asked.
     """
     radius = float(np.float32(radius))
-    n_vertices = len(verts)
     tree = cKDTree(verts)
-    counts = tree.query_ball_point(verts, radius, return_length=True).astype(np.int64)
+    queries = np.arange(len(verts)) if queries is None else np.asarray(queries, dtype=np.int64)
+    n_vertices = len(queries)
+    counts = tree.query_ball_point(verts[queries], radius, return_length=True).astype(np.int64)
     bounds = [0]
     total = 0
     for i, c in enumerate(counts):
@@ -291,14 +296,14 @@ def shot_descriptors(
     n_all = np.zeros(n_vertices, dtype=np.int64)
     chunks = list(zip(bounds[:-1], bounds[1:], strict=True))
     for start, stop in progress_bar(chunks, show=progress, desc="shot", unit="chunk", delay=1.0):
-        queries = np.arange(start, stop)
-        qi, nj = _chunk_pairs(tree, verts, queries, radius)
-        q = verts[nj] - verts[queries[qi]]
+        chunk = queries[start:stop]
+        qi, nj = _chunk_pairs(tree, verts, chunk, radius)
+        q = verts[nj] - verts[chunk[qi]]
         sq = np.einsum("pd,pd->p", q, q)
-        lrf = _frames(q, sq, qi, len(queries), radius)
+        lrf = _frames(q, sq, qi, len(chunk), radius)
         cos = np.clip(np.einsum("pd,pd->p", lrf.frames[qi, 2], normals[nj]), -1.0, 1.0)
         hist, n_binned = _histograms(
-            q, sq, cos, qi, lrf.frames, len(queries), radius, n_bins, double_volumes_sectors, use_interpolation
+            q, sq, cos, qi, lrf.frames, len(chunk), radius, n_bins, double_volumes_sectors, use_interpolation
         )
         too_few = lrf.n_neighbors < max(MIN_LRF_NEIGHBORS, min_neighbors)
         nothing = ~too_few & (n_binned == 0)
@@ -355,7 +360,8 @@ class SHOT(Descriptor):
       vertex itself excluded; R is rounded to float32;
     * the frame comes from the covariance of the neighbours centred on the vertex with
       weights ``R - d²``; X is the axis of largest variance, Z of smallest, each pointed to
-      the side that holds more neighbours, Y = Z x X. Z is therefore not the surface normal
+      the side that holds more neighbours (one on the plane counts for the negative side), Y = Z x X.
+      Z is therefore not the surface normal
       (it points inward on convex parts). The weights mix units (a length minus an area), so
       the frames, and the features, change a little when a shape and its radius are scaled
       together: relative radii (``radius_unit``) give the same neighbourhoods, not the same

@@ -1,0 +1,191 @@
+"""geofeat's SHOT against pyshot (the reference DeepShapeMatchingKit calls), shape by shape and parameter set by set.
+
+geofeat side: `geofeat.descriptors.shot.shot_descriptors` with the normals `SHOT` uses
+(point clouds: ``cloud_normals="zero"``, as pyshot). Reference side: ``pyshot.get_descriptors``
+run by a small harness in pyshot's own environment (``--reference-python``; pyshot is GPL-3.0
+and compiled, so it is kept outside this repository, as is the harness, ``--harness``). The
+harness is called as ``PYTHON HARNESS IN.npz OUT.npz PARAMS_JSON``: ``IN.npz`` holds ``verts``
+(V, 3) float64 and ``faces`` (F, 3) int64 (none for a point cloud); ``OUT.npz`` gets
+``descriptors`` (V, L) and ``wall_time`` (seconds).
+
+Shapes: FAUST_r tr_reg_080 (``--data``), PSMAL cuts_0_horse_01 (``--data-ext``), a CUTS partial
+shape of tr_reg_080 (`geofeat.geometry.partial.make_partial`, seed 0) and the vertices of
+tr_reg_081 as a point cloud. Parameter sets: DeepShapeMatchingKit's (`SHOT_PRESETS`) and three
+others. Per shape and set the table gives the largest absolute difference per entry, the
+same outside the vertices whose frame has a sign tie (as many neighbours on each side of an
+axis: pyshot keeps Eigen's arbitrary sign there), the share of vertices differing by more
+than 1e-5, the ties, the zero rows of each side and both wall times.
+
+    python -m benchmarks.parity.shot --reference-python /ref/shot/venv/bin/python --harness /ref/shot/harness.py \\
+        --data /data --data-ext /data_ext [--record tests/data]
+
+``--record DIR`` also writes ``DIR/shot_reference.npz``: pyshot's rows of every 50th vertex of
+tr_reg_080 (DeepShapeMatchingKit's parameters and a second set) and of every 10th point of a
+642-point bumpy sphere cloud, which ``tests/descriptors/test_shot_reference.py`` compares with
+geofeat without pyshot installed.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import subprocess
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+import geofeat
+from benchmarks.common import DEFAULT_DATA, DEFAULT_DATA_EXT, RESULTS, data_folder, write_results
+from geofeat.descriptors.shot import SHOT, SHOT_PRESETS, shot_descriptors
+from geofeat.geometry.partial import make_partial
+
+#: Parameter sets compared (pyshot's names); the first is DeepShapeMatchingKit's.
+PARAM_SETS: dict[str, dict] = {
+    "dsmk": {k: v for k, v in SHOT_PRESETS["dsmk"].items() if k != "radius_unit"},
+    "r0.1_b7_16vol": {"radius": 0.1, "min_neighbors": 3, "n_bins": 7, "double_volumes_sectors": False},
+    "r0.05_b10_nointerp": {"radius": 0.05, "n_bins": 10, "use_interpolation": False},
+    "r0.03_b5_min8_nonorm": {"radius": 0.03, "min_neighbors": 8, "use_normalization": False},
+}
+#: Entries further apart than this count as a differing vertex.
+TOLERANCE = 1e-5
+#: Rows recorded for the CI test: every ``RECORD_STEP``-th vertex of tr_reg_080.
+RECORD_STEP = 50
+
+
+def shapes(data: Path, data_ext: Path) -> dict[str, geofeat.Mesh]:
+    """The four inputs: FAUST_r, PSMAL, a CUTS partial shape, a point cloud."""
+    faust = geofeat.load_mesh(data / "FAUST_r" / "off" / "tr_reg_080.off")
+    return {
+        "FAUST_r tr_reg_080": faust,
+        "PSMAL cuts_0_horse_01": geofeat.load_mesh(
+            data_ext / "PSMAL" / "PARTIALSMAL" / "test" / "shapes" / "cuts_0_horse_01.off"
+        ),
+        "CUTS of tr_reg_080 (seed 0)": make_partial(faust, "cuts", seed=0).mesh,
+        "cloud: tr_reg_081 vertices": geofeat.Mesh(geofeat.load_mesh(data / "FAUST_r" / "off" / "tr_reg_081.off").verts),
+    }
+
+
+def reference(python: str, harness: str, mesh: geofeat.Mesh, params: dict, work: Path) -> tuple[np.ndarray, float]:
+    """pyshot's descriptors of ``mesh`` (V, L) and its wall time, via the harness."""
+    src, out = work / "in.npz", work / "out.npz"
+    arrays = {"verts": np.asarray(mesh.verts, dtype=np.float64)}
+    if mesh.faces is not None:
+        arrays["faces"] = np.asarray(mesh.faces, dtype=np.int64)
+    np.savez(src, **arrays)
+    subprocess.run([python, harness, str(src), str(out), json.dumps(params)], check=True, capture_output=True, text=True)
+    with np.load(out) as result:
+        return result["descriptors"], float(result["wall_time"])
+
+
+def ours(mesh: geofeat.Mesh, params: dict, queries: np.ndarray | None = None) -> tuple[np.ndarray, dict, float]:
+    """geofeat's descriptors (pyshot's conventions: zero normals on clouds), the report and the wall time."""
+    normals = SHOT(cloud_normals="zero").normals(mesh)
+    start = time.perf_counter()
+    features, report = shot_descriptors(mesh.verts, normals, queries=queries, **params)
+    return features, report, time.perf_counter() - start
+
+
+def compare(mesh: geofeat.Mesh, params: dict, python: str, harness: str, work: Path) -> dict:
+    """One row of the table."""
+    theirs, t_ref = reference(python, harness, mesh, params, work)
+    mine, report, t_ours = ours(mesh, params)
+    finite = np.isfinite(theirs).all(axis=1)
+    diff = np.where(finite[:, None], np.abs(mine - np.nan_to_num(theirs)), 0.0).max(axis=1)
+    tie = report["sign_tie"]
+    return {
+        "vertices": mesh.n_vertices,
+        "max_abs": float(diff.max()),
+        "max_abs_without_ties": float(diff[~tie].max()) if (~tie).any() else 0.0,
+        "max_abs_reference": float(np.abs(np.nan_to_num(theirs)).max()),
+        "share_over_tol": float(np.mean(diff > TOLERANCE)),
+        "over_tol_without_ties": int(np.count_nonzero((diff > TOLERANCE) & ~tie)),
+        "sign_ties": int(tie.sum()),
+        "nan_rows_reference": int(np.count_nonzero(~finite)),
+        "zero_rows_ours": int(np.count_nonzero(~mine.any(axis=1))),
+        "zero_rows_reference": int(np.count_nonzero(~np.nan_to_num(theirs).any(axis=1))),
+        "seconds_ours": t_ours,
+        "seconds_reference": t_ref,
+    }
+
+
+def table(rows: list[dict]) -> str:
+    """Markdown table of the comparison rows."""
+    lines = [
+        "| shape | parameters | V | max abs | max abs w/o ties (largest value) | share > 1e-5 | > 1e-5 w/o ties | ties "
+        "| zero rows ours / pyshot | NaN rows pyshot | s ours / pyshot |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        lines.append(
+            f"| {r['shape']} | {r['params']} | {r['vertices']} | {r['max_abs']:.2e} | {r['max_abs_without_ties']:.2e} ({r['max_abs_reference']:.3g}) | "
+            f"{100 * r['share_over_tol']:.2f}% | {r['over_tol_without_ties']} | {r['sign_ties']} | {r['zero_rows_ours']} / {r['zero_rows_reference']} | "
+            f"{r['nan_rows_reference']} | {r['seconds_ours']:.2f} / {r['seconds_reference']:.2f} |"
+        )
+    return "\n".join(lines)
+
+
+def bumpy_cloud(n: int = 642, seed: int = 0) -> np.ndarray:
+    """``n`` random points on a bumpy sphere, shape (n, 3): the recorded point cloud (no symmetry, so few sign ties)."""
+    rng = np.random.default_rng(seed)
+    points = rng.normal(size=(n, 3))
+    points /= np.linalg.norm(points, axis=1, keepdims=True)
+    return points * (1 + 0.1 * np.sin(3 * points[:, :1]) * np.cos(2 * points[:, 1:2]))
+
+
+#: What the CI test checks: (name, params, shape key, row step).
+RECORDED = (
+    ("faust_dsmk", PARAM_SETS["dsmk"], "faust", RECORD_STEP),
+    ("faust_r0.1_b7_16vol", PARAM_SETS["r0.1_b7_16vol"], "faust", RECORD_STEP),
+    ("cloud_r0.5_b5_nonorm", {"radius": 0.5, "n_bins": 5, "use_normalization": False}, "cloud", 10),
+)
+
+
+def record_reference(folder: Path, faust: geofeat.Mesh, python: str, harness: str, work: Path) -> Path:
+    """Write ``shot_reference.npz``, the reference rows of `RECORDED`, for the CI test; returns the file."""
+    cloud = geofeat.Mesh(bumpy_cloud())
+    inputs = {"faust": faust, "cloud": cloud}
+    arrays: dict[str, np.ndarray] = {"cloud_verts": np.asarray(cloud.verts), "faust_verts_sum": np.asarray(faust.verts).sum(0)}
+    for name, params, key, step in RECORDED:
+        theirs, _ = reference(python, harness, inputs[key], params, work)
+        rows = np.arange(0, inputs[key].n_vertices, step)
+        arrays[f"{name}_rows"] = rows
+        arrays[f"{name}_descriptors"] = theirs[rows].astype(np.float32)  # pyshot's values are float32
+        arrays[f"{name}_params"] = np.array(json.dumps(params))
+    folder.mkdir(parents=True, exist_ok=True)
+    path = folder / "shot_reference.npz"
+    np.savez_compressed(path, **arrays)
+    return path
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n", 1)[0])
+    parser.add_argument("--reference-python", required=True, help="python of pyshot's environment")
+    parser.add_argument("--harness", required=True, help="the pyshot harness (kept outside this repository)")
+    parser.add_argument("--data", default=DEFAULT_DATA, help="folder with FAUST_r/ (default $GEOFEAT_DATA)")
+    parser.add_argument("--data-ext", default=DEFAULT_DATA_EXT, help="folder with PSMAL/ (default $GEOFEAT_DATA_EXT)")
+    parser.add_argument("--record", help="also write shot_reference.npz (the CI test's reference rows) to this folder")
+    parser.add_argument("--out", default=str(RESULTS / "parity" / "parity_shot"))
+    args = parser.parse_args()
+    meshes = shapes(data_folder(args.data), data_folder(args.data_ext, "--data-ext"))
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        work = Path(tmp)
+        for shape, mesh in meshes.items():
+            for name, params in PARAM_SETS.items():
+                rows.append({"shape": shape, "params": name, **compare(mesh, params, args.reference_python, args.harness, work)})
+        if args.record:
+            record_reference(Path(args.record), meshes["FAUST_r tr_reg_080"], args.reference_python, args.harness, work)
+    result = {
+        "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+        "param_sets": PARAM_SETS,
+        "tolerance": TOLERANCE,
+        "rows": rows,
+    }
+    write_results(args.out, result, table(rows))
+
+
+if __name__ == "__main__":
+    main()
