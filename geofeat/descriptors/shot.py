@@ -14,6 +14,8 @@ memory is bounded by `PAIRS_PER_CHUNK` whatever the mesh size.
 from __future__ import annotations
 
 import logging
+import os
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
@@ -35,8 +37,8 @@ __all__ = ["CLOUD_NORMALS", "PAIRS_PER_CHUNK", "RADIUS_UNITS", "SHOT", "SHOT_PRE
 RADIUS_UNITS = ("absolute", "sqrt_area", "diameter")
 #: Normals of a point cloud: estimated (`geofeat.geometry.normals.vertex_normals`) or zero (pyshot's).
 CLOUD_NORMALS = ("estimate", "zero")
-#: Largest number of (query, neighbour) pairs held at once (about 0.5 GB of temporaries).
-PAIRS_PER_CHUNK = 2_000_000
+#: Largest number of (query, neighbour) pairs one worker holds at once (about 100 MB of temporaries).
+PAIRS_PER_CHUNK = 250_000
 #: The reference needs this many neighbours for a local reference frame, whatever ``min_neighbors`` says.
 MIN_LRF_NEIGHBORS = 5
 #: Neighbours closer than this squared distance (input units) are counted but not binned (the reference's rule).
@@ -103,7 +105,9 @@ def _octant(x: np.ndarray, y: np.ndarray) -> np.ndarray:
     return k
 
 
-def _chunk_pairs(tree: cKDTree, verts: np.ndarray, queries: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray]:
+def _chunk_pairs(
+    tree: cKDTree, verts: np.ndarray, queries: np.ndarray, radius: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """(query, neighbour) pairs with squared distance < radius² (in float32), the query removed as the reference does.
 
     The reference sorts a query's neighbours by (distance, index) and drops the first entry
@@ -114,6 +118,8 @@ def _chunk_pairs(tree: cKDTree, verts: np.ndarray, queries: np.ndarray, radius: 
     -------
     qi, nj : numpy.ndarray, shape (P,), int64
         Positions in ``queries`` and vertex indices of the neighbours.
+    q, sq : numpy.ndarray, shapes (P, 3) and (P,), float64
+        Offsets of the neighbours from their query and their squared lengths.
     """
     pairs = cKDTree(verts[queries]).sparse_distance_matrix(tree, radius, output_type="ndarray")
     qi, nj = pairs["i"].astype(np.int64), pairs["j"].astype(np.int64)
@@ -126,104 +132,120 @@ def _chunk_pairs(tree: cKDTree, verts: np.ndarray, queries: np.ndarray, radius: 
     has_lower_twin = np.zeros(len(queries), dtype=bool)
     has_lower_twin[qi[lower_twin & keep]] = True
     keep &= ~is_self | has_lower_twin[qi]
-    return qi[keep], nj[keep]
+    return qi[keep], nj[keep], diff[keep], sq[keep]
 
 
-def _frames(q: np.ndarray, sq: np.ndarray, qi: np.ndarray, n_query: int, radius: float) -> ShotFrames:
-    """Local reference frames from neighbour offsets ``q`` (P, 3), squared distances ``sq`` (P,) and owners ``qi`` (P,)."""
+def _frames(q: np.ndarray, sq: np.ndarray, qi: np.ndarray, n_query: int, radius: float) -> tuple[ShotFrames, np.ndarray]:
+    """Local reference frames from neighbour offsets ``q`` (P, 3), squared distances ``sq`` (P,) and owners ``qi`` (P,).
+
+    Returns the frames and the offsets in them, ``(q . X, q . Y, q . Z)`` per pair, shape (P, 3).
+    """
     n = np.bincount(qi, minlength=n_query)
-    weights = radius - sq  # the reference weighs by R - d² (squared distance)
+    weighted = q * (radius - sq)[:, None]  # the reference weighs by R - d² (squared distance)
     cov = np.empty((n_query, 3, 3))
     for a in range(3):
         for b in range(a, 3):
-            cov[:, a, b] = cov[:, b, a] = np.bincount(qi, weights=weights * q[:, a] * q[:, b], minlength=n_query)
-    total = np.bincount(qi, weights=weights, minlength=n_query)
+            cov[:, a, b] = cov[:, b, a] = np.bincount(qi, weights=weighted[:, a] * q[:, b], minlength=n_query)
+    total = np.bincount(qi, weights=radius - sq, minlength=n_query)
     valid = n >= MIN_LRF_NEIGHBORS
     cov[valid] /= total[valid, None, None]
     cov[~valid] = np.eye(3)
     _, vecs = np.linalg.eigh(cov)  # ascending eigenvalues
     x_axis, z_axis = vecs[:, :, 2], vecs[:, :, 0]
-    tie = np.zeros(n_query, dtype=bool)
-    for axis in (x_axis, z_axis):
-        positive = np.bincount(qi, weights=np.einsum("pd,pd->p", q, axis[qi]) > 0, minlength=n_query)
-        axis[positive < n - positive] *= -1
-        tie |= 2 * positive == n
     frames = np.stack([x_axis, np.cross(z_axis, x_axis), z_axis], axis=1)
-    return ShotFrames(frames, n.astype(np.int64), tie & valid)
+    local = np.einsum("pkd,pd->pk", frames[qi], q)
+    # each of X and Z points to the side with more neighbours (strictly positive ones; a tie keeps the sign)
+    signs = np.ones((n_query, 3))
+    tie = np.zeros(n_query, dtype=bool)
+    for axis in (0, 2):
+        positive = np.bincount(qi, weights=local[:, axis] > 0, minlength=n_query)
+        signs[positive < n - positive, axis] = -1.0
+        tie |= 2 * positive == n
+    signs[:, 1] = signs[:, 0] * signs[:, 2]  # Y = Z x X
+    frames *= signs[:, :, None]
+    local *= signs[qi]
+    return ShotFrames(frames, n.astype(np.int64), tie & valid), local
+
+
+def _sectors(x: np.ndarray, y: np.ndarray, phi: np.ndarray) -> np.ndarray:
+    """`_octant` of every pair from the azimuth ``phi = atan2(y, x)``, exact on the boundaries, shape of ``x``, int64."""
+    k = np.ceil((phi + np.pi) / (np.pi / 4)).astype(np.int64) - 1
+    np.clip(k, 0, 7, out=k)
+    edge = np.flatnonzero((np.abs(x) == np.abs(y)) | (x == 0) | (y == 0))
+    k[edge] = _octant(x[edge], y[edge])
+    return k
 
 
 def _histograms(
-    q: np.ndarray,
+    local: np.ndarray,
     sq: np.ndarray,
     cos: np.ndarray,
     qi: np.ndarray,
-    frames: np.ndarray,
     n_query: int,
     radius: float,
     n_bins: int,
     double_volumes: bool,
     interpolate: bool,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Unnormalised histograms (n_query, n_volumes * (n_bins + 1)) and the number of binned neighbours per query."""
-    n_sectors = 8 if double_volumes else 4
-    n_volumes = 4 * n_sectors
+    """Unnormalised histograms (n_query, n_volumes * (n_bins + 1)) and the number of binned neighbours per query.
+
+    With interpolation every binned neighbour adds ``1 - |s|`` of each of its four
+    interpolation offsets ``s`` (cosine, radial, elevation, azimuth) to its own cell and
+    ``|s|`` (or nothing, on the far side of a bin centre) to the neighbouring cell of that
+    offset, which is the reference's sum written without its branches.
+    """
+    n_volumes = 32 if double_volumes else 16
     width = n_bins + 1
     binned = sq >= SKIP_SQUARED_DISTANCE
-    q, sq, cos, qi = q[binned], sq[binned], cos[binned], qi[binned]
-    local = np.einsum("pkd,pd->pk", frames[qi], q)
+    if not binned.all():
+        local, sq, cos, qi = local[binned], sq[binned], cos[binned], qi[binned]
     local[np.abs(local) < ZERO_COORDINATE] = 0.0
     x, y, z = local[:, 0], local[:, 1], local[:, 2]
     dist = np.sqrt(sq)
-    sector = _octant(x, y) if double_volumes else _octant(x, y) // 2
+    phi = np.arctan2(y, x)
+    sector = _sectors(x, y, phi)
+    if not double_volumes:
+        sector //= 2
     outer = dist > radius / 2
     volume = 4 * sector + 2 * outer + (z > 0)
     t = (1.0 + cos) * (n_bins / 2.0)
     b = np.floor(t + 0.5).astype(np.int64)
     row = qi * (n_volumes * width)
+    own = row + volume * width
     size = n_query * n_volumes * width
     if not interpolate:
-        hist = np.bincount(row + volume * width + b, minlength=size)
+        hist = np.bincount(own + b, minlength=size)
         return hist.reshape(n_query, -1).astype(np.float64), np.bincount(qi, minlength=n_query)
-
-    cells, masses = [], []
-
-    def add(vol: np.ndarray, cos_bin: np.ndarray, mass: np.ndarray) -> None:
-        cells.append(row + vol * width + cos_bin)
-        masses.append(mass)
 
     # cosine: the share goes to the next bin modulo n_bins (bin n_bins - 1 wraps to 0)
     frac = t - b
-    main = 1.0 - np.abs(frac)
-    add(volume, np.where(frac > 0, (b + 1) % n_bins, (b - 1 + n_bins) % n_bins), np.abs(frac))
-    # radial
-    r_out = (dist - 3 * radius / 4) / (radius / 2)
-    r_in = (dist - radius / 4) / (radius / 2)
-    far, near = dist > 3 * radius / 4, dist < radius / 4
-    main += np.where(outer, np.where(far, 1 - r_out, 1 + r_out), np.where(near, 1 + r_in, 1 - r_in))
-    to_inner = outer & ~far
-    to_outer = ~outer & ~near
-    add(volume - 2 * to_inner + 2 * to_outer, b, np.where(to_inner, -r_out, np.where(to_outer, r_in, 0.0)))
-    # elevation
+    cos_share = np.abs(frac)
+    cos_cell = own + np.where(frac > 0, (b + 1) % n_bins, (b - 1 + n_bins) % n_bins)
+    own += b
+    # radial: offset from the centre of the shell (R/4 or 3R/4), in units of R/2
+    radial = (dist - np.where(outer, 3 * radius / 4, radius / 4)) / (radius / 2)
+    radial_share = np.maximum(np.where(outer, -radial, radial), 0.0)
+    radial_cell = own + np.where(outer, -2 * width, 2 * width)
+    # elevation: offset from 45 or 135 degrees, in units of 90 degrees
     alpha = np.arccos(np.clip(z / dist, -1.0, 1.0))
     lower = (alpha > _PI_2) | ((np.abs(alpha - _PI_2) < 1e-6) & (z <= 0))
-    e_low = (alpha - _PI_3_4) / _PI_2
-    e_up = (alpha - _PI_4) / _PI_2
-    below, above = alpha > _PI_3_4, alpha < _PI_4
-    main += np.where(lower, np.where(below, 1 - e_low, 1 + e_low), np.where(above, 1 + e_up, 1 - e_up))
-    to_up = lower & ~below
-    to_down = ~lower & ~above
-    add(volume + to_up - to_down, b, np.where(to_up, -e_low, np.where(to_down, e_up, 0.0)))
-    # azimuth: neighbouring sector modulo n_volumes - 4 (the reference's wrap-around)
+    elevation = (alpha - np.where(lower, _PI_3_4, _PI_4)) / _PI_2
+    elevation_share = np.maximum(np.where(lower, -elevation, elevation), 0.0)
+    elevation_cell = own + np.where(lower, width, -width)
+    # azimuth: offset from the sector centre; the neighbour sector wraps modulo n_volumes - 4 (the reference's)
+    if double_volumes:
+        azimuth = np.clip((phi - (-_PI_7_8 + _PI_4 * sector)) / _PI_4, -0.5, 0.5)
+    else:
+        azimuth = np.clip((phi - (-_PI_3_4 + 2 * _PI_4 * sector)) / (2 * _PI_4), -0.5, 0.5)
     has_azimuth = (x != 0) | (y != 0)
-    span = 2 * _PI_4 if not double_volumes else _PI_4
-    centre = -_PI_7_8 + _PI_4 * sector if double_volumes else -_PI_3_4 + 2 * _PI_4 * sector
-    a = np.clip((np.arctan2(y, x) - centre) / span, -0.5, 0.5)
-    a = np.where(has_azimuth, a, 0.0)
-    main += np.where(has_azimuth, np.where(a > 0, 1 - a, 1 + a), 0.0)
+    azimuth[~has_azimuth] = 0.0
+    azimuth_share = np.abs(azimuth)
     wrap = n_volumes - 4
-    add(np.where(a > 0, (volume + 4) % wrap, (volume - 4 + wrap) % wrap), b, np.abs(a))
-    add(volume, b, main)
-    hist = np.bincount(np.concatenate(cells), weights=np.concatenate(masses), minlength=size)
+    azimuth_cell = row + np.where(azimuth > 0, (volume + 4) % wrap, (volume - 4 + wrap) % wrap) * width + b
+    main = (3.0 + has_azimuth) - cos_share - np.abs(radial) - np.abs(elevation) - azimuth_share
+    cells = np.concatenate([own, cos_cell, radial_cell, elevation_cell, azimuth_cell])
+    masses = np.concatenate([main, cos_share, radial_share, elevation_share, azimuth_share])
+    hist = np.bincount(cells, weights=masses, minlength=size)
     return hist.reshape(n_query, -1).astype(np.float64, copy=False), np.bincount(qi, minlength=n_query)
 
 
@@ -241,6 +263,7 @@ def shot_descriptors(
     progress: bool = False,
     return_frames: bool = False,
     queries: np.ndarray | None = None,
+    workers: int | None = None,
 ) -> tuple[np.ndarray, dict]:
     """SHOT histograms of every vertex, as the reference computes them.
 
@@ -263,6 +286,9 @@ def shot_descriptors(
     queries : numpy.ndarray of int, shape (Q,), optional
         Describe only these vertices (their neighbours are still all vertices); rows and
         report entries follow this order. Default: every vertex.
+    workers : int, optional
+        Threads working on chunks at once (default: the CPU count); each holds up to
+        ``pairs_per_chunk`` pairs. The result does not depend on it.
 
     Returns
     -------
@@ -294,28 +320,35 @@ def shot_descriptors(
     tie = np.zeros(n_vertices, dtype=bool)
     frames_all = np.zeros((n_vertices, 3, 3)) if return_frames else None
     n_all = np.zeros(n_vertices, dtype=np.int64)
-    chunks = list(zip(bounds[:-1], bounds[1:], strict=True))
-    for start, stop in progress_bar(chunks, show=progress, desc="shot", unit="chunk", delay=1.0):
-        chunk = queries[start:stop]
-        qi, nj = _chunk_pairs(tree, verts, chunk, radius)
-        q = verts[nj] - verts[chunk[qi]]
-        sq = np.einsum("pd,pd->p", q, q)
-        lrf = _frames(q, sq, qi, len(chunk), radius)
+    min_count = max(MIN_LRF_NEIGHBORS, min_neighbors)
+
+    def describe(bound: tuple[int, int]) -> tuple[np.ndarray, np.ndarray, np.ndarray, ShotFrames]:
+        chunk = queries[bound[0] : bound[1]]
+        qi, nj, q, sq = _chunk_pairs(tree, verts, chunk, radius)
+        lrf, local = _frames(q, sq, qi, len(chunk), radius)
         cos = np.clip(np.einsum("pd,pd->p", lrf.frames[qi, 2], normals[nj]), -1.0, 1.0)
-        hist, n_binned = _histograms(
-            q, sq, cos, qi, lrf.frames, len(chunk), radius, n_bins, double_volumes_sectors, use_interpolation
-        )
-        too_few = lrf.n_neighbors < max(MIN_LRF_NEIGHBORS, min_neighbors)
+        hist, n_binned = _histograms(local, sq, cos, qi, len(chunk), radius, n_bins, double_volumes_sectors, use_interpolation)
+        too_few = lrf.n_neighbors < min_count
         nothing = ~too_few & (n_binned == 0)
         hist[too_few | nothing] = 0.0
         if use_normalization:
             norms = np.linalg.norm(hist, axis=1)
             hist[norms > 0] /= norms[norms > 0, None]
-        features[start:stop] = hist
-        few[start:stop], empty[start:stop], tie[start:stop] = too_few, nothing, lrf.sign_tie & ~too_few
-        n_all[start:stop] = lrf.n_neighbors
-        if frames_all is not None:
-            frames_all[start:stop] = lrf.frames
+        return hist, too_few, nothing, lrf
+
+    chunks = list(zip(bounds[:-1], bounds[1:], strict=True))
+    workers = max(1, min(workers or os.cpu_count() or 1, len(chunks)))
+    with ThreadPoolExecutor(max_workers=workers) as pool:  # NumPy releases the GIL in its array loops
+        results = pool.map(describe, chunks) if workers > 1 else map(describe, chunks)
+        bar = progress_bar(
+            zip(chunks, results, strict=True), show=progress, total=len(chunks), desc="shot", unit="chunk", delay=1.0
+        )
+        for (start, stop), (hist, too_few, nothing, lrf) in bar:
+            features[start:stop] = hist
+            few[start:stop], empty[start:stop], tie[start:stop] = too_few, nothing, lrf.sign_tie & ~too_few
+            n_all[start:stop] = lrf.n_neighbors
+            if frames_all is not None:
+                frames_all[start:stop] = lrf.frames
     report = {"few_neighbors": few, "nothing_binned": empty, "sign_tie": tie}
     if frames_all is not None:
         report["frames"] = ShotFrames(frames_all, n_all, tie)
