@@ -121,18 +121,23 @@ def _chunk_pairs(
     q, sq : numpy.ndarray, shapes (P, 3) and (P,), float64
         Offsets of the neighbours from their query and their squared lengths.
     """
-    pairs = cKDTree(verts[queries]).sparse_distance_matrix(tree, radius, output_type="ndarray")
-    qi, nj = pairs["i"].astype(np.int64), pairs["j"].astype(np.int64)
-    diff = verts[nj] - verts[queries[qi]]
+    query_verts = verts[queries]
+    pairs = cKDTree(query_verts).sparse_distance_matrix(tree, radius, output_type="ndarray")
+    qi, nj = np.ascontiguousarray(pairs["i"]), np.ascontiguousarray(pairs["j"])
+    diff = np.take(verts, nj, axis=0)
+    diff -= np.take(query_verts, qi, axis=0)
     sq = np.einsum("pd,pd->p", diff, diff)
     keep = sq < float(np.float32(radius) * np.float32(radius))  # the reference squares R in float32
-    is_self = nj == queries[qi]
-    # a coincident vertex of lower index sorts before the query: then the query is not dropped
-    lower_twin = (sq == 0.0) & (nj < queries[qi])
+    # the query itself is at distance 0, and is dropped unless a coincident vertex of lower
+    # index sorts before it
+    zero = np.flatnonzero(sq == 0.0)
+    owner, other = qi[zero], nj[zero]
     has_lower_twin = np.zeros(len(queries), dtype=bool)
-    has_lower_twin[qi[lower_twin & keep]] = True
-    keep &= ~is_self | has_lower_twin[qi]
-    return qi[keep], nj[keep], diff[keep], sq[keep]
+    has_lower_twin[owner[other < queries[owner]]] = True
+    is_self = other == queries[owner]
+    keep[zero[is_self & ~has_lower_twin[owner]]] = False
+    kept = np.flatnonzero(keep)
+    return qi[kept], nj[kept], np.take(diff, kept, axis=0), sq[kept]
 
 
 def _frames(q: np.ndarray, sq: np.ndarray, qi: np.ndarray, n_query: int, radius: float) -> tuple[ShotFrames, np.ndarray]:
@@ -153,7 +158,7 @@ def _frames(q: np.ndarray, sq: np.ndarray, qi: np.ndarray, n_query: int, radius:
     _, vecs = np.linalg.eigh(cov)  # ascending eigenvalues
     x_axis, z_axis = vecs[:, :, 2], vecs[:, :, 0]
     frames = np.stack([x_axis, np.cross(z_axis, x_axis), z_axis], axis=1)
-    local = np.einsum("pkd,pd->pk", frames[qi], q)
+    local = np.einsum("pkd,pd->pk", np.take(frames, qi, axis=0), q)  # np.take: faster than indexing
     # each of X and Z points to the side with more neighbours (strictly positive ones; a tie keeps the sign)
     signs = np.ones((n_query, 3))
     tie = np.zeros(n_query, dtype=bool)
@@ -163,7 +168,7 @@ def _frames(q: np.ndarray, sq: np.ndarray, qi: np.ndarray, n_query: int, radius:
         tie |= 2 * positive == n
     signs[:, 1] = signs[:, 0] * signs[:, 2]  # Y = Z x X
     frames *= signs[:, :, None]
-    local *= signs[qi]
+    local *= np.take(signs, qi, axis=0)
     return ShotFrames(frames, n.astype(np.int64), tie & valid), local
 
 
@@ -198,7 +203,8 @@ def _histograms(
     width = n_bins + 1
     binned = sq >= SKIP_SQUARED_DISTANCE
     if not binned.all():
-        local, sq, cos, qi = local[binned], sq[binned], cos[binned], qi[binned]
+        kept = np.flatnonzero(binned)
+        local, sq, cos, qi = np.take(local, kept, axis=0), sq[kept], cos[kept], qi[kept]
     local[np.abs(local) < ZERO_COORDINATE] = 0.0
     x, y, z = local[:, 0], local[:, 1], local[:, 2]
     dist = np.sqrt(sq)
@@ -220,7 +226,7 @@ def _histograms(
     # cosine: the share goes to the next bin modulo n_bins (bin n_bins - 1 wraps to 0)
     frac = t - b
     cos_share = np.abs(frac)
-    cos_cell = own + np.where(frac > 0, (b + 1) % n_bins, (b - 1 + n_bins) % n_bins)
+    cos_cell = own + (b + np.where(frac > 0, 1, n_bins - 1)) % n_bins
     own += b
     # radial: offset from the centre of the shell (R/4 or 3R/4), in units of R/2
     radial = (dist - np.where(outer, 3 * radius / 4, radius / 4)) / (radius / 2)
@@ -243,9 +249,14 @@ def _histograms(
     wrap = n_volumes - 4
     azimuth_cell = row + np.where(azimuth > 0, (volume + 4) % wrap, (volume - 4 + wrap) % wrap) * width + b
     main = (3.0 + has_azimuth) - cos_share - np.abs(radial) - np.abs(elevation) - azimuth_share
-    cells = np.concatenate([own, cos_cell, radial_cell, elevation_cell, azimuth_cell])
-    masses = np.concatenate([main, cos_share, radial_share, elevation_share, azimuth_share])
-    hist = np.bincount(cells, weights=masses, minlength=size)
+    hist = np.bincount(own, weights=main, minlength=size)
+    for cells, masses in (
+        (cos_cell, cos_share),
+        (radial_cell, radial_share),
+        (elevation_cell, elevation_share),
+        (azimuth_cell, azimuth_share),
+    ):
+        hist += np.bincount(cells, weights=masses, minlength=size)
     return hist.reshape(n_query, -1).astype(np.float64, copy=False), np.bincount(qi, minlength=n_query)
 
 
@@ -326,7 +337,8 @@ def shot_descriptors(
         chunk = queries[bound[0] : bound[1]]
         qi, nj, q, sq = _chunk_pairs(tree, verts, chunk, radius)
         lrf, local = _frames(q, sq, qi, len(chunk), radius)
-        cos = np.clip(np.einsum("pd,pd->p", lrf.frames[qi, 2], normals[nj]), -1.0, 1.0)
+        z_axes = np.take(lrf.frames[:, 2], qi, axis=0)
+        cos = np.clip(np.einsum("pd,pd->p", z_axes, np.take(normals, nj, axis=0)), -1.0, 1.0)
         hist, n_binned = _histograms(local, sq, cos, qi, len(chunk), radius, n_bins, double_volumes_sectors, use_interpolation)
         too_few = lrf.n_neighbors < min_count
         nothing = ~too_few & (n_binned == 0)
