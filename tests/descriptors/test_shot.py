@@ -170,3 +170,17 @@ def test_some_vertices_only():
     some, some_report = shot_descriptors(mesh.verts, normals, 0.5, queries=picked)
     np.testing.assert_allclose(some, whole[picked], atol=1e-12)
     np.testing.assert_array_equal(some_report["sign_tie"], report["sign_tie"][picked])
+
+
+def test_a_head_takes_shot_by_name():
+    from geofeat.adapters.heads import make_head
+    from geofeat.datasets.records import ShapePair
+    from geofeat.geometry import make_partial
+
+    mesh = bumpy(0, 3)
+    partial = make_partial(mesh, "cuts", seed=0)
+    pair = ShapePair(x=mesh, y=partial.mesh, map_yx=np.asarray(partial.vertex_map, dtype=np.int64), protocol="p2f")
+    head = make_head("nn", descriptor="shot", descriptor_params={"radius": 0.3})
+    assert head.features(mesh).shape == (mesh.n_vertices, 192)
+    match = head.match(pair)
+    assert np.mean(match.map_yx == pair.map_yx) > 0.5  # nearest SHOT rows find most of the cut-out vertices
