@@ -499,7 +499,8 @@ class SHOT(Descriptor):
         Raises
         ------
         DescriptorError
-            No vertex has enough neighbours within the radius (every row would be zero).
+            No vertex has enough neighbours within the radius, or every vertex has only neighbours
+            closer than 1e-3 (every row would be zero).
         """
         radius = self.absolute_radius(mesh)
         if float(np.float32(radius)) <= 0:
@@ -539,6 +540,12 @@ class SHOT(Descriptor):
                 radius,
             )
         n_empty = int(report["nothing_binned"].sum())
+        if n_few + n_empty == mesh.n_vertices:
+            raise DescriptorError(
+                f"shot: every vertex of {mesh.name or '<unnamed>'!r} has all its neighbours within 1e-3 (mesh units), "
+                f"which SHOT counts but does not bin, or too few neighbours: every row would be zero. The mesh is "
+                f"small (bounding-box diagonal {mesh.bbox_diagonal():.3g}); scale it up (e.g. geofeat.normalize)."
+            )
         if n_empty:
             log.warning(
                 "shot: %d vertices of %r have all neighbours closer than 1e-3 (mesh units): their rows are zero.",

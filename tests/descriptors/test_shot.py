@@ -148,6 +148,13 @@ def test_all_neighbours_too_close_gives_zero_row(caplog):
     assert "closer than 1e-3" in caplog.text
 
 
+def test_tiny_mesh_refused():
+    mesh = bumpy(subdivisions=2)
+    tiny = Mesh(mesh.verts * 1e-4, mesh.faces)  # every neighbour within 1e-3: nothing binned anywhere
+    with pytest.raises(DescriptorError, match="scale it up"):
+        geofeat.compute(tiny, "shot", cache=False, radius=0.3, radius_unit="diameter")
+
+
 def test_flat_patch_is_finite():
     grid = np.stack(np.meshgrid(np.linspace(0, 1, 15), np.linspace(0, 1, 15), [0.0]), -1).reshape(-1, 3)
     feats = geofeat.compute(Mesh(grid), "shot", cache=False, radius=0.3)
