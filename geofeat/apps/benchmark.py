@@ -1,7 +1,7 @@
 """Run matching pipelines on a benchmark and report geodesic error, PCK, mIoU and chirality.
 
-With no arguments it runs the main job, offline, in about 10 seconds: four training-free
-pipelines (nearest neighbour and functional maps on WKS and HKS) and the two reference rows
+With no arguments it runs the main job, offline, in about 10 seconds: six training-free
+pipelines (nearest neighbour and functional maps on WKS, HKS and SHOT) and the two reference rows
 (``random``: chance; ``mirrored_truth``: the true map flipped left-right) on full-to-full
 and on CUTS partial-to-full pairs of the built-in synthetic humans::
 

@@ -1,6 +1,6 @@
 """The main job of ``benchmarks/run.py``: training-free pipelines against two reference rows, on the built-in humans.
 
-Four pipelines (nearest neighbour and functional maps on WKS and HKS) and the reference rows
+Six pipelines (nearest neighbour and functional maps on WKS, HKS and SHOT) and the reference rows
 ``random`` (chance) and ``mirrored_truth`` (the true map flipped left-right), on full-to-full
 and CUTS partial-to-full pairs of the built-in synthetic humans; offline, in seconds. The
 reference pipelines and the ``match(index, pair)`` functions are shared with the single runs
@@ -75,7 +75,14 @@ class ReferenceMatch:
 
 
 #: The main job's training-free pipelines: (head, descriptor).
-MAIN_PIPELINES = (("nn", "wks"), ("nn", "hks"), ("fmap", "wks"), ("fmap", "hks"))
+MAIN_PIPELINES = (("nn", "wks"), ("nn", "hks"), ("fmap", "wks"), ("fmap", "hks"), ("nn", "shot"), ("fmap", "shot"))
+#: SHOT's support radius on the main job's humans, in their units: 0.367 sqrt(area) of a whole
+#: human (sqrt(area) 1.35 to 1.38), what DeepShapeMatchingKit's 0.3 is on FAUST_r (tr_reg_080:
+#: area 0.669, 0.3 = 0.367 sqrt(area)). Absolute, so that a CUTS partial keeps its whole shape's
+#: radius (a share of its own, smaller area would shrink it).
+MAIN_SHOT_RADIUS = 0.5
+#: Parameters of the main job's descriptors other than their defaults.
+MAIN_DESCRIPTOR_PARAMS = {"shot": {"radius": MAIN_SHOT_RADIUS}}
 #: Pipelines whose maps pairs.png shows.
 MAIN_PICTURED = (("nn", "wks"), ("fmap", "hks"))
 #: Eigenpairs of the functional-map bases (the map is 30 x 30; the descriptors keep their 128).
@@ -92,7 +99,8 @@ MAIN_KINDS = {"full": "full-to-full", "cuts": "CUTS partial-to-full"}
 MAIN_DESCRIPTION = (
     "built-in synthetic humans (the 2 individuals of the test split, meshed with about 2,000 vertices): "
     "to the near-rest pose of each individual, 3 other poses of the same individual and 3 of the other one, "
-    "whole and as a CUTS partial shape"
+    "whole and as a CUTS partial shape; SHOT (DeepShapeMatchingKit's parameters) with radius 0.5, "
+    "0.367 sqrt(area) of a whole human, as DeepShapeMatchingKit's 0.3 on FAUST_r"
 )
 READING_GUIDE = (
     "Lower geodesic error (mean distance from the true counterpart, in hundredths of sqrt(area) of the target) "
@@ -198,7 +206,8 @@ def prepare_inputs(
     """Fill the feature cache and the geodesic store for these pairs, in ``workers`` forked processes.
 
     What is cached already is skipped (a warm run starts no process). The descriptors of a
-    mesh are computed in one process, so that they share its spectral basis. Returns the
+    mesh are computed in one process, so that they share its spectral basis; a descriptor
+    takes its parameters from `MAIN_DESCRIPTOR_PARAMS`, as the heads do. Returns the
     number of meshes that had work and the number of meshes.
     """
     global _PREPARE
@@ -206,7 +215,7 @@ def prepare_inputs(
     from geofeat.descriptors.compute import entry_key
 
     features = FeatureCache()
-    made = [make_descriptor(name) for name in descriptors]
+    made = [make_descriptor(name, **MAIN_DESCRIPTOR_PARAMS.get(name, {})) for name in descriptors]
     meshes: dict[str, tuple[Mesh, bool]] = {}
     for pair in pairs:
         meshes[pair.x.hash] = (pair.x, True)
@@ -265,7 +274,11 @@ def main_job(args: argparse.Namespace, out: Path) -> int:
     kinds = main_pairs(args.seed, args.limit)
     heads = {
         (name, descriptor): make_head(
-            name, descriptor=descriptor, progress=progress, **({"n_eig": MAIN_FMAP_EIG} if name == "fmap" else {})
+            name,
+            descriptor=descriptor,
+            descriptor_params=MAIN_DESCRIPTOR_PARAMS.get(descriptor, {}),
+            progress=progress,
+            **({"n_eig": MAIN_FMAP_EIG} if name == "fmap" else {}),
         )
         for name, descriptor in MAIN_PIPELINES
     }
@@ -355,6 +368,7 @@ def main_job(args: argparse.Namespace, out: Path) -> int:
         "pairs_description": MAIN_DESCRIPTION,
         "spacing": MAIN_SPACING,
         "fmap_n_eig": MAIN_FMAP_EIG,
+        "descriptor_params": MAIN_DESCRIPTOR_PARAMS,
         "n_pairs": n_pairs,
         "pck_plot_thresholds": [round(value, 5) for value in plot_thresholds.tolist()],
         "rows": rows,

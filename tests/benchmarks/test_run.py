@@ -18,7 +18,16 @@ def run(*args):
     return subprocess.run([sys.executable, str(RUN), "--no-progress", *args], capture_output=True, text=True, cwd=REPO)
 
 
-MAIN_LABELS = ["nn + WKS", "nn + HKS", "fmap + WKS", "fmap + HKS", "random", "mirrored_truth"]
+MAIN_LABELS = [
+    "nn + WKS",
+    "nn + HKS",
+    "fmap + WKS",
+    "fmap + HKS",
+    "nn + SHOT",
+    "fmap + SHOT",
+    "random",
+    "mirrored_truth",
+]
 RESULT_NAMES = {"results.json", "results.md", "pck.png", "pairs.png"}
 
 
@@ -38,6 +47,7 @@ def test_main_job_compares_the_pipelines_with_the_references_on_full_and_partial
     assert result_files() == before  # nothing written under benchmarks/results
     report = json.loads((tmp_path / "results.json").read_text())
     assert report["job"] == "main" and report["n_pairs"] == {"full": 2, "cuts": 2}
+    assert report["descriptor_params"] == {"shot": {"radius": 0.5}}
     rows = {(row["kind"], row["label"]): row for row in report["rows"]}
     assert sorted(rows) == sorted((kind, label) for kind in ("full", "cuts") for label in MAIN_LABELS)
     for row in rows.values():
@@ -46,7 +56,11 @@ def test_main_job_compares_the_pipelines_with_the_references_on_full_and_partial
         assert row["pck_plot"] == sorted(row["pck_plot"]) and len(row["pck_plot"]) == len(report["pck_plot_thresholds"])
     for kind in ("full", "cuts"):
         assert rows[kind, "mirrored_truth"]["chirality_accuracy"] == 0.0
-        assert rows[kind, "random"]["descriptor"] == "none" and rows[kind, "nn + WKS"]["descriptor"] == "wks"
+        assert (
+            rows[kind, "random"]["descriptor"] == "none"
+            and rows[kind, "nn + WKS"]["descriptor"] == "wks"
+            and rows[kind, "fmap + SHOT"]["descriptor"] == "shot"
+        )
     cut_sources = [p["pair"].split("->")[0] for p in rows["cuts", "nn + WKS"]["pairs"]]
     full_sources = [p["pair"].split("->")[0] for p in rows["full", "nn + WKS"]["pairs"]]
     assert [name.rsplit("_cuts", 1)[0] for name in cut_sources] == full_sources  # the same shapes, cut
