@@ -20,11 +20,16 @@ The runs (each a folder ``<out>/<benchmark>/<run>/`` with run.py's ``results.jso
 - ``psmal_sample`` (the sample's 3 train pairs): the same pipelines; the heads are those trained
   on the full PSMAL when ``--psmal`` is given, else trained on the 3 sample pairs themselves;
 - ``becos_p2f``, ``becos_p2p`` (test split of the generator's ``partial_full`` and
-  ``partial_partial``): ``nn`` and ``fmap`` on WKS and HKS, ``random``, and ULRSSM with the
+  ``partial_partial``): ``nn`` and ``fmap`` on WKS, HKS and SHOT, ``random``, and ULRSSM with the
   release checkpoint (no test-time adaptation; with ``--tta-pairs N`` > 0 also 15 steps on
   the first N P2F pairs, the authors' SHREC'16 test setting);
 - ``shrec16_sample`` (SHREC'16 CUTS in DPFM's layout): ULRSSM with the checkpoint, with and
   without 15 steps of test-time adaptation, beside ``random``.
+
+SHOT (DeepShapeMatchingKit's parameters) gets an absolute radius per benchmark, `SHOT_RADIUS`:
+on BeCoS-TOSCA 0.5, 0.367 sqrt(area) of a full shape (sqrt(area) 1.33 to 1.36), what
+DeepShapeMatchingKit's 0.3 is on FAUST_r (tr_reg_080: area 0.669). Absolute, so that a partial
+shape keeps its full shape's radius.
 
 ``mirrored_truth`` needs a left-right map of the shapes; neither PSMAL nor the BeCoS output
 nor SHREC'16 in DPFM's layout ships one, so that row is listed as not available.
@@ -63,6 +68,23 @@ from geofeat.evaluation.report import markdown_table, plot_pck
 log = logging.getLogger("benchmarks.real_files")
 
 TRAINING_FREE = (("nn", "wks"), ("nn", "hks"), ("fmap", "wks"), ("fmap", "hks"))
+#: SHOT's absolute support radius on the benchmarks that have SHOT rows (see the module docstring).
+SHOT_RADIUS = {"becos_p2f": 0.5, "becos_p2p": 0.5}
+
+
+def training_free(benchmark: str) -> tuple[tuple[str, str], ...]:
+    """The training-free (pipeline, descriptor) runs of a benchmark: WKS and HKS, and SHOT where it has a radius."""
+    shot = (("nn", "shot"), ("fmap", "shot")) if benchmark in SHOT_RADIUS else ()
+    return TRAINING_FREE + shot
+
+
+def descriptor_args(benchmark: str, descriptor: str) -> tuple[str, ...]:
+    """run.py's ``--descriptor`` option, with SHOT's radius on this benchmark."""
+    if descriptor == "shot":
+        return ("--descriptor", "shot", "--param", f"radius={SHOT_RADIUS[benchmark]}")
+    return ("--descriptor", descriptor)
+
+
 #: Head settings of the heads trained here (the settings of benchmarks/results/heads/ on FAUST_r P2P).
 HEAD_PARAMS = {"dpfm": ["fmap_features=extracted"], "echomatch": ["width=64"]}
 #: ULRSSM's SHREC'16 test setting (options/test/shrec16_cuts.yaml of its repository: ``refine: 15``).
@@ -137,7 +159,9 @@ def plan(args: argparse.Namespace) -> list[Run]:
         for kind in ("p2f", "p2p"):
             bench = f"becos_{kind}"
             base = ("--dataset", bench, "--data-root", str(args.becos), "--split", "test", *common)
-            runs += [Run(bench, f"{p}_{d}", ("--pipeline", p, "--descriptor", d, *base)) for p, d in TRAINING_FREE]
+            runs += [
+                Run(bench, f"{p}_{d}", ("--pipeline", p, *descriptor_args(bench, d), *base)) for p, d in training_free(bench)
+            ]
             runs.append(Run(bench, "random", ("--pipeline", "random", *base)))
             if args.ulrssm_checkpoint:
                 ckpt = ("--pipeline", "ulrssm", "--checkpoint", str(args.ulrssm_checkpoint))

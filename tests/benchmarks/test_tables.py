@@ -1,5 +1,6 @@
 """The table scripts of the docs: tables/release.py and tables/summarize.py's machine line, on small made-up records."""
 
+import argparse
 import json
 import subprocess
 import sys
@@ -158,3 +159,28 @@ def test_real_files_tables_list_each_published_source_once_under_its_rows(tmp_pa
     assert text.count("[1] paper one") == 1 and text.count("[2] paper two") == 1
     assert "paper three" not in text and "| D |" not in text
     assert not (tmp_path / "becos_p2p.md").exists()
+
+
+def test_real_files_plan_runs_shot_with_its_radius_on_becos(tmp_path):
+    from benchmarks.real_files import plan
+
+    args = argparse.Namespace(
+        psmal=tmp_path,
+        psmal_sample=None,
+        becos=tmp_path,
+        shrec16=None,
+        ulrssm_checkpoint=None,
+        seed=0,
+        workers=1,
+        only=None,
+        train_minutes=1.0,
+        tta_pairs=0,
+        out=tmp_path,
+    )
+    runs = {(r.benchmark, r.name): r.argv for r in plan(args)}
+    for bench in ("becos_p2f", "becos_p2p"):
+        for pipeline in ("nn", "fmap"):
+            argv = runs[bench, f"{pipeline}_shot"]
+            assert argv[:6] == ("--pipeline", pipeline, "--descriptor", "shot", "--param", "radius=0.5")
+        assert runs[bench, "nn_wks"][:4] == ("--pipeline", "nn", "--descriptor", "wks")
+    assert ("psmal", "nn_shot") not in runs and ("psmal", "nn_wks") in runs
