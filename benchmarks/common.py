@@ -16,22 +16,27 @@ RESULTS = BENCHMARKS / "results"
 REPO = BENCHMARKS.parent
 #: The default of the scripts' data option: ``$GEOFEAT_DATA``, the library's setting (None when it is not set).
 DEFAULT_DATA = os.environ.get(DATA_ENV)
-#: The default of the reference scripts' ``--data-ext`` (the folder holding PSMAL/ and BeCoS/): ``$GEOFEAT_DATA_EXT``.
-DEFAULT_DATA_EXT = os.environ.get("GEOFEAT_DATA_EXT")
+#: Environment variable of the reference scripts' ``--data-ext`` (the folder holding PSMAL/ and BeCoS/), and its value.
+DATA_EXT_ENV = "GEOFEAT_DATA_EXT"
+DEFAULT_DATA_EXT = os.environ.get(DATA_EXT_ENV)
 
 
-def data_folder(given: str | os.PathLike | None, option: str = "--data") -> Path:
-    """The folder of a script's data option ``option`` (default `DEFAULT_DATA`).
+def data_folder(
+    given: str | os.PathLike | None,
+    option: str = "--data",
+    variable: str = DATA_ENV,
+    holds: str = "FAUST_r/ and the other datasets",
+) -> Path:
+    """The folder of a script's data option ``option`` (default: ``$variable``).
 
     Raises
     ------
     SystemExit
-        With a message that says what to pass, when no folder is given and ``$GEOFEAT_DATA``
-        is not set.
+        With a message that says what to pass (``option``, the folder that ``holds`` ...) or
+        which variable to set, when no folder is given.
     """
     if not given:
-        variable = "GEOFEAT_DATA_EXT" if option == "--data-ext" else DATA_ENV
-        raise SystemExit(f"no data folder: pass {option} (the folder that holds the datasets) or set ${variable}")
+        raise SystemExit(f"no data folder: pass {option} (the folder that holds {holds}) or set ${variable}")
     return Path(given).expanduser()
 
 

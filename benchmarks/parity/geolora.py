@@ -888,7 +888,7 @@ def record_reference(args) -> None:
 
     Writes ``geolora_reference.npz`` (weights, inputs and outputs, under 200 KB) and
     ``geolora_reference_lora.pth`` (the LoRA as the official ``get_state_dict_lora`` saves it)
-    into ``args.record``. The tests (``tests/render/test_reference_recipe.py``) rebuild the
+    into ``args.record``. The tests (``tests/multiview/test_reference_recipe.py``) rebuild the
     official weights in geofeat's loaders and compare each stage with these arrays.
     """
     out = Path(args.record)

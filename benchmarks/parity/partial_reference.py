@@ -52,7 +52,7 @@ import torch
 from scipy.spatial import cKDTree
 from scipy.stats import ks_2samp
 
-from benchmarks.common import DEFAULT_DATA, DEFAULT_DATA_EXT, RESULTS, data_folder, machine, write_results
+from benchmarks.common import DATA_EXT_ENV, DEFAULT_DATA, DEFAULT_DATA_EXT, RESULTS, data_folder, machine, write_results
 from geofeat import Mesh
 from geofeat.geometry.clip import clip_plane
 from geofeat.geometry.partial_reference import cut_partial_reference, draw_holes, holes_partial_reference
@@ -418,7 +418,7 @@ def main() -> None:
     if args.draws < 1 or args.free < 2:
         parser.error(f"--draws must be at least 1 and --free at least 2 (a distribution); found {args.draws} and {args.free}")
     args.data = str(data_folder(args.data))
-    args.data_ext = str(data_folder(args.data_ext, "--data-ext"))
+    args.data_ext = str(data_folder(args.data_ext, "--data-ext", DATA_EXT_ENV, "PSMAL/ and BeCoS/"))
     # the official shapes have what Mesh warns about (non-manifold edges where the clip merged
     # vertices, zero-area triangles beside a vertex near the plane): expected here, not news
     logging.getLogger("geofeat.mesh").setLevel(logging.ERROR)

@@ -35,7 +35,7 @@ from pathlib import Path
 import numpy as np
 
 import geofeat
-from benchmarks.common import DEFAULT_DATA, DEFAULT_DATA_EXT, data_folder, machine, write_results
+from benchmarks.common import DATA_EXT_ENV, DEFAULT_DATA, DEFAULT_DATA_EXT, data_folder, machine, write_results
 from geofeat.geometry.partial import ray_partial
 from geofeat.geometry.visibility import visible_faces
 from geofeat.render.rasterizer import RasterSettings
@@ -352,7 +352,7 @@ def main(argv=None) -> int:
     )
     parser.add_argument("--out", default="benchmarks/results/partial_reference/ray")
     args = parser.parse_args(argv)
-    paths = compared_shapes(data_folder(args.data), data_folder(args.data_ext, "--data-ext"))
+    paths = compared_shapes(data_folder(args.data), data_folder(args.data_ext, "--data-ext", DATA_EXT_ENV, "PSMAL/ and BeCoS/"))
     missing = [str(path) for path in paths.values() if not path.is_file()]
     if missing:
         raise SystemExit(f"shapes not found: {missing}")
