@@ -2,22 +2,22 @@
 
 geofeat side: `geofeat.descriptors.shot.shot_descriptors` with the normals `SHOT` uses
 (point clouds: ``cloud_normals="zero"``, as pyshot). Reference side: ``pyshot.get_descriptors``
-run by a small harness in pyshot's own environment (``--reference-python``; pyshot is GPL-3.0
-and compiled, so it is kept outside this repository, as is the harness, ``--harness``). The
-harness is called as ``PYTHON HARNESS IN.npz OUT.npz PARAMS_JSON``: ``IN.npz`` holds ``verts``
-(V, 3) float64 and ``faces`` (F, 3) int64 (none for a point cloud); ``OUT.npz`` gets
-``descriptors`` (V, L) and ``wall_time`` (seconds).
+run by `benchmarks/official/pyshot_harness.py` in pyshot's own environment
+(``--reference-python``; pyshot is GPL-3.0 and compiled, so it is built outside this
+repository: the harness's docstring says how).
 
 Shapes: FAUST_r tr_reg_080 (``--data``), PSMAL cuts_0_horse_01 (``--data-ext``), a CUTS partial
 shape of tr_reg_080 (`geofeat.geometry.partial.make_partial`, seed 0) and the vertices of
-tr_reg_081 as a point cloud. Parameter sets: DeepShapeMatchingKit's (`SHOT_PRESETS`) and three
+tr_reg_081 as a point cloud. Parameter sets: DeepShapeMatchingKit's (`SHOT_RECIPES`) and three
 others. Per shape and set the table gives the largest absolute difference per entry, the
 same outside the vertices whose frame has a sign tie (as many neighbours on each side of an
 axis: pyshot keeps Eigen's arbitrary sign there), the share of vertices differing by more
-than 1e-5, the ties, the zero rows of each side and both wall times.
+than 1e-5, the ties, how many tie vertices differ by more than 1e-5 as computed and with the
+best of the four signs of X and Z (``flip_axes``: where that is 0, pyshot simply chose the other
+sign), the zero rows of each side and both wall times.
 
-    python -m benchmarks.parity.shot --reference-python /ref/shot/venv/bin/python --harness /ref/shot/harness.py \\
-        --data /data --data-ext /data_ext [--record tests/data]
+    python -m benchmarks.parity.shot --reference-python PYSHOT_VENV/bin/python --data /data --data-ext /data_ext \\
+        [--record tests/data]
 
 ``--record DIR`` also writes ``DIR/shot_reference.npz``: pyshot's rows of every 50th vertex of
 tr_reg_080 (DeepShapeMatchingKit's parameters and a second set) and of every 10th point of a
@@ -39,12 +39,14 @@ import numpy as np
 
 import geofeat
 from benchmarks.common import DEFAULT_DATA, DEFAULT_DATA_EXT, RESULTS, data_folder, write_results
-from geofeat.descriptors.shot import SHOT, SHOT_PRESETS, shot_descriptors
+from geofeat.descriptors.shot import SHOT, SHOT_RECIPES, shot_descriptors
 from geofeat.geometry.partial import make_partial
 
 #: Parameter sets compared (pyshot's names); the first is DeepShapeMatchingKit's.
+#: The harness pyshot's environment runs (it imports pyshot, nothing of geofeat).
+PYSHOT_HARNESS = Path(__file__).resolve().parents[1] / "official" / "pyshot_harness.py"
 PARAM_SETS: dict[str, dict] = {
-    "dsmk": {k: v for k, v in SHOT_PRESETS["dsmk"].items() if k != "radius_unit"},
+    "dsmk": SHOT_RECIPES["dsmk"],
     "r0.1_b7_16vol": {"radius": 0.1, "min_neighbors": 3, "n_bins": 7, "double_volumes_sectors": False},
     "r0.05_b10_nointerp": {"radius": 0.05, "n_bins": 10, "use_interpolation": False},
     "r0.03_b5_min8_nonorm": {"radius": 0.03, "min_neighbors": 8, "use_normalization": False},
@@ -80,12 +82,22 @@ def reference(python: str, harness: str, mesh: geofeat.Mesh, params: dict, work:
         return result["descriptors"], float(result["wall_time"])
 
 
-def ours(mesh: geofeat.Mesh, params: dict, queries: np.ndarray | None = None) -> tuple[np.ndarray, dict, float]:
+def ours(mesh: geofeat.Mesh, params: dict, queries: np.ndarray | None = None, **options) -> tuple[np.ndarray, dict, float]:
     """geofeat's descriptors (pyshot's conventions: zero normals on clouds), the report and the wall time."""
     normals = SHOT(cloud_normals="zero").normals(mesh)
     start = time.perf_counter()
-    features, report = shot_descriptors(mesh.verts, normals, queries=queries, **params)
+    features, report = shot_descriptors(mesh.verts, normals, queries=queries, **params, **options)
     return features, report, time.perf_counter() - start
+
+
+def ties_flipped(mesh: geofeat.Mesh, params: dict, theirs: np.ndarray, tie: np.ndarray) -> np.ndarray:
+    """Per sign-tie vertex, the smallest largest difference to pyshot's row over the four signs of X and Z, shape (T,)."""
+    rows = np.flatnonzero(tie)
+    best = np.full(len(rows), np.inf)
+    for flip in range(4):
+        mine, _, _ = ours(mesh, params, rows, flip_axes=np.full(len(rows), flip))
+        best = np.minimum(best, np.abs(mine - theirs[rows]).max(axis=1))
+    return best
 
 
 def compare(mesh: geofeat.Mesh, params: dict, python: str, harness: str, work: Path) -> dict:
@@ -95,6 +107,7 @@ def compare(mesh: geofeat.Mesh, params: dict, python: str, harness: str, work: P
     finite = np.isfinite(theirs).all(axis=1)
     diff = np.where(finite[:, None], np.abs(mine - np.nan_to_num(theirs)), 0.0).max(axis=1)
     tie = report["sign_tie"]
+    flipped = ties_flipped(mesh, params, np.nan_to_num(theirs), tie)
     return {
         "vertices": mesh.n_vertices,
         "max_abs": float(diff.max()),
@@ -103,6 +116,8 @@ def compare(mesh: geofeat.Mesh, params: dict, python: str, harness: str, work: P
         "share_over_tol": float(np.mean(diff > TOLERANCE)),
         "over_tol_without_ties": int(np.count_nonzero((diff > TOLERANCE) & ~tie)),
         "sign_ties": int(tie.sum()),
+        "ties_over_tol": int(np.count_nonzero(diff[tie] > TOLERANCE)),
+        "ties_over_tol_flipped": int(np.count_nonzero(flipped > TOLERANCE)),
         "nan_rows_reference": int(np.count_nonzero(~finite)),
         "zero_rows_ours": int(np.count_nonzero(~mine.any(axis=1))),
         "zero_rows_reference": int(np.count_nonzero(~np.nan_to_num(theirs).any(axis=1))),
@@ -115,13 +130,14 @@ def table(rows: list[dict]) -> str:
     """Markdown table of the comparison rows."""
     lines = [
         "| shape | parameters | V | max abs | max abs w/o ties (largest value) | share > 1e-5 | > 1e-5 w/o ties | ties "
-        "| zero rows ours / pyshot | NaN rows pyshot | s ours / pyshot |",
-        "|---|---|---|---|---|---|---|---|---|---|---|",
+        "| ties > 1e-5: as computed / best other sign | zero rows ours / pyshot | NaN rows pyshot | s ours / pyshot |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
         lines.append(
             f"| {r['shape']} | {r['params']} | {r['vertices']} | {r['max_abs']:.2e} | {r['max_abs_without_ties']:.2e} ({r['max_abs_reference']:.3g}) | "
-            f"{100 * r['share_over_tol']:.2f}% | {r['over_tol_without_ties']} | {r['sign_ties']} | {r['zero_rows_ours']} / {r['zero_rows_reference']} | "
+            f"{100 * r['share_over_tol']:.2f}% | {r['over_tol_without_ties']} | {r['sign_ties']} | "
+            f"{r['ties_over_tol']} / {r['ties_over_tol_flipped']} | {r['zero_rows_ours']} / {r['zero_rows_reference']} | "
             f"{r['nan_rows_reference']} | {r['seconds_ours']:.2f} / {r['seconds_reference']:.2f} |"
         )
     return "\n".join(lines)
@@ -163,7 +179,7 @@ def record_reference(folder: Path, faust: geofeat.Mesh, python: str, harness: st
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n", 1)[0])
     parser.add_argument("--reference-python", required=True, help="python of pyshot's environment")
-    parser.add_argument("--harness", required=True, help="the pyshot harness (kept outside this repository)")
+    parser.add_argument("--harness", default=str(PYSHOT_HARNESS), help="the harness pyshot's python runs (default: ours)")
     parser.add_argument("--data", default=DEFAULT_DATA, help="folder with FAUST_r/ (default $GEOFEAT_DATA)")
     parser.add_argument("--data-ext", default=DEFAULT_DATA_EXT, help="folder with PSMAL/ (default $GEOFEAT_DATA_EXT)")
     parser.add_argument("--record", help="also write shot_reference.npz (the CI test's reference rows) to this folder")

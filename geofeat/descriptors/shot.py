@@ -1,14 +1,14 @@
-"""SHOT: Signature of Histograms of OrienTations (Tombari, Salti and Di Stefano 2010), vectorised.
+"""SHOT: Signature of Histograms of OrienTations (Tombari, Salti and Di Stefano 2010), compiled with numba.
 
 The histogram follows the reference implementation that DeepShapeMatchingKit calls (pyshot, a
 wrapper of the original C++ code) value for value, its quirks included, so that features
 computed here can replace the recorded ones; `SHOT` lists each quirk. Neighbourhoods come
-from a `scipy.spatial.cKDTree`; the work runs over chunks of (query, neighbour) pairs, so
-memory is bounded by `PAIRS_PER_CHUNK` whatever the mesh size.
+from a grid of cells as wide as the radius; each vertex is described on its own, by threads
+working on chunks of vertices, so memory beyond the output does not grow with the mesh.
 
 >>> import geofeat                                                      # doctest: +SKIP
 >>> feats = geofeat.compute(mesh, "shot", radius=0.3)                   # (V, 192)  # doctest: +SKIP
->>> feats = geofeat.compute(mesh, SHOT.preset("dsmk"))                  # DeepShapeMatchingKit's  # doctest: +SKIP
+>>> feats = geofeat.compute(mesh, "shot", recipe="dsmk")                # DeepShapeMatchingKit's  # doctest: +SKIP
 """
 
 from __future__ import annotations
@@ -19,7 +19,7 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial import cKDTree
+from numba import njit
 
 from geofeat.checks import check_boolean, check_choice, check_integer, check_number
 from geofeat.descriptors.base import Descriptor
@@ -30,15 +30,17 @@ from geofeat.runtime.progress import progress_bar
 
 log = logging.getLogger(__name__)
 
-__all__ = ["CLOUD_NORMALS", "PAIRS_PER_CHUNK", "RADIUS_UNITS", "SHOT", "SHOT_PRESETS", "ShotFrames", "shot_descriptors"]
+__all__ = ["CLOUD_NORMALS", "QUERIES_PER_CHUNK", "RADIUS_UNITS", "SHOT", "SHOT_RECIPES", "ShotFrames", "shot_descriptors"]
 
 #: How ``radius`` is read: in the mesh's units, or as a fraction of sqrt(surface area) or of the
 #: bounding-box diagonal (the "diameter").
 RADIUS_UNITS = ("absolute", "sqrt_area", "diameter")
 #: Normals of a point cloud: estimated (`geofeat.geometry.normals.vertex_normals`) or zero (pyshot's).
 CLOUD_NORMALS = ("estimate", "zero")
-#: Largest number of (query, neighbour) pairs one worker holds at once (about 100 MB of temporaries).
-PAIRS_PER_CHUNK = 250_000
+#: Vertices one thread describes per task.
+QUERIES_PER_CHUNK = 512
+#: Bits of each integer coordinate in the keys of the neighbour-search grid.
+_GRID_BITS = 21
 #: The reference needs this many neighbours for a local reference frame, whatever ``min_neighbors`` says.
 MIN_LRF_NEIGHBORS = 5
 #: Neighbours closer than this squared distance (input units) are counted but not binned (the reference's rule).
@@ -46,11 +48,11 @@ SKIP_SQUARED_DISTANCE = 1e-6
 #: Local coordinates smaller than this in absolute value are set to zero (the reference's rule).
 ZERO_COORDINATE = 1e-30
 
-#: Named parameter sets; ``"dsmk"`` is DeepShapeMatchingKit's ``compute_shot_desc``.
-SHOT_PRESETS: dict[str, dict] = {
+#: The parameters each recipe gives where they are not given: ``"dsmk"``, DeepShapeMatchingKit's
+#: call of pyshot (``utils/shot_util.py``), radius in the mesh's units.
+SHOT_RECIPES: dict[str, dict] = {
     "dsmk": {
         "radius": 0.3,
-        "radius_unit": "absolute",
         "min_neighbors": 3,
         "n_bins": 5,
         "double_volumes_sectors": True,
@@ -86,29 +88,66 @@ class ShotFrames:
     sign_tie: np.ndarray
 
 
-def _octant(x: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """Azimuth sector of 45 degrees: k covers (-180 + 45 k, -180 + 45 (k + 1)] degrees, shape of ``x``, int64.
+@njit(cache=True, nogil=True)
+def _sector(x: float, y: float, phi: float) -> int:
+    """Azimuth sector of 45 degrees of the local offset (x, y): k covers (-180 + 45 k, -180 + 45 (k + 1)] degrees.
 
-    Decided by signs and by |x| against |y| (exact on the boundaries); x = y = 0 gives 0.
+    ``phi = atan2(y, x)`` decides away from the boundaries; on them (|x| = |y|, x = 0 or y = 0)
+    the signs and |x| against |y| decide exactly; x = y = 0 gives 0.
     """
-    ax, ay = np.abs(x), np.abs(y)
-    k = np.zeros(x.shape, dtype=np.int64)
-    k[(y > 0) & (x > 0) & (ay <= ax)] = 4
-    k[(y > 0) & (x >= 0) & (ay > ax)] = 5
-    k[(y > 0) & (x < 0) & (ay >= ax)] = 6
-    k[(y >= 0) & (x < 0) & (ay < ax)] = 7
-    k[(y < 0) & (x < 0) & (ay <= ax)] = 0
-    k[(y < 0) & (x <= 0) & (ay > ax)] = 1
-    k[(y < 0) & (x > 0) & (ay >= ax)] = 2
-    k[(y <= 0) & (x > 0) & (ay < ax)] = 3
-    k[(x == 0) & (y == 0)] = 0
-    return k
+    ax, ay = abs(x), abs(y)
+    if ax != ay and x != 0.0 and y != 0.0:
+        return min(max(int(np.ceil((phi + np.pi) / (np.pi / 4))) - 1, 0), 7)
+    if x == 0.0 and y == 0.0:
+        return 0
+    if y > 0.0:
+        if x > 0.0 and ay <= ax:
+            return 4
+        if x >= 0.0:
+            return 5
+        return 6 if ay >= ax else 7
+    if y < 0.0:
+        if x < 0.0 and ay <= ax:
+            return 0
+        if x <= 0.0:
+            return 1
+        return 2 if ay >= ax else 3
+    return 7 if x < 0.0 else 3  # y == 0
 
 
-def _chunk_pairs(
-    tree: cKDTree, verts: np.ndarray, queries: np.ndarray, radius: float
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """(query, neighbour) pairs with squared distance < radius² (in float32), the query removed as the reference does.
+def _grid(verts: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, float]:
+    """The vertices sorted by the cell of a grid whose side is at least ``radius``.
+
+    A cell is keyed ``(i << 42) | (j << 21) | k`` from its integer coordinates; a neighbour
+    within the radius lies in one of the 27 cells around the query's. The side grows past the
+    radius where the shape spans more than ``2**20`` radii, so that the keys fit.
+
+    Returns
+    -------
+    keys : numpy.ndarray, shape (V,), int64
+        Sorted cell keys.
+    order : numpy.ndarray, shape (V,), int64
+        Vertex index of each sorted entry.
+    sorted_verts : numpy.ndarray, shape (V, 3), float64
+        ``verts[order]``.
+    origin : numpy.ndarray, shape (3,), float64
+        Corner of the grid.
+    cell : float
+        Side of a cell.
+    """
+    origin = verts.min(axis=0)
+    extent = float((verts.max(axis=0) - origin).max())
+    # a little above the radius: the float32 threshold on squared distances can exceed radius²
+    cell = max(radius * (1.0 + 1e-6), extent / 2 ** (_GRID_BITS - 1))
+    ijk = np.floor((verts - origin) / cell).astype(np.int64)
+    keys = (ijk[:, 0] << (2 * _GRID_BITS)) | (ijk[:, 1] << _GRID_BITS) | ijk[:, 2]
+    order = np.argsort(keys, kind="stable")
+    return keys[order], order, np.ascontiguousarray(verts[order]), origin, cell
+
+
+@njit(cache=True, nogil=True)
+def _neighbours(query, verts, keys, order, sorted_verts, origin, cell, threshold):
+    """Neighbours of vertex ``query`` with squared distance < ``threshold``, the query removed as the reference does.
 
     The reference sorts a query's neighbours by (distance, index) and drops the first entry
     only when it is the query itself: a coincident duplicate of lower index keeps the query
@@ -116,83 +155,108 @@ def _chunk_pairs(
 
     Returns
     -------
-    qi, nj : numpy.ndarray, shape (P,), int64
-        Positions in ``queries`` and vertex indices of the neighbours.
-    q, sq : numpy.ndarray, shapes (P, 3) and (P,), float64
-        Offsets of the neighbours from their query and their squared lengths.
+    index : numpy.ndarray, shape (N,), int64
+        Vertex indices of the neighbours.
+    offset : numpy.ndarray, shape (N, 3), float64
+        Their offsets from the query.
+    squared : numpy.ndarray, shape (N,), float64
+        Their squared distances.
     """
-    query_verts = verts[queries]
-    pairs = cKDTree(query_verts).sparse_distance_matrix(tree, radius, output_type="ndarray")
-    qi, nj = np.ascontiguousarray(pairs["i"]), np.ascontiguousarray(pairs["j"])
-    diff = np.take(verts, nj, axis=0)
-    diff -= np.take(query_verts, qi, axis=0)
-    sq = np.einsum("pd,pd->p", diff, diff)
-    keep = sq < float(np.float32(radius) * np.float32(radius))  # the reference squares R in float32
-    # the query itself is at distance 0, and is dropped unless a coincident vertex of lower
-    # index sorts before it
-    zero = np.flatnonzero(sq == 0.0)
-    owner, other = qi[zero], nj[zero]
-    has_lower_twin = np.zeros(len(queries), dtype=bool)
-    has_lower_twin[owner[other < queries[owner]]] = True
-    is_self = other == queries[owner]
-    keep[zero[is_self & ~has_lower_twin[owner]]] = False
-    kept = np.flatnonzero(keep)
-    return qi[kept], nj[kept], np.take(diff, kept, axis=0), sq[kept]
-
-
-def _frames(q: np.ndarray, sq: np.ndarray, qi: np.ndarray, n_query: int, radius: float) -> tuple[ShotFrames, np.ndarray]:
-    """Local reference frames from neighbour offsets ``q`` (P, 3), squared distances ``sq`` (P,) and owners ``qi`` (P,).
-
-    Returns the frames and the offsets in them, ``(q . X, q . Y, q . Z)`` per pair, shape (P, 3).
-    """
-    n = np.bincount(qi, minlength=n_query)
-    weighted = q * (radius - sq)[:, None]  # the reference weighs by R - d² (squared distance)
-    cov = np.empty((n_query, 3, 3))
+    p = verts[query]
+    ci = int(np.floor((p[0] - origin[0]) / cell))
+    cj = int(np.floor((p[1] - origin[1]) / cell))
+    ck = int(np.floor((p[2] - origin[2]) / cell))
+    spans = np.zeros((9, 2), dtype=np.int64)
     for a in range(3):
-        for b in range(a, 3):
-            cov[:, a, b] = cov[:, b, a] = np.bincount(qi, weights=weighted[:, a] * q[:, b], minlength=n_query)
-    total = np.bincount(qi, weights=radius - sq, minlength=n_query)
-    valid = n >= MIN_LRF_NEIGHBORS
-    cov[valid] /= total[valid, None, None]
-    cov[~valid] = np.eye(3)
+        for b in range(3):
+            i, j = ci + a - 1, cj + b - 1
+            if i < 0 or j < 0:
+                continue
+            base = (i << (2 * _GRID_BITS)) | (j << _GRID_BITS)
+            spans[3 * a + b, 0] = np.searchsorted(keys, base | max(ck - 1, 0))
+            spans[3 * a + b, 1] = np.searchsorted(keys, base | (ck + 1), side="right")
+    count = 0
+    lower_twin = False
+    for s in range(9):
+        for e in range(spans[s, 0], spans[s, 1]):
+            dx, dy, dz = sorted_verts[e, 0] - p[0], sorted_verts[e, 1] - p[1], sorted_verts[e, 2] - p[2]
+            sq = dx * dx + dy * dy + dz * dz
+            if sq < threshold:
+                count += 1
+                lower_twin |= sq == 0.0 and order[e] < query
+    n = count if lower_twin else count - 1
+    index = np.empty(n, dtype=np.int64)
+    offset = np.empty((n, 3))
+    squared = np.empty(n)
+    m = 0
+    for s in range(9):
+        for e in range(spans[s, 0], spans[s, 1]):
+            if order[e] == query and not lower_twin:
+                continue
+            dx, dy, dz = sorted_verts[e, 0] - p[0], sorted_verts[e, 1] - p[1], sorted_verts[e, 2] - p[2]
+            sq = dx * dx + dy * dy + dz * dz
+            if sq < threshold:
+                index[m] = order[e]
+                offset[m, 0], offset[m, 1], offset[m, 2] = dx, dy, dz
+                squared[m] = sq
+                m += 1
+    return index, offset, squared
+
+
+@njit(cache=True, nogil=True)
+def _frame(offset, squared, radius, flip):
+    """Local reference frame from the neighbours' offsets (N, 3) and squared distances (N,).
+
+    ``flip`` turns axes round after the sign rule: bit 0 X, bit 1 Z (Y follows).
+
+    Returns
+    -------
+    frame : numpy.ndarray, shape (3, 3)
+        Rows X, Y, Z; the identity with fewer than `MIN_LRF_NEIGHBORS` neighbours.
+    local : numpy.ndarray, shape (N, 3)
+        The offsets in the frame, ``(q . X, q . Y, q . Z)``.
+    tie : bool
+        The sign of X or Z was a tie (as many neighbours on each side).
+    """
+    n = len(squared)
+    cov = np.eye(3)
+    if n >= MIN_LRF_NEIGHBORS:
+        cov[:] = 0.0
+        total = 0.0
+        for p in range(n):
+            w = radius - squared[p]  # the reference weighs by R - d² (squared distance)
+            total += w
+            for a in range(3):
+                for b in range(a, 3):
+                    cov[a, b] += offset[p, a] * w * offset[p, b]
+        for a in range(3):
+            for b in range(a, 3):
+                cov[a, b] /= total
+                cov[b, a] = cov[a, b]
     _, vecs = np.linalg.eigh(cov)  # ascending eigenvalues
-    x_axis, z_axis = vecs[:, :, 2], vecs[:, :, 0]
-    frames = np.stack([x_axis, np.cross(z_axis, x_axis), z_axis], axis=1)
-    local = np.einsum("pkd,pd->pk", np.take(frames, qi, axis=0), q)  # np.take: faster than indexing
-    # each of X and Z points to the side with more neighbours (strictly positive ones; a tie keeps the sign)
-    signs = np.ones((n_query, 3))
-    tie = np.zeros(n_query, dtype=bool)
-    for axis in (0, 2):
-        positive = np.bincount(qi, weights=local[:, axis] > 0, minlength=n_query)
-        signs[positive < n - positive, axis] = -1.0
+    frame = np.zeros((3, 3))
+    frame[0], frame[2] = vecs[:, 2], vecs[:, 0]
+    local = np.empty((n, 3))
+    tie = False
+    for bit, axis in ((1, 0), (2, 2)):
+        # the axis points to the side with more neighbours (strictly positive ones; a tie keeps the sign)
+        positive = 0
+        for p in range(n):
+            local[p, axis] = offset[p, 0] * frame[axis, 0] + offset[p, 1] * frame[axis, 1] + offset[p, 2] * frame[axis, 2]
+            positive += local[p, axis] > 0.0
         tie |= 2 * positive == n
-    signs[:, 1] = signs[:, 0] * signs[:, 2]  # Y = Z x X
-    frames *= signs[:, :, None]
-    local *= np.take(signs, qi, axis=0)
-    return ShotFrames(frames, n.astype(np.int64), tie & valid), local
+        if (positive < n - positive) != bool(flip & bit):
+            frame[axis] = -frame[axis]
+            local[:, axis] = -local[:, axis]
+    frame[1] = np.cross(frame[2], frame[0])
+    for p in range(n):
+        local[p, 1] = offset[p, 0] * frame[1, 0] + offset[p, 1] * frame[1, 1] + offset[p, 2] * frame[1, 2]
+    return frame, local, tie and n >= MIN_LRF_NEIGHBORS
 
 
-def _sectors(x: np.ndarray, y: np.ndarray, phi: np.ndarray) -> np.ndarray:
-    """`_octant` of every pair from the azimuth ``phi = atan2(y, x)``, exact on the boundaries, shape of ``x``, int64."""
-    k = np.ceil((phi + np.pi) / (np.pi / 4)).astype(np.int64) - 1
-    np.clip(k, 0, 7, out=k)
-    edge = np.flatnonzero((np.abs(x) == np.abs(y)) | (x == 0) | (y == 0))
-    k[edge] = _octant(x[edge], y[edge])
-    return k
-
-
-def _histograms(
-    local: np.ndarray,
-    sq: np.ndarray,
-    cos: np.ndarray,
-    qi: np.ndarray,
-    n_query: int,
-    radius: float,
-    n_bins: int,
-    double_volumes: bool,
-    interpolate: bool,
-) -> tuple[np.ndarray, np.ndarray]:
-    """Unnormalised histograms (n_query, n_volumes * (n_bins + 1)) and the number of binned neighbours per query.
+@njit(cache=True, nogil=True)
+def _histogram(hist, local, squared, cosines, radius, n_bins, double_volumes, interpolate):
+    """Add the neighbours' histogram to ``hist`` (n_volumes * (n_bins + 1),) and return how many were binned.
 
     With interpolation every binned neighbour adds ``1 - |s|`` of each of its four
     interpolation offsets ``s`` (cosine, radial, elevation, azimuth) to its own cell and
@@ -201,63 +265,109 @@ def _histograms(
     """
     n_volumes = 32 if double_volumes else 16
     width = n_bins + 1
-    binned = sq >= SKIP_SQUARED_DISTANCE
-    if not binned.all():
-        kept = np.flatnonzero(binned)
-        local, sq, cos, qi = np.take(local, kept, axis=0), sq[kept], cos[kept], qi[kept]
-    local[np.abs(local) < ZERO_COORDINATE] = 0.0
-    x, y, z = local[:, 0], local[:, 1], local[:, 2]
-    dist = np.sqrt(sq)
-    phi = np.arctan2(y, x)
-    sector = _sectors(x, y, phi)
-    if not double_volumes:
-        sector //= 2
-    outer = dist > radius / 2
-    volume = 4 * sector + 2 * outer + (z > 0)
-    t = (1.0 + cos) * (n_bins / 2.0)
-    b = np.floor(t + 0.5).astype(np.int64)
-    row = qi * (n_volumes * width)
-    own = row + volume * width
-    size = n_query * n_volumes * width
-    if not interpolate:
-        hist = np.bincount(own + b, minlength=size)
-        return hist.reshape(n_query, -1).astype(np.float64), np.bincount(qi, minlength=n_query)
+    wrap = n_volumes - 4  # the reference's azimuth neighbour wraps modulo n_volumes - 4
+    binned = 0
+    for p in range(len(squared)):
+        if squared[p] < SKIP_SQUARED_DISTANCE:
+            continue
+        binned += 1
+        x, y, z = local[p, 0], local[p, 1], local[p, 2]
+        x = 0.0 if abs(x) < ZERO_COORDINATE else x
+        y = 0.0 if abs(y) < ZERO_COORDINATE else y
+        z = 0.0 if abs(z) < ZERO_COORDINATE else z
+        dist = np.sqrt(squared[p])
+        phi = np.arctan2(y, x)
+        sector = _sector(x, y, phi)
+        if not double_volumes:
+            sector //= 2
+        outer = dist > radius / 2
+        volume = 4 * sector + 2 * outer + (z > 0.0)
+        t = (1.0 + cosines[p]) * (n_bins / 2.0)
+        b = int(np.floor(t + 0.5))
+        own = volume * width + b
+        if not interpolate:
+            hist[own] += 1.0
+            continue
+        # cosine: the share goes to the next bin modulo n_bins (bin n_bins - 1 wraps to 0)
+        frac = t - b
+        cos_share = abs(frac)
+        cos_cell = volume * width + (b + (1 if frac > 0 else n_bins - 1)) % n_bins
+        # radial: offset from the centre of the shell (R/4 or 3R/4), in units of R/2
+        radial = (dist - (3 * radius / 4 if outer else radius / 4)) / (radius / 2)
+        radial_share = max(-radial if outer else radial, 0.0)
+        radial_cell = own + (-2 * width if outer else 2 * width)
+        # elevation: offset from 45 or 135 degrees, in units of 90 degrees
+        alpha = np.arccos(min(max(z / dist, -1.0), 1.0))
+        lower = alpha > _PI_2 or (abs(alpha - _PI_2) < 1e-6 and z <= 0.0)
+        elevation = (alpha - (_PI_3_4 if lower else _PI_4)) / _PI_2
+        elevation_share = max(-elevation if lower else elevation, 0.0)
+        elevation_cell = own + (width if lower else -width)
+        # azimuth: offset from the sector centre
+        if double_volumes:
+            azimuth = min(max((phi - (-_PI_7_8 + _PI_4 * sector)) / _PI_4, -0.5), 0.5)
+        else:
+            azimuth = min(max((phi - (-_PI_3_4 + 2 * _PI_4 * sector)) / (2 * _PI_4), -0.5), 0.5)
+        has_azimuth = x != 0.0 or y != 0.0
+        if not has_azimuth:
+            azimuth = 0.0
+        azimuth_cell = ((volume + 4) % wrap if azimuth > 0 else (volume - 4 + wrap) % wrap) * width + b
+        hist[own] += (3.0 + has_azimuth) - cos_share - abs(radial) - abs(elevation) - abs(azimuth)
+        hist[cos_cell] += cos_share
+        hist[radial_cell] += radial_share
+        hist[elevation_cell] += elevation_share
+        hist[azimuth_cell] += abs(azimuth)
+    return binned
 
-    # cosine: the share goes to the next bin modulo n_bins (bin n_bins - 1 wraps to 0)
-    frac = t - b
-    cos_share = np.abs(frac)
-    cos_cell = own + (b + np.where(frac > 0, 1, n_bins - 1)) % n_bins
-    own += b
-    # radial: offset from the centre of the shell (R/4 or 3R/4), in units of R/2
-    radial = (dist - np.where(outer, 3 * radius / 4, radius / 4)) / (radius / 2)
-    radial_share = np.maximum(np.where(outer, -radial, radial), 0.0)
-    radial_cell = own + np.where(outer, -2 * width, 2 * width)
-    # elevation: offset from 45 or 135 degrees, in units of 90 degrees
-    alpha = np.arccos(np.clip(z / dist, -1.0, 1.0))
-    lower = (alpha > _PI_2) | ((np.abs(alpha - _PI_2) < 1e-6) & (z <= 0))
-    elevation = (alpha - np.where(lower, _PI_3_4, _PI_4)) / _PI_2
-    elevation_share = np.maximum(np.where(lower, -elevation, elevation), 0.0)
-    elevation_cell = own + np.where(lower, width, -width)
-    # azimuth: offset from the sector centre; the neighbour sector wraps modulo n_volumes - 4 (the reference's)
-    if double_volumes:
-        azimuth = np.clip((phi - (-_PI_7_8 + _PI_4 * sector)) / _PI_4, -0.5, 0.5)
-    else:
-        azimuth = np.clip((phi - (-_PI_3_4 + 2 * _PI_4 * sector)) / (2 * _PI_4), -0.5, 0.5)
-    has_azimuth = (x != 0) | (y != 0)
-    azimuth[~has_azimuth] = 0.0
-    azimuth_share = np.abs(azimuth)
-    wrap = n_volumes - 4
-    azimuth_cell = row + np.where(azimuth > 0, (volume + 4) % wrap, (volume - 4 + wrap) % wrap) * width + b
-    main = (3.0 + has_azimuth) - cos_share - np.abs(radial) - np.abs(elevation) - azimuth_share
-    hist = np.bincount(own, weights=main, minlength=size)
-    for cells, masses in (
-        (cos_cell, cos_share),
-        (radial_cell, radial_share),
-        (elevation_cell, elevation_share),
-        (azimuth_cell, azimuth_share),
-    ):
-        hist += np.bincount(cells, weights=masses, minlength=size)
-    return hist.reshape(n_query, -1).astype(np.float64, copy=False), np.bincount(qi, minlength=n_query)
+
+@njit(cache=True, nogil=True)
+def _describe_rows(
+    start,
+    stop,
+    queries,
+    verts,
+    normals,
+    grid,
+    radius,
+    threshold,
+    min_count,
+    n_bins,
+    double_volumes,
+    interpolate,
+    normalize,
+    flip_axes,
+    features,
+    frames,
+    n_neighbors,
+    sign_tie,
+    few,
+    nothing,
+):
+    """Fill rows ``start:stop`` of the outputs (see `shot_descriptors`) for ``queries[start:stop]``."""
+    keys, order, sorted_verts, origin, cell = grid
+    for row in range(start, stop):
+        query = queries[row]
+        index, offset, squared = _neighbours(query, verts, keys, order, sorted_verts, origin, cell, threshold)
+        frame, local, tie = _frame(offset, squared, radius, flip_axes[row])
+        n = len(squared)
+        frames[row] = frame
+        n_neighbors[row] = n
+        few[row] = n < min_count
+        if few[row]:
+            continue
+        sign_tie[row] = tie
+        cosines = np.empty(n)
+        for p in range(n):
+            c = frame[2, 0] * normals[index[p], 0] + frame[2, 1] * normals[index[p], 1] + frame[2, 2] * normals[index[p], 2]
+            cosines[p] = min(max(c, -1.0), 1.0)
+        hist = np.zeros(features.shape[1])  # summed in float64, stored in the output's precision
+        if _histogram(hist, local, squared, cosines, radius, n_bins, double_volumes, interpolate) == 0:
+            nothing[row] = True
+            continue
+        if normalize:
+            norm = np.sqrt(np.sum(hist * hist))
+            if norm > 0:
+                hist /= norm
+        features[row] = hist
 
 
 def shot_descriptors(
@@ -270,10 +380,11 @@ def shot_descriptors(
     double_volumes_sectors: bool = True,
     use_interpolation: bool = True,
     use_normalization: bool = True,
-    pairs_per_chunk: int = PAIRS_PER_CHUNK,
+    chunk_size: int = QUERIES_PER_CHUNK,
     progress: bool = False,
     return_frames: bool = False,
     queries: np.ndarray | None = None,
+    flip_axes: np.ndarray | None = None,
     workers: int | None = None,
 ) -> tuple[np.ndarray, dict]:
     """SHOT histograms of every vertex, as the reference computes them.
@@ -281,89 +392,77 @@ def shot_descriptors(
     Parameters
     ----------
     verts : numpy.ndarray, shape (V, 3)
-        Positions (float64).
+        Positions.
     normals : numpy.ndarray, shape (V, 3)
         Unit normals of the vertices (zero rows allowed: they bin at cos = 0).
     radius : float
         Support radius in the units of ``verts`` (> 0); rounded to float32 as the reference does.
     min_neighbors, n_bins, double_volumes_sectors, use_interpolation, use_normalization
         As in `SHOT`.
-    pairs_per_chunk : int
-        Memory bound: most (query, neighbour) pairs held at once.
+    chunk_size : int
+        Vertices a thread describes per task (the progress bar counts tasks).
     progress : bool
-        Show a progress bar over the chunks.
+        Show a progress bar over the tasks.
     return_frames : bool
         Add the frames of every vertex to the report (``"frames"``: a `ShotFrames`).
     queries : numpy.ndarray of int, shape (Q,), optional
         Describe only these vertices (their neighbours are still all vertices); rows and
         report entries follow this order. Default: every vertex.
+    flip_axes : numpy.ndarray of int, shape (Q,), optional
+        Per described vertex, frame axes to turn round after the sign rule: 1 X, 2 Z, 3 both
+        (Y follows). For comparisons with an implementation that chose the other sign at a
+        tie; default none.
     workers : int, optional
-        Threads working on chunks at once (default: the CPU count); each holds up to
-        ``pairs_per_chunk`` pairs. The result does not depend on it.
+        Threads at work at once (default: the CPUs this process may use). The result does
+        not depend on it.
 
     Returns
     -------
-    features : numpy.ndarray, shape (V, n_volumes * (n_bins + 1)) or (Q, ...), float64
-        n_volumes = 32 with ``double_volumes_sectors``, else 16. Rows of vertices with fewer
-        than ``max(5, min_neighbors)`` neighbours, or with every neighbour closer than 1e-3,
-        are zero.
+    features : numpy.ndarray, shape (V, n_volumes * (n_bins + 1)) or (Q, ...), float32
+        Summed in float64, stored in float32 (as the descriptors are). n_volumes = 32 with
+        ``double_volumes_sectors``, else 16. Rows of vertices with fewer than
+        ``max(5, min_neighbors)`` neighbours, or with every neighbour closer than 1e-3, are zero.
     report : dict
         ``"few_neighbors"`` and ``"nothing_binned"`` (bool masks, shape (V,)), ``"sign_tie"``
         (bool, shape (V,)), and ``"frames"`` when asked.
+
+    Notes
+    -----
+    Memory beyond the output is a few arrays the size of one vertex's neighbourhood per
+    thread, whatever the number of vertices.
     """
-    radius = float(np.float32(radius))
-    tree = cKDTree(verts)
-    queries = np.arange(len(verts)) if queries is None else np.asarray(queries, dtype=np.int64)
-    n_vertices = len(queries)
-    counts = tree.query_ball_point(verts[queries], radius, return_length=True).astype(np.int64)
-    bounds = [0]
-    total = 0
-    for i, c in enumerate(counts):
-        if total + c > pairs_per_chunk and i > bounds[-1]:
-            bounds.append(i)
-            total = 0
-        total += c
-    bounds.append(n_vertices)
+    radius32 = np.float32(radius)
+    threshold = float(radius32 * radius32)  # the reference squares R in float32
+    radius = float(radius32)
+    verts = np.ascontiguousarray(verts, dtype=np.float64)
+    normals = np.ascontiguousarray(normals, dtype=np.float64)
+    queries = np.arange(len(verts)) if queries is None else np.ascontiguousarray(queries, dtype=np.int64)
+    n_rows = len(queries)
     width = (32 if double_volumes_sectors else 16) * (n_bins + 1)
-    features = np.zeros((n_vertices, width))
-    few = np.zeros(n_vertices, dtype=bool)
-    empty = np.zeros(n_vertices, dtype=bool)
-    tie = np.zeros(n_vertices, dtype=bool)
-    frames_all = np.zeros((n_vertices, 3, 3)) if return_frames else None
-    n_all = np.zeros(n_vertices, dtype=np.int64)
+    features = np.zeros((n_rows, width), dtype=np.float32)
+    frames = np.zeros((n_rows, 3, 3))
+    n_neighbors = np.zeros(n_rows, dtype=np.int64)
+    tie, few, empty = (np.zeros(n_rows, dtype=bool) for _ in range(3))
+    flip_axes = np.zeros(n_rows, dtype=np.int64) if flip_axes is None else np.ascontiguousarray(flip_axes, dtype=np.int64)
+    grid = _grid(verts, radius)
     min_count = max(MIN_LRF_NEIGHBORS, min_neighbors)
 
-    def describe(bound: tuple[int, int]) -> tuple[np.ndarray, np.ndarray, np.ndarray, ShotFrames]:
-        chunk = queries[bound[0] : bound[1]]
-        qi, nj, q, sq = _chunk_pairs(tree, verts, chunk, radius)
-        lrf, local = _frames(q, sq, qi, len(chunk), radius)
-        z_axes = np.take(lrf.frames[:, 2], qi, axis=0)
-        cos = np.clip(np.einsum("pd,pd->p", z_axes, np.take(normals, nj, axis=0)), -1.0, 1.0)
-        hist, n_binned = _histograms(local, sq, cos, qi, len(chunk), radius, n_bins, double_volumes_sectors, use_interpolation)
-        too_few = lrf.n_neighbors < min_count
-        nothing = ~too_few & (n_binned == 0)
-        hist[too_few | nothing] = 0.0
-        if use_normalization:
-            norms = np.linalg.norm(hist, axis=1)
-            hist[norms > 0] /= norms[norms > 0, None]
-        return hist, too_few, nothing, lrf
+    def describe(start: int) -> None:
+        stop = min(start + chunk_size, n_rows)
+        _describe_rows(
+            start, stop, queries, verts, normals, grid, radius, threshold, min_count, n_bins,
+            double_volumes_sectors, use_interpolation, use_normalization, flip_axes, features, frames, n_neighbors, tie, few, empty,
+        )  # fmt: skip
 
-    chunks = list(zip(bounds[:-1], bounds[1:], strict=True))
-    workers = max(1, min(workers or os.cpu_count() or 1, len(chunks)))
-    with ThreadPoolExecutor(max_workers=workers) as pool:  # NumPy releases the GIL in its array loops
-        results = pool.map(describe, chunks) if workers > 1 else map(describe, chunks)
-        bar = progress_bar(
-            zip(chunks, results, strict=True), show=progress, total=len(chunks), desc="shot", unit="chunk", delay=1.0
-        )
-        for (start, stop), (hist, too_few, nothing, lrf) in bar:
-            features[start:stop] = hist
-            few[start:stop], empty[start:stop], tie[start:stop] = too_few, nothing, lrf.sign_tie & ~too_few
-            n_all[start:stop] = lrf.n_neighbors
-            if frames_all is not None:
-                frames_all[start:stop] = lrf.frames
+    starts = range(0, n_rows, chunk_size)
+    workers = max(1, min(workers or len(os.sched_getaffinity(0)), len(starts)))
+    with ThreadPoolExecutor(max_workers=workers) as pool:  # the kernels release the GIL
+        done = pool.map(describe, starts) if workers > 1 else map(describe, starts)
+        for _ in progress_bar(done, show=progress, total=len(starts), desc="shot", unit="chunk", delay=1.0):
+            pass
     report = {"few_neighbors": few, "nothing_binned": empty, "sign_tie": tie}
-    if frames_all is not None:
-        report["frames"] = ShotFrames(frames_all, n_all, tie)
+    if return_frames:
+        report["frames"] = ShotFrames(frames, n_neighbors, tie)
     return features, report
 
 
@@ -372,22 +471,26 @@ class SHOT(Descriptor):
 
     Parameters
     ----------
-    radius : float
+    recipe : {"dsmk"}
+        Whose parameter values fill those left as None (`SHOT_RECIPES`): ``"dsmk"``,
+        DeepShapeMatchingKit's (radius 0.3, 5 bins, 32 volumes, interpolation and
+        normalisation on), the only recipe so far.
+    radius : float, optional
         Support radius (> 0), read as ``radius_unit`` says.
     radius_unit : {"absolute", "sqrt_area", "diameter"}
         ``"absolute"``: in the mesh's units (as pyshot); ``"sqrt_area"``: a fraction of the
         square root of the surface area (meshes only); ``"diameter"``: a fraction of the
         bounding-box diagonal.
-    min_neighbors : int
+    min_neighbors : int, optional
         Vertices with fewer neighbours get a zero row; at least 5 are always required (the
         reference's local reference frame needs them).
-    n_bins : int
+    n_bins : int, optional
         Cosine bins per volume; each volume holds ``n_bins + 1`` entries (as the reference).
-    double_volumes_sectors : bool
+    double_volumes_sectors : bool, optional
         32 volumes (8 azimuth sectors) instead of 16 (4 sectors).
-    use_interpolation : bool
+    use_interpolation : bool, optional
         Quadrilinear interpolation between neighbouring bins and volumes.
-    use_normalization : bool
+    use_normalization : bool, optional
         Scale every row to unit Euclidean norm.
     cloud_normals : {"estimate", "zero"}
         Normals of a point cloud: estimated from the 30 nearest points and oriented away from
@@ -396,8 +499,7 @@ class SHOT(Descriptor):
     Notes
     -----
     Output: shape (V, n_volumes * (n_bins + 1)) with n_volumes = 32 or 16; the
-    DeepShapeMatchingKit preset (`SHOT_PRESETS`, ``SHOT.preset("dsmk")``, also the defaults)
-    gives 192 channels.
+    ``"dsmk"`` recipe gives 192 channels.
 
     As in the reference:
 
@@ -432,15 +534,28 @@ class SHOT(Descriptor):
     def __init__(
         self,
         *,
-        radius: float = 0.3,
+        recipe: str = "dsmk",
+        radius: float | None = None,
         radius_unit: str = "absolute",
-        min_neighbors: int = 3,
-        n_bins: int = 5,
-        double_volumes_sectors: bool = True,
-        use_interpolation: bool = True,
-        use_normalization: bool = True,
+        min_neighbors: int | None = None,
+        n_bins: int | None = None,
+        double_volumes_sectors: bool | None = None,
+        use_interpolation: bool | None = None,
+        use_normalization: bool | None = None,
         cloud_normals: str = "estimate",
     ):
+        self.recipe = check_choice(recipe, "recipe", tuple(SHOT_RECIPES), owner=self.name)
+        given = {
+            "radius": radius,
+            "min_neighbors": min_neighbors,
+            "n_bins": n_bins,
+            "double_volumes_sectors": double_volumes_sectors,
+            "use_interpolation": use_interpolation,
+            "use_normalization": use_normalization,
+        }
+        radius, min_neighbors, n_bins, double_volumes_sectors, use_interpolation, use_normalization = (
+            SHOT_RECIPES[self.recipe][name] if value is None else value for name, value in given.items()
+        )
         self.radius = check_number(radius, "radius", owner=self.name, low=0.0, low_open=True)
         self.radius_unit = check_choice(radius_unit, "radius_unit", RADIUS_UNITS, owner=self.name)
         self.min_neighbors = check_integer(min_neighbors, "min_neighbors", owner=self.name, low=0)
@@ -449,18 +564,6 @@ class SHOT(Descriptor):
         self.use_interpolation = check_boolean(use_interpolation, "use_interpolation", owner=self.name)
         self.use_normalization = check_boolean(use_normalization, "use_normalization", owner=self.name)
         self.cloud_normals = check_choice(cloud_normals, "cloud_normals", CLOUD_NORMALS, owner=self.name)
-
-    @classmethod
-    def preset(cls, name: str, **overrides) -> SHOT:
-        """The descriptor with the parameters of a named preset (`SHOT_PRESETS`), some replaced by ``overrides``.
-
-        Raises
-        ------
-        DescriptorError
-            Unknown preset name.
-        """
-        key = check_choice(name, "preset", tuple(SHOT_PRESETS), owner=cls.name)
-        return cls(**{**SHOT_PRESETS[key], **overrides})
 
     def absolute_radius(self, mesh: Mesh) -> float:
         """The support radius in the units of ``mesh``.
@@ -494,7 +597,7 @@ class SHOT(Descriptor):
         return vertex_normals(mesh.verts, mesh.faces, face_weights="unit", fallback=False)
 
     def compute(self, mesh: Mesh) -> np.ndarray:
-        """SHOT features of shape (V, n_volumes * (n_bins + 1)), float64.
+        """SHOT features of shape (V, n_volumes * (n_bins + 1)), float32.
 
         Raises
         ------

@@ -8,7 +8,7 @@ from shapes import bumpy, sphere
 
 import geofeat
 from geofeat import Mesh
-from geofeat.descriptors.shot import SHOT, SHOT_PRESETS, shot_descriptors
+from geofeat.descriptors.shot import SHOT, SHOT_RECIPES, shot_descriptors
 from geofeat.errors import DescriptorError, GeofeatError, MeshError
 
 
@@ -17,8 +17,10 @@ def test_registered_with_dsmk_defaults(faust_mesh):
     assert feats.shape == (faust_mesh.n_vertices, 192)
     assert feats.dtype == np.float32 and np.isfinite(feats).all()
     np.testing.assert_allclose(np.linalg.norm(feats, axis=1), 1.0, atol=1e-5)
-    assert SHOT.preset("dsmk").get_params() == SHOT().get_params()
-    assert SHOT.preset("dsmk").get_params().items() >= SHOT_PRESETS["dsmk"].items()
+    dsmk = SHOT(recipe="dsmk").get_params()
+    assert dsmk == SHOT().get_params() == SHOT(radius=0.3, n_bins=5).get_params()  # one cache entry
+    assert dsmk.items() >= SHOT_RECIPES["dsmk"].items()
+    assert SHOT(recipe="dsmk", radius=0.4).get_params() == {**dsmk, "radius": 0.4}
 
 
 def test_length_follows_bins_and_volumes():
@@ -51,9 +53,9 @@ def test_bad_parameters(params, match):
         SHOT(**params)
 
 
-def test_unknown_preset():
-    with pytest.raises(DescriptorError, match="preset"):
-        SHOT.preset("nope")
+def test_unknown_recipe():
+    with pytest.raises(DescriptorError, match="recipe"):
+        SHOT(recipe="nope")
 
 
 def test_rigid_motion_invariant():
@@ -80,7 +82,7 @@ def test_chunks_give_the_same_features():
     mesh = bumpy(subdivisions=3)
     normals = SHOT().normals(mesh)
     whole, _ = shot_descriptors(mesh.verts, normals, 0.5)
-    chunked, _ = shot_descriptors(mesh.verts, normals, 0.5, pairs_per_chunk=500)
+    chunked, _ = shot_descriptors(mesh.verts, normals, 0.5, chunk_size=7)
     np.testing.assert_allclose(whole, chunked, atol=1e-12)
 
 
