@@ -17,6 +17,7 @@ import logging
 import os
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from numba import njit
@@ -460,7 +461,7 @@ def shot_descriptors(
         done = pool.map(describe, starts) if workers > 1 else map(describe, starts)
         for _ in progress_bar(done, show=progress, total=len(starts), desc="shot", unit="chunk", delay=1.0):
             pass
-    report = {"few_neighbors": few, "nothing_binned": empty, "sign_tie": tie}
+    report: dict[str, np.ndarray | ShotFrames] = {"few_neighbors": few, "nothing_binned": empty, "sign_tie": tie}
     if return_frames:
         report["frames"] = ShotFrames(frames, n_neighbors, tie)
     return features, report
@@ -545,24 +546,24 @@ class SHOT(Descriptor):
         cloud_normals: str = "estimate",
     ):
         self.recipe = check_choice(recipe, "recipe", tuple(SHOT_RECIPES), owner=self.name)
-        given = {
-            "radius": radius,
-            "min_neighbors": min_neighbors,
-            "n_bins": n_bins,
-            "double_volumes_sectors": double_volumes_sectors,
-            "use_interpolation": use_interpolation,
-            "use_normalization": use_normalization,
-        }
-        radius, min_neighbors, n_bins, double_volumes_sectors, use_interpolation, use_normalization = (
-            SHOT_RECIPES[self.recipe][name] if value is None else value for name, value in given.items()
-        )
-        self.radius = check_number(radius, "radius", owner=self.name, low=0.0, low_open=True)
+        recipe_values = SHOT_RECIPES[self.recipe]
+
+        def given(name: str, value: Any) -> Any:
+            return recipe_values[name] if value is None else value
+
+        self.radius = check_number(given("radius", radius), "radius", owner=self.name, low=0.0, low_open=True)
         self.radius_unit = check_choice(radius_unit, "radius_unit", RADIUS_UNITS, owner=self.name)
-        self.min_neighbors = check_integer(min_neighbors, "min_neighbors", owner=self.name, low=0)
-        self.n_bins = check_integer(n_bins, "n_bins", owner=self.name, low=1)
-        self.double_volumes_sectors = check_boolean(double_volumes_sectors, "double_volumes_sectors", owner=self.name)
-        self.use_interpolation = check_boolean(use_interpolation, "use_interpolation", owner=self.name)
-        self.use_normalization = check_boolean(use_normalization, "use_normalization", owner=self.name)
+        self.min_neighbors = check_integer(given("min_neighbors", min_neighbors), "min_neighbors", owner=self.name, low=0)
+        self.n_bins = check_integer(given("n_bins", n_bins), "n_bins", owner=self.name, low=1)
+        self.double_volumes_sectors = check_boolean(
+            given("double_volumes_sectors", double_volumes_sectors), "double_volumes_sectors", owner=self.name
+        )
+        self.use_interpolation = check_boolean(
+            given("use_interpolation", use_interpolation), "use_interpolation", owner=self.name
+        )
+        self.use_normalization = check_boolean(
+            given("use_normalization", use_normalization), "use_normalization", owner=self.name
+        )
         self.cloud_normals = check_choice(cloud_normals, "cloud_normals", CLOUD_NORMALS, owner=self.name)
 
     def absolute_radius(self, mesh: Mesh) -> float:

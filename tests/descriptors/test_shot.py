@@ -193,3 +193,15 @@ def test_a_head_takes_shot_by_name():
     assert head.features(mesh).shape == (mesh.n_vertices, 192)
     match = head.match(pair)
     assert np.mean(match.map_yx == pair.map_yx) > 0.5  # nearest SHOT rows find most of the cut-out vertices
+
+
+@pytest.mark.parametrize("far", [None, 1e9])
+def test_neighbours_are_those_within_the_radius(far):
+    # a far point makes the shape span more than 2**20 radii: the grid's cells grow past the radius
+    points = np.random.default_rng(1).uniform(-1, 1, size=(2000, 3))
+    if far is not None:
+        points = np.concatenate([points, [[far, 0.0, 0.0]]])
+    radius = 0.2
+    _, report = shot_descriptors(points, np.zeros_like(points), radius, return_frames=True)
+    expected = cKDTree(points).query_ball_point(points, radius, return_length=True) - 1  # the vertex itself excluded
+    np.testing.assert_array_equal(report["frames"].n_neighbors, expected)
