@@ -7,6 +7,12 @@ Two entry points:
   of the surface area (the normalisation of the published geodesic-error protocols),
   cached in memory by mesh content.
 
+Both take point clouds too: the heat method on points (`geofeat.geometry.geodesic_cloud`,
+potpourri3d's ``PointCloudHeatSolver``) is the only method there, and the area of a cloud is
+that of its point-cloud Laplacian (`geofeat.geometry.geodesic_cloud.cloud_area`). Without a
+``method``, each shape gets its evaluation method (`evaluation_method`): edge Dijkstra on
+meshes, the heat method on points.
+
 Built on this module: `geofeat.geometry.geodesic_store.GeodesicStore` keeps those matrices
 on disk by mesh content (evaluation and training read them back instead of computing them
 again), and `geofeat.geometry.geodesic_memory` gives an evaluation the matrix when it fits
@@ -32,6 +38,7 @@ import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components, dijkstra
 
 from geofeat.errors import GeodesicMemoryError, MeshError
+from geofeat.geometry.geodesic_cloud import cloud_area, cloud_heat_rows
 from geofeat.mesh import Mesh, require_faces
 from geofeat.runtime.progress import progress_bar
 from geofeat.storage.lru import LRUCache
@@ -62,7 +69,7 @@ def edge_graph(mesh: Mesh) -> sp.csr_matrix:
         vertices) is kept as an explicit zero, an edge of weight 0 for scipy.sparse.csgraph.
     """
     if mesh.faces is None:
-        raise MeshError(f"{mesh.name!r} is a point cloud: geodesics need faces.")
+        raise MeshError(f"{mesh.name!r} is a point cloud: it has no edges to run Dijkstra on; use method='heat'.")
     edges = unique_edges(mesh.faces)
     lengths = np.linalg.norm(mesh.verts[edges[:, 0]] - mesh.verts[edges[:, 1]], axis=1)
     n = mesh.n_vertices
@@ -73,38 +80,68 @@ def edge_graph(mesh: Mesh) -> sp.csr_matrix:
     return sp.csr_matrix((np.concatenate([lengths, lengths]), (rows, cols)), shape=(n, n))
 
 
-def distances_from(mesh: Mesh, sources, method: str = "dijkstra") -> np.ndarray:
+def evaluation_method(mesh: Mesh) -> str:
+    """The geodesic method a shape gets by default: ``"dijkstra"`` on a triangle mesh, ``"heat"`` on a point cloud."""
+    return "heat" if mesh.faces is None else "dijkstra"
+
+
+def _resolved_method(mesh: Mesh, method: str | None) -> str:
+    """``method``, or the shape's `evaluation_method`; `MeshError` for an unknown one or Dijkstra on points."""
+    method = evaluation_method(mesh) if method is None else method
+    if method not in GEODESIC_METHODS:
+        raise MeshError(f"unknown geodesic method {method!r}; expected one of {GEODESIC_METHODS}.")
+    if method == "dijkstra" and mesh.faces is None:
+        raise MeshError(
+            f"{mesh.name!r} is a point cloud: it has no edges to run Dijkstra on. Use method='heat' (the heat method on "
+            "points), or leave method out."
+        )
+    return method
+
+
+def distances_from(mesh: Mesh, sources, method: str | None = None) -> np.ndarray:
     """Geodesic distances from some source vertices to every vertex, in the mesh's units.
 
     Parameters
     ----------
     mesh : Mesh
-        Triangle mesh.
+        Triangle mesh or point cloud.
     sources : int or array_like of int, shape (S,)
         Source vertex indices.
-    method : {"dijkstra", "heat"}
+    method : {"dijkstra", "heat"}, optional
         ``"dijkstra"``: shortest paths along mesh edges (what published protocols use);
         ``"heat"``: the heat method of Crane et al. through potpourri3d (smoother, faster
-        for few sources).
+        for few sources), on a mesh or on points (see `geofeat.geometry.geodesic_cloud`).
+        Default: `evaluation_method` (Dijkstra on a mesh, heat on a point cloud).
 
     Returns
     -------
     numpy.ndarray, shape (S, V), float64
-        ``inf`` for vertices in another component (Dijkstra).
+        ``inf`` for vertices in another component (Dijkstra) or another piece of a point cloud.
+
+    Raises
+    ------
+    MeshError
+        Indices out of range, an unknown method, Dijkstra on a point cloud, or a point cloud
+        the heat method cannot use (`geofeat.geometry.geodesic_cloud.cloud_layout`).
     """
     sources = np.atleast_1d(np.asarray(sources, dtype=np.int64))
     if sources.size and (sources.min() < 0 or sources.max() >= mesh.n_vertices):
         raise MeshError(f"source indices must lie in [0, {mesh.n_vertices - 1}]; found [{sources.min()}, {sources.max()}].")
+    method = _resolved_method(mesh, method)
+    if not sources.size:
+        return np.zeros((0, mesh.n_vertices))
     if method == "dijkstra":
         return dijkstra(edge_graph(mesh), directed=False, indices=sources)
-    if method == "heat":
-        import potpourri3d as pp3d
+    if mesh.faces is None:
+        unique = np.unique(sources)
+        rows = np.empty((unique.size, mesh.n_vertices))
+        for block, values in cloud_heat_rows(mesh, unique):
+            rows[np.searchsorted(unique, block)] = values
+        return rows[np.searchsorted(unique, sources)]
+    import potpourri3d as pp3d
 
-        if mesh.faces is None:
-            raise MeshError(f"{mesh.name!r} is a point cloud: geodesics need faces.")
-        solver = pp3d.MeshHeatMethodDistanceSolver(mesh.verts, mesh.faces)
-        return np.stack([solver.compute_distance(int(s)) for s in sources]) if sources.size else np.zeros((0, mesh.n_vertices))
-    raise MeshError(f"unknown geodesic method {method!r}; expected one of {GEODESIC_METHODS}.")
+    solver = pp3d.MeshHeatMethodDistanceSolver(mesh.verts, mesh.faces)
+    return np.stack([solver.compute_distance(int(s)) for s in sources])
 
 
 # ---------------------------------------------------------------------------------------
@@ -117,23 +154,27 @@ _matrix_cache: LRUCache[tuple, np.ndarray] = LRUCache(
 
 
 def geodesic_matrix(
-    mesh: Mesh, method: str = "dijkstra", normalize: bool = True, cache: bool = True, progress: bool = False
+    mesh: Mesh, method: str | None = None, normalize: bool = True, cache: bool = True, progress: bool = False
 ) -> np.ndarray:
-    """All-pairs geodesic distances of a triangle mesh.
+    """All-pairs geodesic distances of a triangle mesh or a point cloud.
 
     Parameters
     ----------
     mesh : Mesh
-        Triangle mesh (a point cloud raises `MeshError`).
-    method : {"dijkstra", "heat"}
+        Triangle mesh or point cloud.
+    method : {"dijkstra", "heat"}, optional
         ``"dijkstra"``: exact shortest paths along the mesh edges, weighted by their
         Euclidean length (the distances the published matching protocols use; they
         overestimate true surface geodesics by a few percent). ``"heat"``: the heat method
         of Crane et al. (potpourri3d, intrinsic-Delaunay Laplacian, ``t`` = mean edge
         length squared), one solve pair per source vertex, then symmetrised; closer to
-        true surface geodesics, slower for all pairs.
+        true surface geodesics, slower for all pairs. On a point cloud only ``"heat"``
+        exists (`geofeat.geometry.geodesic_cloud`: duplicates share their rows, separate
+        pieces are ``inf`` apart). Default: `evaluation_method`, Dijkstra on a mesh and
+        heat on a point cloud.
     normalize : bool
-        Divide by the square root of the total surface area, ``sqrt(mesh.area())``.
+        Divide by the square root of the total surface area (`area_normalisation`; for a
+        point cloud, the area of its point-cloud Laplacian).
     cache : bool
         Reuse a matrix computed before for the same mesh content, method and
         normalisation (in memory only, a small LRU; persistence on disk belongs to
@@ -154,7 +195,9 @@ def geodesic_matrix(
     Raises
     ------
     MeshError
-        For a point cloud, an unknown method, or ``normalize`` on a mesh of zero area.
+        For an unknown method, Dijkstra on a point cloud, a point cloud the heat method
+        cannot use (`geofeat.geometry.geodesic_cloud.cloud_layout`), or ``normalize`` on a
+        mesh of zero area.
     GeodesicMemoryError
         When the matrix does not fit in memory (`all_pairs_memory` estimates its size).
 
@@ -163,12 +206,10 @@ def geodesic_matrix(
     Cost for a 5,000-vertex FAUST_r shape on one CPU core (see
     ``benchmarks/speed/geodesic.py``): "dijkstra" well under a second (plain scipy Dijkstra
     from every vertex takes about 3 s), "heat" several seconds (about 1 ms per source).
-    Memory: one float32 (V, V) matrix plus a few (patch, V) blocks.
+    Memory: one float32 (V, V) matrix plus a few (patch, V) blocks. A point cloud: about
+    2 ms per source point (10 s for 5,000 points), see ``benchmarks/cloud_geodesic.py``.
     """
-    if method not in GEODESIC_METHODS:
-        raise MeshError(f"unknown geodesic method {method!r}; expected one of {GEODESIC_METHODS}.")
-    if mesh.faces is None:
-        raise MeshError(f"{mesh.name!r} is a point cloud: geodesic distances need faces (a triangle mesh).")
+    method = _resolved_method(mesh, method)
     key = (mesh.hash, method, bool(normalize))
     if cache and (dist := _matrix_cache.get(key)) is not None:
         return dist
@@ -176,6 +217,8 @@ def geodesic_matrix(
     try:
         if method == "dijkstra":
             dist = _all_pairs_dijkstra(edge_graph(mesh) * scale, mesh.verts, progress=progress)
+        elif mesh.faces is None:
+            dist = _all_pairs_cloud_heat(mesh, scale, progress=progress)
         else:
             dist = _all_pairs_heat(mesh, scale, progress=progress)
     except MemoryError as exc:
@@ -197,14 +240,18 @@ def clear_geodesic_cache() -> None:
 
 
 def area_normalisation(mesh: Mesh) -> float:
-    """``1 / sqrt(mesh.area())``: the factor by which ``normalize=True`` scales the distances.
+    """``1 / sqrt(area)``: the factor by which ``normalize=True`` scales the distances.
+
+    The area is ``mesh.area()`` for a triangle mesh and
+    `geofeat.geometry.geodesic_cloud.cloud_area` (the lumped masses of the point-cloud
+    Laplacian) for a point cloud.
 
     Raises
     ------
     MeshError
-        For a mesh of zero surface area.
+        For a shape of zero surface area, or a point cloud the heat method cannot use.
     """
-    area = mesh.area()
+    area = cloud_area(mesh) if mesh.faces is None else mesh.area()
     if not area > 0:
         raise MeshError(f"{mesh.name!r} has zero surface area: cannot normalise by sqrt(area). Pass normalize=False.")
     return 1.0 / float(np.sqrt(area))
@@ -455,6 +502,16 @@ def _all_pairs_heat(mesh: Mesh, scale: float, progress: bool = False) -> np.ndar
 
 def _mean(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return 0.5 * (a + b)
+
+
+def _all_pairs_cloud_heat(mesh: Mesh, scale: float, progress: bool = False) -> np.ndarray:
+    """Symmetrised heat-method distances (V, V) float32 of a point cloud, times ``scale``; inf between its pieces."""
+    n = mesh.n_vertices
+    dist = np.empty((n, n), dtype=np.float32)
+    for rows, values in cloud_heat_rows(mesh, None, scale, progress=progress):
+        dist[rows] = values
+    _symmetrize(dist, _mean)
+    return dist
 
 
 def _face_components(mesh: Mesh) -> list[tuple[np.ndarray, np.ndarray | None]]:

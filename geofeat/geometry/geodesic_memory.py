@@ -5,19 +5,21 @@ error of each matched vertex, the worst case of each unmatched one). `evaluation
 gives it the whole matrix (`geofeat.geometry.geodesic.geodesic_matrix`, read back from or
 kept in a `geofeat.geometry.geodesic_store.GeodesicStore`) when `all_pairs_memory` is
 within the bound of `memory_limit`; above it, a `GeodesicEntries` that computes only the
-entries asked for, a few rows at a time.
+entries asked for, a few rows at a time. Point clouds take the same paths with the heat
+method on points (`geofeat.geometry.geodesic_cloud`) in place of edge Dijkstra.
 """
 
 from __future__ import annotations
 
 import logging
 import os
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
 from scipy.sparse.csgraph import connected_components
 
-from geofeat.errors import GeofeatError, MeshError
+from geofeat.errors import GeofeatError
 from geofeat.geometry.geodesic import (
     all_pairs_memory,
     area_normalisation,
@@ -26,6 +28,7 @@ from geofeat.geometry.geodesic import (
     geodesic_matrix,
     streamed_memory,
 )
+from geofeat.geometry.geodesic_cloud import cloud_heat_rows, cloud_layout
 from geofeat.geometry.geodesic_store import GeodesicStore
 from geofeat.mesh import Mesh
 from geofeat.storage.sizes import format_size, parse_size
@@ -105,7 +108,7 @@ def evaluation_distances(
     Parameters
     ----------
     mesh : Mesh
-        Target (full) shape with V vertices.
+        Target (full) shape with V vertices: a triangle mesh or a point cloud.
     store : GeodesicStore, optional
         A sound entry there is read back (mapped from the file, whatever its size); a
         matrix computed here is kept there (see `GeodesicStore.load`).
@@ -117,7 +120,8 @@ def evaluation_distances(
     Returns
     -------
     numpy.ndarray, shape (V, V), float32, or GeodesicEntries
-        The matrix of `geodesic_matrix` (Dijkstra over ``sqrt(area)``) when `all_pairs_memory`
+        The matrix of `geodesic_matrix` (over ``sqrt(area)``: Dijkstra on a mesh, the heat
+        method on a point cloud) when `all_pairs_memory`
         is within the bound; above it, a `GeodesicEntries` that computes only the entries
         asked for, without forming the matrix or storing it (a warning says so).
     """
@@ -143,13 +147,14 @@ def evaluation_distances(
         return GeodesicEntries(mesh, limit=bound)
     if store is not None:
         return store.load(mesh)
-    return geodesic_matrix(mesh, method="dijkstra", normalize=True)
+    return geodesic_matrix(mesh, normalize=True)
 
 
 class GeodesicEntries:
-    """Some entries of a mesh's evaluation geodesic matrix, computed without forming the matrix.
+    """Some entries of a shape's evaluation geodesic matrix, computed without forming the matrix.
 
-    Stands for ``geodesic_matrix(mesh, "dijkstra", normalize=True)`` in the metrics of
+    Stands for ``geodesic_matrix(mesh, normalize=True)`` (Dijkstra on a mesh, the heat method
+    on a point cloud) in the metrics of
     `geofeat.evaluation.metrics` (it is a `geofeat.evaluation.metrics.DistanceEntries`), in two rounds:
 
     1. asking: the metrics run once on it. ``entries[rows, cols]`` records the entries read
@@ -160,14 +165,15 @@ class GeodesicEntries:
        it and read the values.
 
     The values are exactly those of the matrix: the rows are computed by the same code
-    (separator rows by Dijkstra, patch rows by the same min-plus sums) and entry ``(i, j)``
-    is the smaller of rows ``i`` and ``j`` at each other, as `geodesic_matrix` symmetrises.
+    (separator rows by Dijkstra, patch rows by the same min-plus sums; on a point cloud, one
+    heat solve per row) and entry ``(i, j)`` combines rows ``i`` and ``j`` at each other as
+    `geodesic_matrix` symmetrises them: their minimum (Dijkstra), their mean (heat).
     Reading an entry that was not asked for before `compute` raises `GeofeatError`.
 
     Parameters
     ----------
     mesh : Mesh
-        Triangle mesh with V vertices.
+        Triangle mesh or point cloud with V vertices.
     limit : int, optional
         Memory bound in bytes: the row cache and the worst-case rows are kept within it.
 
@@ -181,13 +187,17 @@ class GeodesicEntries:
     dtype = np.dtype(np.float32)
 
     def __init__(self, mesh: Mesh, limit: int | None = None):
-        if mesh.faces is None:
-            raise MeshError(f"{mesh.name!r} is a point cloud: geodesic distances need faces (a triangle mesh).")
         self.mesh = mesh
         self.shape = (mesh.n_vertices, mesh.n_vertices)
         self.limit = limit
-        self._graph = edge_graph(mesh) * area_normalisation(mesh)
-        self._labels = connected_components(self._graph, directed=False)[1]
+        self._scale = area_normalisation(mesh)
+        if mesh.faces is None:
+            self._graph = None
+            layout = cloud_layout(mesh)
+            self._labels = layout.piece_of[layout.position_of]
+        else:
+            self._graph = edge_graph(mesh) * self._scale
+            self._labels = connected_components(self._graph, directed=False)[1]
         self._asked: list[np.ndarray] = []
         self._asked_rows: list[np.ndarray] = []
         self._keys: np.ndarray | None = None
@@ -265,7 +275,7 @@ class GeodesicEntries:
             w_at = np.full(n, -1, dtype=np.int64)
             w_at[group] = np.arange(group.size)
             cache_bytes = budget // 2 if group.size else budget
-            for block, rows in dijkstra_row_blocks(self._graph, self.mesh.verts, wanted, cache_bytes, progress):
+            for block, rows in self._row_blocks(wanted, cache_bytes, progress):
                 self.n_rows_computed += block.size
                 if first:
                     for order, ends, other, out in ((by_row_i, qi, qj, forward), (by_row_j, qj, qi, backward)):
@@ -280,8 +290,22 @@ class GeodesicEntries:
                     w_row[w_at[block[mine]]] = rows[mine]
                     w_col[:, block] = rows[:, group].T
             if group.size:
-                merged = np.minimum(w_row, w_col).astype(np.float64)
+                merged = self._combine(w_row, w_col).astype(np.float64)
                 worst[start : start + group.size] = np.where(np.isfinite(merged), merged, -np.inf).max(axis=1).clip(min=0.0)
-        self._keys, self._values = keys, np.minimum(forward, backward)
+        self._keys, self._values = keys, self._combine(forward, backward)
         self._worst_rows, self._worst = worst_rows, worst
         return self
+
+    def _row_blocks(self, wanted: np.ndarray | None, cache_bytes: int, progress: bool) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+        """Blocks ``(indices (b,), rows (b, V) float32)`` of the unsymmetrised rows, as `geodesic_matrix` computes them."""
+        if self._graph is not None:
+            yield from dijkstra_row_blocks(self._graph, self.mesh.verts, wanted, cache_bytes, progress)
+            return
+        for block, rows in cloud_heat_rows(self.mesh, wanted, self._scale, progress):
+            yield block, rows.astype(np.float32)
+
+    def _combine(self, row_ij: np.ndarray, row_ji: np.ndarray) -> np.ndarray:
+        """Entry (i, j) from row i at j and row j at i: the symmetrisation of `geodesic_matrix`."""
+        if self._graph is not None:
+            return np.minimum(row_ij, row_ji)
+        return 0.5 * (row_ij + row_ji)

@@ -1,7 +1,8 @@
 """All-pairs geodesic matrices on disk, one checked ``.npy`` file per mesh content: `GeodesicStore`.
 
 Evaluation and training read a target's matrix back instead of computing it again
-(`geofeat.geometry.geodesic.geodesic_matrix`, edge Dijkstra over ``sqrt(area)``);
+(`geofeat.geometry.geodesic.geodesic_matrix` over ``sqrt(area)``: edge Dijkstra on a mesh,
+the heat method on a point cloud);
 ``geofeat cache info|verify|clear`` sees the store's folder like the feature cache's.
 """
 
@@ -54,7 +55,11 @@ def _entry_problem(stored: np.ndarray, n: int, dtype: np.dtype, crc: str) -> str
 
 
 class GeodesicStore(EntryFolder):
-    """All-pairs geodesic matrices on disk (edge Dijkstra over ``sqrt(area)``), one ``.npy`` file per mesh content.
+    """All-pairs geodesic matrices on disk (over ``sqrt(area)``), one ``.npy`` file per mesh or point-cloud content.
+
+    The matrix of a shape is `geodesic_matrix` with its evaluation method
+    (`geofeat.geometry.geodesic.evaluation_method`): edge Dijkstra on a triangle mesh, the
+    heat method on a point cloud (whose content hash, faces None, differs from any mesh's).
 
     An entry is named ``<mesh hash>-<dtype>-v<version>-<crc>.npy``: a plain NumPy file whose
     name carries the CRC-32 of its array (dtype, shape and bytes). It is written through a
@@ -197,8 +202,8 @@ class GeodesicStore(EntryFolder):
         Returns
         -------
         numpy.ndarray, shape (V, V), float32 (float16 for a float16 store when ``widen`` is False), read-only
-            A float32 store returns exactly `geodesic_matrix` (``method="dijkstra"``,
-            ``normalize=True``); read back, it is the file mapped into memory (``mmap``,
+            A float32 store returns exactly `geodesic_matrix` (the shape's evaluation
+            method, ``normalize=True``); read back, it is the file mapped into memory (``mmap``,
             no copy: pages shared between processes, read from the page cache). A float16
             store returns its rounding, widened to float32.
 
@@ -277,7 +282,7 @@ class GeodesicStore(EntryFolder):
         if too_large is None and self.explicit:
             self.check_writable()  # fail before the work, not after it
         # not in the in-memory cache as well: the file is the kept copy (read back mapped, no copy)
-        dist = geodesic_matrix(mesh, method="dijkstra", normalize=True, cache=False)
+        dist = geodesic_matrix(mesh, normalize=True, cache=False)  # Dijkstra on a mesh, heat on points
         if self.connected and not np.isfinite(dist).all():
             raise MeshError(
                 f"{mesh.name!r} is not connected: its geodesic distances are infinite; give a connected mesh "

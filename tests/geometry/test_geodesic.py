@@ -170,8 +170,8 @@ def test_bad_input_errors():
         geodesic_matrix(mesh, "fmm")
     with pytest.raises(ValueError, match="expected one of"):
         geodesic_matrix(mesh, method="Dijkstra")
-    with pytest.raises(MeshError, match="point cloud"):
-        geodesic_matrix(Mesh(mesh.verts))
+    with pytest.raises(MeshError, match="point cloud: it has no edges to run Dijkstra on"):
+        geodesic_matrix(Mesh(mesh.verts), "dijkstra")
 
 
 def test_progress_bar_can_be_shown(monkeypatch):
