@@ -7,6 +7,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from geofeat.geometry.surface_points import SurfacePoints
 from geofeat.mesh import Mesh
 
 PROTOCOLS = ("p2f", "p2p", "f2f")
@@ -44,6 +45,14 @@ class ShapePair:
         the benchmark fixes one other than ``sqrt(area(x))`` (BeCoS: the square root of the
         area of the full shape ``x`` was cut from, also when ``x`` is partial). None:
         ``sqrt(area(x))``.
+    x_surface, y_surface : SurfacePoints, or None
+        Where a shape that is a point cloud made from a triangle mesh (a depth scan) came
+        from: for each of its points, a face and barycentric coordinates on that mesh.
+        With ``x_surface``, geodesic errors and chirality are measured on the mesh of
+        ``x_surface`` (each point of ``x`` stands for the corner of its face with the largest
+        barycentric weight) and normalised by the square root of that mesh's area; without
+        it, a point cloud ``x`` is measured with the heat method on its points. ``y_surface``
+        records where the points of ``y`` came from; the metrics do not read it.
     """
 
     x: Mesh
@@ -57,6 +66,8 @@ class ShapePair:
     corr_y: np.ndarray | None = None
     corr_x_sym: np.ndarray | None = None
     error_scale: float | None = None
+    x_surface: SurfacePoints | None = None
+    y_surface: SurfacePoints | None = None
 
     @property
     def name(self) -> str:

@@ -18,6 +18,13 @@ common template (FAUST_r, SCAPE_r), as the ULRSSM and DPFM references do
 (`geofeat.evaluation.metrics.template_geodesic_errors`). Distances are edge-Dijkstra geodesics on the
 target ``x`` divided by ``sqrt(area(x))``, or by the pair's ``error_scale`` where the
 benchmark fixes another length (BeCoS: the full shape's ``sqrt(area)``, also for a partial ``x``).
+
+Point clouds: a cloud ``y`` needs nothing special (distances are on ``x``). A cloud ``x``
+made from a mesh (``pair.x_surface``, a depth scan) is measured on that mesh: each point of
+``x`` stands for the corner of its face with the largest barycentric weight, and distances
+are the mesh's, over the square root of its area (`evaluation_target`). A cloud ``x`` without
+one is measured with the heat method on its own points, over the square root of its
+point-cloud area (`geofeat.geometry.geodesic`).
 """
 
 from __future__ import annotations
@@ -35,6 +42,7 @@ import numpy as np
 from geofeat.datasets.records import Match, ShapePair
 from geofeat.errors import DatasetError, MetricError
 from geofeat.evaluation import metrics
+from geofeat.evaluation.targets import check_surface, evaluation_target, points_on_target
 from geofeat.geometry.geodesic import area_normalisation
 from geofeat.geometry.geodesic_memory import GeodesicEntries, evaluation_distances, memory_limit
 from geofeat.geometry.geodesic_store import GeodesicStore
@@ -50,6 +58,7 @@ __all__ = [
     "PairEvaluation",
     "default_workers",
     "evaluate_dataset",
+    "evaluation_target",
     "evaluate_pair",
     "map_forked",
     "pair_targets",
@@ -179,8 +188,9 @@ def evaluate_pair(
         Prediction: ``map_yx`` (V_y,) and optional overlap masks and probabilities.
     protocol : {"vertices", "template"}
         Evaluated points (see the module notes).
-    distances : numpy.ndarray, shape (V_x, V_x), or GeodesicEntries, optional
-        Geodesic distances on ``pair.x`` over ``sqrt(area)``
+    distances : numpy.ndarray, shape (V_t, V_t), or GeodesicEntries, optional
+        Geodesic distances on the pair's `evaluation_target` (``pair.x``, or the mesh of
+        ``pair.x_surface``) over ``sqrt(area)``
         (`geofeat.geometry.geodesic_memory.evaluation_distances`); computed
         when not given. A `GeodesicEntries` not computed yet is asked for the entries this
         pair reads and computed.
@@ -197,7 +207,7 @@ def evaluate_pair(
         For ``protocol="template"`` on a pair without template points.
     """
     _check_pair(pair, protocol)
-    dist_x = evaluation_distances(pair.x) if distances is None else distances
+    dist_x = evaluation_distances(evaluation_target(pair)) if distances is None else distances
     if isinstance(dist_x, GeodesicEntries) and not dist_x.computed:
         _score(pair, match, protocol, dist_x)  # asks for the entries it reads
         dist_x.compute()
@@ -206,6 +216,7 @@ def evaluate_pair(
 
 def _check_pair(pair: ShapePair, protocol: str) -> None:
     _check_protocol(protocol)
+    check_surface(pair)
     scale = pair.error_scale
     if scale is not None and not (isinstance(scale, (int, float, np.floating)) and np.isfinite(scale) and scale > 0):
         raise MetricError(f"pair {pair.name}: error_scale must be a positive finite length or None; found {scale!r}.")
@@ -216,23 +227,31 @@ def _check_pair(pair: ShapePair, protocol: str) -> None:
 def _score(pair: ShapePair, match: Match, protocol: str, dist_x: np.ndarray | GeodesicEntries) -> PairEvaluation:
     """`evaluate_pair` on given distances (a `GeodesicEntries` not computed yet: asks for its entries)."""
     _check_pair(pair, protocol)
-    if dist_x.shape != (pair.x.n_vertices, pair.x.n_vertices):
-        raise MetricError(
-            f"pair {pair.name}: distances must be the (V_x, V_x) = ({pair.x.n_vertices}, {pair.x.n_vertices}) matrix of x; "
-            f"found shape {dist_x.shape}. Pass geofeat.geometry.geodesic_memory.evaluation_distances(pair.x)."
+    target = evaluation_target(pair)
+    n_t = target.n_vertices
+    if dist_x.shape != (n_t, n_t):
+        size, what, where = (
+            ("V_x", "x", "pair.x") if pair.x_surface is None else ("V", "the mesh of x_surface", "pair.x_surface.mesh")
         )
-    predicted = match.map_yx
+        raise MetricError(
+            f"pair {pair.name}: distances must be the ({size}, {size}) = ({n_t}, {n_t}) matrix of {what}; "
+            f"found shape {dist_x.shape}. Pass geofeat.geometry.geodesic_memory.evaluation_distances({where})."
+        )
+    predicted = points_on_target(pair, match.map_yx, "the predicted map_yx")
+    corr_x, corr_x_sym = points_on_target(pair, pair.corr_x, "corr_x"), points_on_target(pair, pair.corr_x_sym, "corr_x_sym")
     if protocol == "template":
-        errors = metrics.template_geodesic_errors(predicted, pair.corr_x, pair.corr_y, dist_x)
+        errors = metrics.template_geodesic_errors(predicted, corr_x, pair.corr_y, dist_x)
         sym = None
-        if pair.corr_x_sym is not None:
-            sym = (metrics.at_template_points(predicted, pair.corr_y), pair.corr_x, pair.corr_x_sym)
+        if corr_x_sym is not None:
+            sym = (metrics.at_template_points(predicted, pair.corr_y), corr_x, corr_x_sym)
     else:
-        errors = metrics.geodesic_errors(predicted, pair.map_yx, dist_x)
-        sym = None if pair.map_yx_sym is None else (predicted, pair.map_yx, pair.map_yx_sym)
+        truth = points_on_target(pair, pair.map_yx, "map_yx")
+        errors = metrics.geodesic_errors(predicted, truth, dist_x)
+        mirrored = points_on_target(pair, pair.map_yx_sym, "map_yx_sym")
+        sym = None if mirrored is None else (predicted, truth, mirrored)
     chirality = None if sym is None else metrics.chirality_accuracy(*sym, dist_x)
-    if pair.error_scale is not None:  # the distances are over sqrt(area(x)); the benchmark fixes another length
-        errors = errors / (area_normalisation(pair.x) * pair.error_scale)
+    if pair.error_scale is not None:  # the distances are over sqrt(area) of the target; the benchmark fixes another length
+        errors = errors / (area_normalisation(target) * pair.error_scale)
     ious = [
         metrics.overlap_iou(np.ones(truth.shape, dtype=bool) if guess is None else guess, truth)
         for guess, truth in ((match.overlap_y, pair.overlap_y), (match.overlap_x, pair.overlap_x))
@@ -365,10 +384,11 @@ def _evaluate_group(indices: list[int]) -> list[_Evaluated]:
     for i in indices:
         pair = job.dataset[i]
         matches = {name: match(i, pair) for name, match in job.matchers.items()}
-        if pair.x.hash != target:
+        shape = evaluation_target(pair)
+        if shape.hash != target:
             evaluate_waiting()
             bound, source = job.memory
-            target, distances = pair.x.hash, evaluation_distances(pair.x, job.store, bound, limit_source=source)
+            target, distances = shape.hash, evaluation_distances(shape, job.store, bound, limit_source=source)
         if isinstance(distances, GeodesicEntries):
             for match in matches.values():
                 _score(pair, match, job.protocol, distances)  # asks for the entries it reads

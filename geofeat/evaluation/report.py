@@ -150,12 +150,15 @@ def _draw(ax, mesh: Mesh, colors: np.ndarray, title: str, tight: bool = False) -
     from mpl_toolkits.mplot3d.art3d import Poly3DCollection
 
     verts = mesh.verts[:, [0, 2, 1]]  # show y up
-    face_colors = colors[mesh.faces].mean(axis=1)
-    normals = np.cross(verts[mesh.faces[:, 1]] - verts[mesh.faces[:, 0]], verts[mesh.faces[:, 2]] - verts[mesh.faces[:, 0]])
-    normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
-    shade = 0.55 + 0.45 * np.abs(normals @ np.array([0.0, -1.0, 0.3]) / np.linalg.norm([0.0, -1.0, 0.3]))
-    collection = Poly3DCollection(verts[mesh.faces], facecolors=np.clip(face_colors * shade[:, None], 0, 1), linewidths=0)
-    ax.add_collection3d(collection)
+    if mesh.faces is None:  # a point cloud: dots, as large as the figure allows them to be told apart
+        ax.scatter(verts[:, 0], verts[:, 1], verts[:, 2], c=np.clip(colors, 0, 1), s=1.5, linewidths=0, depthshade=False)
+    else:
+        face_colors = colors[mesh.faces].mean(axis=1)
+        normals = np.cross(verts[mesh.faces[:, 1]] - verts[mesh.faces[:, 0]], verts[mesh.faces[:, 2]] - verts[mesh.faces[:, 0]])
+        normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
+        shade = 0.55 + 0.45 * np.abs(normals @ np.array([0.0, -1.0, 0.3]) / np.linalg.norm([0.0, -1.0, 0.3]))
+        collection = Poly3DCollection(verts[mesh.faces], facecolors=np.clip(face_colors * shade[:, None], 0, 1), linewidths=0)
+        ax.add_collection3d(collection)
     lo, hi = verts.min(axis=0), verts.max(axis=0)
     if tight:  # a box around the mesh (same scale on every axis), filling the panel
         extent = np.maximum(hi - lo, 1e-3 * (hi - lo).max())
@@ -203,7 +206,10 @@ class PairPicture:
 
 
 def _shape_title(role: str, mesh: Mesh, partial: bool) -> str:
-    return f"{role}: {mesh.name}\n{'partial' if partial else 'full'} shape, {mesh.n_vertices:,} vertices"
+    kind = f"{'partial' if partial else 'full'} shape, {mesh.n_vertices:,} vertices"
+    if mesh.faces is None:
+        kind = f"{'partial' if partial else 'full'} point cloud, {mesh.n_vertices:,} points"
+    return f"{role}: {mesh.name}\n{kind}"
 
 
 def plot_matches(rows: list[PairPicture], path: str | os.PathLike, caption: str | None = COLOR_CAPTION, dpi: int = 75) -> None:
