@@ -178,6 +178,19 @@ def _register_builtins() -> None:
                 protocol="p2f",
                 description=f"{loader.title} {kind.upper()} partial shapes matched to full shapes (seeded)",
             )
+    scans = "geofeat.datasets.scans:"
+    register_dataset(
+        "synthetic_scans",
+        scans + "synthetic_scan_benchmark",
+        description="built-in synthetic humans, depth scans (point clouds) matched to full shapes (no data needed)",
+    )
+    for prefix, loader in (("faust_r", FaustRemeshed), ("scape_r", ScapeRemeshed)):
+        register_dataset(
+            f"{prefix}_scans",
+            scans + "remeshed_scan_benchmark",
+            loader=loader,
+            description=f"{loader.title} depth scans (point clouds) matched to full shapes (seeded)",
+        )
     register_dataset(
         "synthetic_p2p",
         synthetic,
