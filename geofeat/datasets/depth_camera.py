@@ -59,7 +59,7 @@ class DepthCamera(JsonConfig):
     ----------
     image_size : int or (int, int)
         ``(H, W)`` pixels, one ray each; an int is a square image. The default gives a
-        FAUST_r body about 2,500 to 4,000 points, depending on the side it is seen from.
+        FAUST_r body about 2,000 to 4,000 points, depending on the side it is seen from.
     fov_degrees : float
         Field of view across the shorter image side, in (0, 180).
     elevation_degrees : (float, float)

@@ -28,7 +28,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from geofeat.datasets.base import check_split
-from geofeat.datasets.depth_camera import DepthCamera, scan_mesh
+from geofeat.datasets.depth_camera import DepthCamera, Scan, scan_mesh
 from geofeat.datasets.derived import (
     SYNTHETIC_INDIVIDUALS,
     SYNTHETIC_POSES,
@@ -112,12 +112,16 @@ class ScanBenchmark:
             self._meshes[index] = self.collection.mesh(index)
         return self._meshes[index]
 
+    def scan(self, i: int) -> Scan:
+        """The depth scan of pair ``i``: its points, their surface points and the camera position."""
+        a, _ = self.pairs[i]
+        seed = int(np.random.SeedSequence([self.seed, i]).generate_state(1)[0])
+        return scan_mesh(self._full(a), self.camera, seed=seed, name=f"{self.collection.names[a]}_scan{i}")
+
     def __getitem__(self, i: int) -> ShapePair:
         a, b = self.pairs[i]
         mesh_a, mesh_b = self._full(a), self._full(b)
-        names = self.collection.names
-        seed = int(np.random.SeedSequence([self.seed, i]).generate_state(1)[0])
-        scan = scan_mesh(mesh_a, self.camera, seed=seed, name=f"{names[a]}_scan{i}")
+        scan = self.scan(i)
         map_a, map_b = self.collection.template_map(a), self.collection.template_map(b)
         template_of_y = template_inverse(map_a, mesh_a.n_vertices)[scan.surface.nearest_corner]  # (V_y,) point or -1
         sym_map = self.collection.template_map_sym(b)

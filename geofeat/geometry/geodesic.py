@@ -206,8 +206,8 @@ def geodesic_matrix(
     Cost for a 5,000-vertex FAUST_r shape on one CPU core (see
     ``benchmarks/speed/geodesic.py``): "dijkstra" well under a second (plain scipy Dijkstra
     from every vertex takes about 3 s), "heat" several seconds (about 1 ms per source).
-    Memory: one float32 (V, V) matrix plus a few (patch, V) blocks. A point cloud: about
-    2 ms per source point (10 s for 5,000 points), see ``benchmarks/cloud_geodesic.py``.
+    Memory: one float32 (V, V) matrix plus a few (patch, V) blocks. A point cloud: one
+    heat solve per point, 10 to 30 s for 5,000 points (``benchmarks/cloud_geodesic.py``).
     """
     method = _resolved_method(mesh, method)
     key = (mesh.hash, method, bool(normalize))

@@ -3,7 +3,7 @@ import pytest
 
 from geofeat.datasets import dataset_names, load_dataset
 from geofeat.datasets.base import read_indices
-from geofeat.datasets.depth_camera import DepthCamera, scan_mesh
+from geofeat.datasets.depth_camera import DepthCamera
 from geofeat.datasets.derived import SyntheticCollection, template_inverse
 from geofeat.datasets.scans import ScanBenchmark
 from geofeat.datasets.synthetic import SyntheticHumans
@@ -15,13 +15,6 @@ SMALL = DepthCamera(image_size=64)
 @pytest.fixture(scope="module")
 def collection():
     return SyntheticCollection(SyntheticHumans(n_individuals=2, n_poses=3, seed=1))
-
-
-def pair_scan_seen_faces(bench, i):
-    """The faces the camera of pair ``i`` saw, scanned again (the scan is a function of the seed)."""
-    a, _ = bench.pairs[i]
-    seed = int(np.random.SeedSequence([bench.seed, i]).generate_state(1)[0])
-    return scan_mesh(bench.collection.mesh(a), bench.camera, seed=seed).seen_faces()
 
 
 def test_ground_truth_goes_from_the_scanned_surface_point_through_the_template(collection):
@@ -38,7 +31,7 @@ def test_ground_truth_goes_from_the_scanned_surface_point_through_the_template(c
         np.testing.assert_array_equal(pair.map_yx, surface.nearest_corner)
         np.testing.assert_array_equal(pair.map_yx_sym, collection.humans.mirror[surface.nearest_corner])
         assert pair.overlap_y.all()
-        seen = np.unique(collection.mesh(a).faces[pair_scan_seen_faces(bench, i)])
+        seen = np.unique(collection.mesh(a).faces[bench.scan(i).seen_faces()])  # the scan is a function of the seed
         np.testing.assert_array_equal(np.flatnonzero(pair.overlap_x), seen)
         assert 0.2 < pair.overlap_x.mean() < 0.8
 
