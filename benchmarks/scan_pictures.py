@@ -75,10 +75,12 @@ def main(argv=None) -> int:
         top.set_xticks([])
         top.set_yticks([])
         bottom.set_axis_off()
+    start = camera.dropout_start_degrees
+    dropout = "no dropout" if start is None else f"dropout from {start:g} degrees of incidence"
     caption = (
         f"The first {args.pairs} pairs of {args.dataset} (seed {args.seed}): a {camera.image_size[0]} x {camera.image_size[1]} "
         f"depth camera, {camera.fov_degrees:g} degree field of view, noise {camera.depth_noise:g} of the bounding-box "
-        f"diagonal along each ray, dropout from {camera.dropout_start_degrees:g} degrees of incidence. Top: depth (near dark, "
+        f"diagonal along each ray, {dropout}. Top: depth (near dark, "
         "no point white). Bottom: the cloud seen from the side, each point in the colour of its counterpart on the target "
         f"(position colours), grey without one (the percentage has one). python -m benchmarks.scan_pictures; {machine()}."
     )
