@@ -272,11 +272,13 @@ def main() -> None:
             sections.append(markdown(rows, title))
         if args.record:
             record_reference(Path(args.record), args.reference_python, repo, args.harness, work)
-    commit = subprocess.run(["git", "-C", repo, "rev-parse", "HEAD"], capture_output=True, text=True).stdout.strip()
+    commit, day = subprocess.run(
+        ["git", "-C", repo, "log", "-1", "--format=%H %cs"], capture_output=True, text=True
+    ).stdout.split() or ("", "")
     header = (
-        f"Run {datetime.date.today().isoformat()} on {machine()}; reference: nmwsharp/diffusion-net "
-        f"{commit or '(commit unknown)'}, `compute_operators` on the CPU. Times: the operators of one cloud "
-        "(Laplacian, eigenpairs, normals, gradients), each side in its own process.\n"
+        f"Run {datetime.date.today().isoformat()} on {machine()}; reference: nmwsharp/diffusion-net as of "
+        f"{day or '(date unknown)'} (the commit is in the .json), `compute_operators` on the CPU. Times: the "
+        "operators of one cloud (Laplacian, eigenpairs, normals, gradients), each side in its own process.\n"
     )
     result = {"date": datetime.date.today().isoformat(), "machine": machine(), "reference_commit": commit, "clouds": records}
     write_results(args.out, result, "\n".join([header, *sections]))
