@@ -25,7 +25,7 @@ from typing import TYPE_CHECKING, Any, ClassVar
 
 import numpy as np
 
-from geofeat.adapters.inputs import MESH_NORMALIZATIONS, input_features, normalized_pair
+from geofeat.adapters.inputs import MESH_NORMALIZATIONS, descriptor_params_for, input_features, normalized_pair
 from geofeat.checks import canonical, check_integer, check_number
 from geofeat.datasets.records import Match, ShapePair
 from geofeat.descriptors.base import Descriptor
@@ -188,33 +188,45 @@ class Head:
         return normalized_pair(pair, self.config.mesh_normalization, self._normalized)
 
     def features(self, mesh: Mesh) -> np.ndarray:
-        """Input features (V, C) float32 of a mesh of a prepared pair (read-only; the last few are kept in memory)."""
-        c = self.config
+        """Input features (V, C) float32 of a mesh of a prepared pair (read-only; the last few are kept in memory).
+
+        On a point cloud a spectral descriptor uses the point-cloud Laplacian
+        (`geofeat.adapters.inputs.descriptor_params_for`).
+        """
+        params = descriptor_params_for(mesh, self.config.descriptor_params)
 
         def build() -> np.ndarray:
-            features = input_features(mesh, self.input_descriptor(), c.descriptor_params)
+            features = input_features(mesh, self.input_descriptor(params), params)
             features.flags.writeable = False  # shared by every later call for this mesh
             return features
 
         return self._features.get_or_compute(self._features_key(mesh), build)
 
-    def input_descriptor(self) -> Descriptor | str:
+    def input_descriptor(self, params: dict | None = None) -> Descriptor | str:
         """The descriptor of the input features, built once per descriptor setting (``"xyz"`` stays a name).
 
         A model-backed descriptor (DINOv2, DINOv3, GeoLoRA) loads its backbone on first use
         and keeps it: building it once here means once per head, not once per mesh.
+
+        Parameters
+        ----------
+        params : dict, optional
+            The descriptor's parameters (default: the head's ``descriptor_params``; a
+            point cloud's are `geofeat.adapters.inputs.descriptor_params_for`).
         """
         c = self.config
-        key = (c.descriptor, json.dumps(c.descriptor_params, sort_keys=True, default=repr))
+        params = c.descriptor_params if params is None else params
+        key = (c.descriptor, json.dumps(params, sort_keys=True, default=repr))
         if self._descriptor is None or self._descriptor[0] != key:
-            built = c.descriptor if c.descriptor == "xyz" else make_descriptor(c.descriptor, **(c.descriptor_params or {}))
+            built = c.descriptor if c.descriptor == "xyz" else make_descriptor(c.descriptor, **(params or {}))
             self._descriptor = (key, built)
         return self._descriptor[1]
 
     def _features_key(self, mesh: Mesh) -> tuple[str, str, str]:
         """What the input features of ``mesh`` depend on: its content and the descriptor settings."""
         c = self.config
-        return mesh.hash, c.descriptor, json.dumps(c.descriptor_params, sort_keys=True, default=repr)
+        params = descriptor_params_for(mesh, c.descriptor_params)
+        return mesh.hash, c.descriptor, json.dumps(params, sort_keys=True, default=repr)
 
     # -- the interface
 

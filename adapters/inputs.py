@@ -4,6 +4,10 @@
 >>> feats = input_features(pair.x, "wks")               # (V_x, C) float32                # doctest: +SKIP
 >>> map_yx = ground_truth_map(pair)                     # (V_y,) int64, -1 for none       # doctest: +SKIP
 
+A point cloud (``faces=None``) goes where a triangle mesh goes: its area is the total mass
+of its point-cloud Laplacian (`surface_area`), and its Laplacian is the point-cloud one
+whatever Laplacian a head or its spectral input names for meshes (`laplacian_for`).
+
 No torch here: the training-free heads and the evaluation workers use this module too.
 """
 
@@ -18,21 +22,32 @@ from geofeat.datasets.records import ShapePair
 from geofeat.descriptors.base import Descriptor
 from geofeat.descriptors.compute import compute
 from geofeat.errors import HeadError, UnusablePair
-from geofeat.mesh import Mesh, normalize
+from geofeat.geometry.laplacian import laplacian
+from geofeat.mesh import Mesh
 from geofeat.storage.lru import LRUCache
 
 __all__ = [
+    "CLOUD_LAPLACIAN",
     "MESH_NORMALIZATIONS",
+    "descriptor_params_for",
     "ground_truth_map",
     "ground_truth_overlaps",
     "input_features",
+    "laplacian_for",
     "normalized_mesh",
     "normalized_pair",
+    "surface_area",
     "unit_area_verts",
 ]
 
 #: Values of `geofeat.adapters.heads.HeadConfig.mesh_normalization`.
 MESH_NORMALIZATIONS = (None, "unit_area")
+#: The Laplacian of a point cloud: the robust point-cloud Laplacian, the only one without faces
+#: (and the one the DiffusionNet reference code builds for point clouds).
+CLOUD_LAPLACIAN = "robust"
+#: Point-cloud areas kept in memory (a Laplacian each).
+_CLOUD_AREAS_KEPT = 64
+_cloud_areas: LRUCache[str, float] = LRUCache(_CLOUD_AREAS_KEPT)
 
 
 def ground_truth_map(pair: ShapePair) -> np.ndarray:
@@ -94,33 +109,88 @@ def ground_truth_overlaps(pair: ShapePair) -> tuple[np.ndarray, np.ndarray]:
     return np.asarray(overlap_x, dtype=bool), np.asarray(overlap_y, dtype=bool)
 
 
+def surface_area(mesh: Mesh) -> float:
+    """The area of a shape: of its triangles, or for a point cloud the total mass of its Laplacian.
+
+    Parameters
+    ----------
+    mesh : Mesh
+        Triangle mesh or point cloud.
+
+    Returns
+    -------
+    float
+        ``mesh.area()`` for a triangle mesh. For a point cloud, the sum of the lumped mass
+        of its robust point-cloud Laplacian (`geofeat.geometry.laplacian.laplacian`): the
+        area of the local triangulations around its points, close to the area of the
+        surface they sample (its value for the last 64 clouds is kept).
+
+    Raises
+    ------
+    geofeat.MeshError
+        A point cloud on which the point-cloud Laplacian cannot be built (too few points).
+    """
+    if mesh.faces is not None:
+        return mesh.area()
+    return _cloud_areas.get_or_compute(mesh.hash, lambda: float(laplacian(mesh, CLOUD_LAPLACIAN).mass.sum()))
+
+
+def laplacian_for(mesh: Mesh, kind: str) -> str:
+    """The Laplacian a head builds on ``mesh``: ``kind`` on a triangle mesh, `CLOUD_LAPLACIAN` on a point cloud."""
+    return CLOUD_LAPLACIAN if mesh.faces is None else kind
+
+
+def descriptor_params_for(mesh: Mesh, params: dict | None) -> dict:
+    """A descriptor's parameters as a head uses them on ``mesh``.
+
+    Parameters
+    ----------
+    mesh : Mesh
+    params : dict or None
+        Keyword parameters of the head's input descriptor.
+
+    Returns
+    -------
+    dict
+        ``params`` (a new dict), with a ``"laplacian"`` entry (the spectral descriptors')
+        replaced by `laplacian_for` on a point cloud, so that a head set up for meshes with
+        ``laplacian="cotan"`` (the reference presets) takes point clouds too.
+    """
+    params = dict(params or {})
+    if "laplacian" in params:
+        params["laplacian"] = laplacian_for(mesh, params["laplacian"])
+    return params
+
+
 def unit_area_verts(mesh: Mesh, frame: Mesh | None = None, required: bool = True) -> np.ndarray:
     """Vertices centred at the mean vertex of ``frame`` and divided by the square root of its area.
 
     The unit-area transform of the heads (`normalized_mesh`, the ``"xyz"`` input features,
-    DPFM's sample points): `geofeat.mesh.normalize` with ``center="mean"``, as the
-    references' preprocessing does, in the frame of another mesh where one is given.
+    DPFM's sample points), as the references' preprocessing does, in the frame of another
+    shape where one is given. Either may be a point cloud, whose area is `surface_area`.
 
     Parameters
     ----------
     mesh : Mesh
     frame : Mesh, optional
-        The mesh whose mean vertex and total face area define the transform (default ``mesh``).
+        The shape whose mean vertex and area define the transform (default ``mesh``).
     required : bool
-        True: a ``frame`` without surface area (a point cloud) raises `HeadError`. False: it
-        is only centred (scale 1).
+        True: a ``frame`` without area (triangles of zero area only) raises `HeadError`.
+        False: it is only centred (scale 1).
 
     Returns
     -------
     numpy.ndarray, shape (V, 3), float64
-        ``(mesh.verts - mean(frame.verts)) / sqrt(area(frame))``.
+        ``(mesh.verts - mean(frame.verts)) / sqrt(surface_area(frame))``.
     """
     frame = mesh if frame is None else frame
-    if frame.faces is not None and frame.area() > 0:
-        return normalize(mesh, center="mean", frame=frame).verts
+    centred = mesh.verts - frame.verts.mean(axis=0)
+    area = surface_area(frame)
+    if area > 0:
+        return centred / np.sqrt(area)
     if required:
-        raise HeadError(f"mesh {frame.name!r} has no surface area: mesh_normalization='unit_area' needs a triangle mesh.")
-    return mesh.verts - frame.verts.mean(axis=0)
+        raise HeadError(f"mesh {frame.name!r} has no surface area: mesh_normalization='unit_area' needs a surface.")
+    return centred
 
 
 def normalized_mesh(mesh: Mesh, how: str | None, frame: Mesh | None = None) -> Mesh:
@@ -131,10 +201,11 @@ def normalized_mesh(mesh: Mesh, how: str | None, frame: Mesh | None = None) -> M
     mesh : Mesh
     how : {None, "unit_area"}
         None returns ``mesh`` itself. ``"unit_area"``: subtract the mean vertex of
-        ``frame`` and divide by the square root of its total face area (`unit_area_verts`),
-        then round to float32 (the references read their preprocessed meshes as float32).
+        ``frame`` and divide by the square root of its area (`unit_area_verts`; a point
+        cloud's is `surface_area`), then round to float32 (the references read their
+        preprocessed meshes as float32).
     frame : Mesh, optional
-        The triangle mesh whose mean and area define the transform (default ``mesh``).
+        The shape whose mean and area define the transform (default ``mesh``).
 
     Returns
     -------
@@ -202,7 +273,7 @@ def input_features(mesh: Mesh, descriptor: str | Descriptor, params: dict | None
     params : dict, optional
         The descriptor's parameters (with a name only). ``"xyz"`` takes one, ``normalize`` (default True):
         centre the vertices on their mean and scale them to unit surface area, shape by
-        shape (`unit_area_verts`; a point cloud is only centred); False: the coordinates as
+        shape (`unit_area_verts`; a point cloud's area is `surface_area`); False: the coordinates as
         they are (the reference presets, whose pairs are already normalised with a partial
         shape in the frame of its full shape, see `normalized_pair`).
 

@@ -22,6 +22,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from geofeat.adapters.base import Head, HeadConfig
+from geofeat.adapters.inputs import laplacian_for
 from geofeat.checks import is_integer
 from geofeat.datasets.records import Match, ShapePair
 from geofeat.errors import HeadError, UnusablePair
@@ -76,11 +77,11 @@ class LearnedHead(Head):
     # -- inputs
 
     def operators(self, mesh: Mesh) -> SurfaceOperators:
-        """Surface operators of a mesh of a prepared pair, on the CPU."""
+        """Surface operators of a mesh of a prepared pair, on the CPU (a point cloud's from its point-cloud Laplacian)."""
         from geofeat.adapters.blocks.operators import surface_operators
 
         c = self.config
-        return surface_operators(mesh, c.n_eig, laplacian_kind=c.laplacian, construction=c.operators)
+        return surface_operators(mesh, c.n_eig, laplacian_kind=laplacian_for(mesh, c.laplacian), construction=c.operators)
 
     def shape_inputs(self, mesh: Mesh) -> tuple[torch.Tensor, SurfaceOperators]:
         """Input features as a tensor (V, C) and the surface operators, on the head's device (kept for 64 meshes)."""

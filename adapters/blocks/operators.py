@@ -176,7 +176,11 @@ def surface_operators(
         normals = normalised sum of the normalised normals of the adjacent faces, and an
         absolute regularisation `REFERENCE_GRADIENT_REGULARIZATION` (so the operators
         depend on the scale of the shape: use them on unit-area shapes, as the references
-        do); the two differ in `NORMALIZE_EPS`. Use ``laplacian_kind="cotan"`` with them.
+        do); the two differ in `NORMALIZE_EPS`. Use ``laplacian_kind="cotan"`` with them
+        on meshes. On a point cloud (``laplacian_kind="robust"``, the point-cloud
+        Laplacian, as the reference code builds it) their normals are those of
+        `neighborhood_normals`, as in the reference code; ``"geofeat"`` orients them away
+        from the centroid (`geofeat.geometry.normals.vertex_normals`).
 
     Returns
     -------
@@ -197,13 +201,7 @@ def surface_operators(
     if cache and (ops := _operator_cache.get(key)) is not None:
         return ops
     basis = spectral_basis(mesh, k, laplacian_kind=laplacian_kind)
-    eps = NORMALIZE_EPS.get(construction)
-    if eps is None:
-        frames = tangent_frames(vertex_normals(mesh))
-        grad_x, grad_y = gradient_matrices(mesh, frames)
-    else:
-        frames = tangent_frames(vertex_normals(mesh, face_weights="unit", normalize_eps=eps), normalize_eps=eps)
-        grad_x, grad_y = gradient_matrices(mesh, frames, REFERENCE_GRADIENT_REGULARIZATION)
+    frames, (grad_x, grad_y) = _frames_and_gradients(mesh, construction)
     edges = None if mesh.faces is None else unique_edges(mesh.faces)
     ops = SurfaceOperators(
         mass=_dense32(basis.mass),
@@ -338,17 +336,78 @@ def gradient_matrices(
     return grad_x, grad_y
 
 
+def _frames_and_gradients(mesh: Mesh, construction: str) -> tuple[np.ndarray, tuple[sp.csr_matrix, sp.csr_matrix]]:
+    """Tangent frames (V, 3, 3) and the gradient matrices of ``construction`` (see `surface_operators`)."""
+    eps = NORMALIZE_EPS.get(construction)
+    if eps is None:
+        frames = tangent_frames(vertex_normals(mesh))
+        return frames, gradient_matrices(mesh, frames)
+    if mesh.faces is None:
+        normals = neighborhood_normals(mesh.verts, cloud_neighbors(mesh))
+    else:
+        normals = vertex_normals(mesh, face_weights="unit", normalize_eps=eps)
+    frames = tangent_frames(normals, normalize_eps=eps)
+    return frames, gradient_matrices(mesh, frames, REFERENCE_GRADIENT_REGULARIZATION)
+
+
+def cloud_neighbors(mesh: Mesh, n_neighbors: int = N_NEIGHBORS_CLOUD) -> np.ndarray:
+    """The nearest other points of every point of a cloud, nearest first.
+
+    Parameters
+    ----------
+    mesh : Mesh
+        Point cloud (faces are ignored) of at least 3 points.
+    n_neighbors : int
+        How many (fewer when the cloud has no more other points).
+
+    Returns
+    -------
+    numpy.ndarray, shape (V, min(n_neighbors, V - 1)), int64
+        Row ``i``: the ``n_neighbors + 1`` nearest points of point ``i`` without ``i``
+        itself, or without the farthest of them where ``i`` is not among them (more
+        coincident copies of it than neighbours), as the DiffusionNet reference code does.
+
+    Raises
+    ------
+    MeshError
+        Fewer than 3 points.
+    """
+    n = mesh.n_vertices
+    n_query = min(n_neighbors + 1, n)
+    if n_query < 3:
+        raise MeshError(f"point cloud {mesh.name!r} has {n} points; at least 3 are needed for tangent gradients.")
+    _, neighbors = cKDTree(mesh.verts).query(mesh.verts, k=n_query)
+    keep = neighbors != np.arange(n)[:, None]
+    keep[keep.all(axis=1), -1] = False
+    return neighbors[keep].reshape(n, n_query - 1)
+
+
+def neighborhood_normals(verts: np.ndarray, neighbors: np.ndarray) -> np.ndarray:
+    """Normals of a point cloud as the DiffusionNet reference code computes them.
+
+    Parameters
+    ----------
+    verts : numpy.ndarray, shape (V, 3)
+    neighbors : numpy.ndarray of int, shape (V, K)
+        Neighbours of every point (`cloud_neighbors`).
+
+    Returns
+    -------
+    numpy.ndarray, shape (V, 3), float64
+        The right singular vector of the smallest singular value of the offsets from each
+        point to its neighbours (not centred on their mean): the normal of the plane
+        through the point closest to its neighbours. Its sign is the one the SVD returns
+        (numpy's LAPACK), like the reference's, so it is not oriented.
+    """
+    offsets = verts[neighbors] - verts[:, None, :]
+    normals = np.linalg.svd(offsets, full_matrices=False)[2][:, 2, :]
+    return normals / np.linalg.norm(normals, axis=1, keepdims=True)
+
+
 def _directed_neighbors(mesh: Mesh) -> tuple[np.ndarray, np.ndarray]:
     """(tail, tip) index arrays of every directed neighbour pair, no self pairs."""
     if mesh.faces is not None:
         edges = unique_edges(mesh.faces)
         return np.concatenate((edges[:, 0], edges[:, 1])), np.concatenate((edges[:, 1], edges[:, 0]))
-    n = mesh.n_vertices
-    n_query = min(N_NEIGHBORS_CLOUD + 1, n)
-    if n_query < 3:
-        raise MeshError(f"point cloud {mesh.name!r} has {n} points; at least 3 are needed for tangent gradients.")
-    _, neighbors = cKDTree(mesh.verts).query(mesh.verts, k=n_query)
-    tails = np.repeat(np.arange(n), n_query)
-    tips = neighbors.ravel()
-    keep = tips != tails  # the point itself (or a duplicate of it found first)
-    return tails[keep], tips[keep]
+    neighbors = cloud_neighbors(mesh)
+    return np.repeat(np.arange(mesh.n_vertices), neighbors.shape[1]), neighbors.ravel()

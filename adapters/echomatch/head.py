@@ -207,9 +207,10 @@ class EchoMatchHead(LearnedHead):
         overlap_x_np, overlap_y_np = ground_truth_overlaps(pair)
         out, ops_x, ops_y = self.network_outputs(pair)
         device = out.feat_x.device
-        map_yx = torch.as_tensor(map_np, device=device)
-        overlap_x = torch.as_tensor(overlap_x_np, device=device)
-        overlap_y = torch.as_tensor(overlap_y_np, device=device)
+        # copies: a pair's arrays may be read-only, which torch refuses to share
+        map_yx = torch.tensor(map_np, device=device)
+        overlap_x = torch.tensor(overlap_x_np, device=device)
+        overlap_y = torch.tensor(overlap_y_np, device=device)
 
         k = c.n_fmap
         evecs_x, evecs_y = ops_x.evecs[:, :k], ops_y.evecs[:, :k]
