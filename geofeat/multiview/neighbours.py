@@ -7,9 +7,9 @@ at most a bounded number of candidate pairs at once.
 * `FaceCandidates` (meshes): a pixel's point lies on, or near, the face the rasterizer gave
   it, so the candidates of every face are listed once per mesh and a batch of points keeps
   those of its faces within the radius.
-* `PointGrid` (point clouds): a uniform grid of cells one radius wide; a point's
-  neighbours lie in its own cell and the 26 around it, found by binary search in the
-  vertices sorted by cell.
+* `PointGrid` (point clouds): a uniform grid of cells two radii wide; a ball of the radius
+  overlaps at most two cells along each axis, so a point's neighbours lie in 8 cells, found
+  by binary search in the vertices sorted by cell.
 """
 
 from __future__ import annotations
@@ -21,8 +21,8 @@ from scipy.spatial import cKDTree
 from geofeat.errors import RenderError
 from geofeat.render.rasterizer import _chunks
 
-#: The 27 cells around and including a cell, (27, 3) int64 offsets.
-_NEIGHBOUR_CELLS = torch.tensor([[i, j, k] for i in (-1, 0, 1) for j in (-1, 0, 1) for k in (-1, 0, 1)])
+#: The 2 x 2 x 2 block of cells from a cell on, (8, 3) int64 offsets.
+_BLOCK = torch.tensor([[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)])
 #: Cells along the longest side of the grid at most, so that a cell's key fits in 63 bits.
 _MAX_CELLS_PER_AXIS = 1 << 20
 
@@ -155,11 +155,12 @@ class FaceCandidates:
 class PointGrid:
     """The points of a cloud sorted into a uniform grid, for fixed-radius neighbour queries on any device.
 
-    Cells are cubes of side ``max(radius, longest side / 2**20)`` (at least the radius, so
-    every neighbour of a query lies in its own cell or the 26 around it); cell
-    ``(i, j, k)`` has the key ``(i ny + j) nz + k`` and the points are sorted by key, so
-    the points of a cell are one run found by binary search. No per-query structure is
-    built, and a batch of queries holds at most `CHUNK_PAIRS` candidate pairs at once.
+    Cells are cubes of side ``max(2 radius, longest side / 2**20)``: at least the ball's
+    diameter, so the ball around a query ``q`` lies in the 2 x 2 x 2 block of cells that
+    starts at the cell of ``q - radius``. Cell ``(i, j, k)`` has the key ``(i ny + j) nz + k``
+    and the points are sorted by key, so the points of a cell are one run found by binary
+    search. No per-query structure is built, and a batch of queries holds at most
+    `CHUNK_PAIRS` candidate pairs at once.
 
     Parameters
     ----------
@@ -187,7 +188,7 @@ class PointGrid:
         self.verts = torch.tensor(verts, device=self.device)
         self.origin = torch.tensor(verts.min(axis=0), device=self.device)
         longest = float(np.ptp(verts, axis=0).max()) if len(verts) else 0.0
-        self.cell = max(self.radius, longest / _MAX_CELLS_PER_AXIS)
+        self.cell = max(2.0 * self.radius, longest / _MAX_CELLS_PER_AXIS)
         cells = self._cells(self.verts)
         self.shape = cells.amax(dim=0) + 1  # (3,) cells per axis
         self.order = torch.argsort(self._keys(cells))
@@ -223,8 +224,8 @@ class PointGrid:
             raise RenderError(f"the grid was built for a radius of {self.radius}; {radius} is larger.")
         points = points.to(self.device, torch.float64)
         rows, cols = [], []
-        step = max(1, self.CHUNK_PAIRS // _NEIGHBOUR_CELLS.shape[0])
-        for first in range(0, points.shape[0], step):  # bounds the (queries, 27) run tables
+        step = max(1, self.CHUNK_PAIRS // _BLOCK.shape[0])
+        for first in range(0, points.shape[0], step):  # bounds the (queries, 8) run tables
             queries = points[first : first + step]
             start, count = self._runs(queries)
             for chunk in _chunks(count.sum(dim=1), self.CHUNK_PAIRS):
@@ -237,8 +238,8 @@ class PointGrid:
         return torch.cat(rows), torch.cat(cols)
 
     def _runs(self, queries: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Where each query's 27 cells start in the sorted points and how many points each holds, (M, 27) each."""
-        cells = self._cells(queries)[:, None, :] + _NEIGHBOUR_CELLS.to(self.device)  # (M, 27, 3)
+        """Where each query's 8 cells start in the sorted points and how many points each holds, (M, 8) each."""
+        cells = self._cells(queries - self.radius)[:, None, :] + _BLOCK.to(self.device)  # (M, 8, 3)
         inside = ((cells >= 0) & (cells < self.shape)).all(dim=-1)
         keys = self._keys(cells.clamp(min=0))
         start = torch.searchsorted(self.sorted_keys, keys)
@@ -253,7 +254,7 @@ class PointGrid:
         first = torch.cumsum(count, 0) - count
         position = start[run] + torch.arange(total, device=self.device) - first[run]
         rows = self.order.index_select(0, position)
-        cols = run // _NEIGHBOUR_CELLS.shape[0]
+        cols = run // _BLOCK.shape[0]
         offset = self.verts.index_select(0, rows) - queries.index_select(0, cols)
         close = (offset * offset).sum(dim=1) <= radius * radius
         return rows[close], cols[close]

@@ -510,7 +510,7 @@ def _check_seen(mesh: Mesh, cameras: Cameras, recipe: FeatureRecipe, accumulator
         f"no vertex of {mesh.name or 'the mesh'!r} ({mesh.n_vertices} vertices) received a pixel in any of its "
         f"{len(cameras)} views of {cameras.height} x {cameras.width} pixels (back-projection {recipe.backproject!r}{ball}): "
         "its features would be all zeros. Render larger images or more views, or back-project by face "
-        "(backproject='face'), which gives every pixel to its face's corners."
+        "(backproject='face'), which gives every pixel to its face's corners (on a point cloud, to its point)."
     )
 
 

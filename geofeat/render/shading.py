@@ -27,6 +27,10 @@ With the light at the camera ``L = V``. On a surface facing the camera head-on t
 ``0.8 * (0.6 + 0.4) + 0.01 = 0.81`` in red and green and ``0.8 * (0.6 + 0.5) + 0.01 = 0.89``
 in blue: the images are gray with a slight blue tint. Normals are not flipped towards the
 camera, so a back face drawn without culling gets ambient light only.
+
+Point clouds (`shade_points_phong`, `render_points_phong`) are shaded by the same formula:
+every pixel of a point's disc takes the point's normal, estimated from its neighbours
+(`cloud_normals`) and turned towards the camera, and the point's colour.
 """
 
 from __future__ import annotations
