@@ -9,8 +9,9 @@ back-projection stand out:
   the official layout at 512 x 512 in batches of 4 (the descriptor's defaults on a CPU),
   ``"ball"`` and ``"face"`` back-projection; seconds per phase (render: rasterize or splat,
   shade; forward: the backbone and the patch samples; backproject: plans and sums), the
-  best of ``--repeats`` runs. The cloud's one-off work (normals from 30 neighbours, disc
-  radii from 8) is in its first batch's render time and is also timed alone.
+  best of ``--repeats`` runs, the four runs taking turns. The cloud's one-off work (normals
+  from 30 neighbours, disc radii from 8) is in its first batch's render time and is also
+  timed alone.
 * **Large clouds.** Points drawn uniformly on the surface of ``tr_reg_000`` (seeded), 4
   views at 128 x 128 (``"uniform"`` layout), ``"ball"``: each run is a fresh process, whose
   peak resident memory (``ru_maxrss``) is its own; the memory before the call (the process
@@ -27,6 +28,7 @@ from __future__ import annotations
 import argparse
 import datetime
 import json
+import os
 import subprocess
 import sys
 import tempfile
@@ -94,17 +96,17 @@ def mesh_vs_cloud(mesh: geofeat.Mesh, views: int, image_size: int, repeats: int)
     backbone = small_backbone()
     cameras = make_cameras(mesh, views, layout="official", image_size=image_size, device="cpu")
     cloud = geofeat.Mesh(mesh.verts, None, name="cloud")
-    rows = []
-    for mode in ("ball", "face"):
-        for name, shape in (("mesh", mesh), ("cloud", cloud)):
-            best = None
-            for _ in range(repeats):
-                seconds, timer = phase_timer()
-                start = time.perf_counter()
-                multiview_features(shape, cameras, backbone, backproject=mode, batch_size=4, timer=timer)
-                seconds["total"] = time.perf_counter() - start
-                best = seconds if best is None or seconds["total"] < best["total"] else best
-            rows.append({"shape": name, "mode": mode, **best})
+    runs = [(name, shape, mode) for mode in ("ball", "face") for name, shape in (("mesh", mesh), ("cloud", cloud))]
+    best: dict[tuple[str, str], dict] = {}
+    for _ in range(repeats):  # the runs take turns, so that a change in the machine's load hits them alike
+        for name, shape, mode in runs:
+            seconds, timer = phase_timer()
+            start = time.perf_counter()
+            multiview_features(shape, cameras, backbone, backproject=mode, batch_size=4, timer=timer)
+            seconds["total"] = time.perf_counter() - start
+            if (name, mode) not in best or seconds["total"] < best[name, mode]["total"]:
+                best[name, mode] = dict(seconds)
+    rows = [{"shape": name, "mode": mode, **best[name, mode]} for name, _, mode in runs]
     start = time.perf_counter()
     cloud_normals(mesh.verts), splat_radii(mesh.verts)
     rows.append({"shape": "cloud", "mode": "one-off: normals and radii", "total": time.perf_counter() - start})
@@ -197,7 +199,14 @@ def table(result: dict) -> str:
         lines.append(
             f"| {r['points']:,} | {work} | {phases} | {s['total']:.1f} | {r['rss_before_mib']:.0f} | {r['rss_peak_mib']:.0f} |"
         )
-    lines += ["", f"`python -m benchmarks.speed.point_clouds`; {result['date']}, {result['machine']}."]
+    load = result["load_average"]
+    lines += [
+        "",
+        f"The machine is shared: its load average (1 minute) was {load[0]:.1f} at the start and {load[1]:.1f} at the end, "
+        "so the seconds vary from run to run; the runs of the first table take turns and each row is its best.",
+        "",
+        f"`python -m benchmarks.speed.point_clouds`; {result['date']}, {result['machine']}.",
+    ]
     return "\n".join(lines)
 
 
@@ -211,6 +220,7 @@ def main(argv=None) -> None:
     parser.add_argument("--out", default=str(RESULTS / "speed_point_clouds"))
     args = parser.parse_args(argv)
     mesh = geofeat.load_mesh(data_folder(args.data) / "FAUST_r" / "off" / "tr_reg_000.off")
+    load_before = os.getloadavg()[0]
     result = {
         "date": datetime.date.today().isoformat(),
         "machine": machine(),
@@ -220,6 +230,7 @@ def main(argv=None) -> None:
         "mesh_vs_cloud": mesh_vs_cloud(mesh, args.views, args.image_size, args.repeats),
         "large": large_clouds(mesh, args.sizes),
     }
+    result["load_average"] = [load_before, os.getloadavg()[0]]
     write_results(args.out, result, table(result))
 
 

@@ -31,7 +31,7 @@ The ball's neighbour search runs where the features are (the GPU when there is o
 no search structure built per view (`geofeat.multiview.neighbours`): on a mesh, a pixel's
 point lies on (or, for points lifted from depth, near) the face the rasterizer gave it, so
 each face's candidate vertices are listed once (`FaceCandidates`); on a point cloud the
-points are sorted into a grid of cells one radius wide (`PointGrid`). Either gives exactly
+points are sorted into a grid of cells two radii wide (`PointGrid`). Either gives exactly
 the set of (vertex, pixel) pairs within the radius, as a KD-tree query would.
 
 Point clouds
