@@ -321,6 +321,7 @@ def _drawable_splats(points: torch.Tensor, first: int, radius: torch.Tensor, cam
     count = (box_width * (y1[view, point] - y0 + 1)).long()
     centre = torch.stack((x[view, point] - x0, y[view, point] - y0), dim=-1).float()
     depth_bits = depth[view, point].float().contiguous().view(torch.int32).to(torch.int64) << _POINT_BITS
+    log.debug("point renderer: %d drawable (view, point) discs, %d candidate pixels", view.numel(), int(count.sum()))
     return _Splats(
         view,
         point + first,
