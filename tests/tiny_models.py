@@ -29,3 +29,14 @@ def tiny_dinov3(hidden: int = 32, layers: int = 2, heads: int = 2, registers: in
         num_register_tokens=registers,
     )
     return randomized(DINOv3ViTModel(config), seed)
+
+
+def tiny_dinov2(hidden: int = 32, layers: int = 2, heads: int = 2, seed: int = 1):
+    """A DINOv2 ViT (patch 14) with random weights."""
+    from transformers import Dinov2Config, Dinov2Model
+
+    torch.manual_seed(0)
+    config = Dinov2Config(
+        hidden_size=hidden, num_hidden_layers=layers, num_attention_heads=heads, mlp_ratio=2, patch_size=14, image_size=28
+    )
+    return randomized(Dinov2Model(config), seed)

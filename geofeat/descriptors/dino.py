@@ -3,7 +3,8 @@
 The descriptors hold the parameters and the backbone; the path itself (cameras -> rasterize +
 gray Phong shading -> backbone -> patch features sampled at the foreground pixels ->
 back-projection to vertices, in batches of views) is `geofeat.multiview.multiview_features`, the
-one the GeoLoRA trainer uses too.
+one the GeoLoRA trainer uses too. Point clouds take the same path, drawn as discs by the point
+renderer (`geofeat.multiview.views`).
 """
 
 from __future__ import annotations

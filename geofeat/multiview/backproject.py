@@ -28,13 +28,19 @@ memory grows with one batch of pixels, never with the number of views, and no ``
 or ``V x M`` dense matrix is ever formed.
 
 The ball's neighbour search runs where the features are (the GPU when there is one), with
-no search structure built per view: a pixel's point lies on (or, for points lifted from
-depth, near) the face the rasterizer gave it, so every vertex within the radius of it is
-within ``radius + R_f + slack`` of that face's centroid, ``R_f`` being the largest distance
-from the centroid to a corner. These candidate vertices of each face are listed once per
-mesh (`FaceCandidates`); a batch of pixels gathers its faces' candidates and keeps those
-closer than the radius, in float64. The result is exactly the set of (vertex, pixel) pairs
-within the radius, as a KD-tree query would give it.
+no search structure built per view (`geofeat.multiview.neighbours`): on a mesh, a pixel's
+point lies on (or, for points lifted from depth, near) the face the rasterizer gave it, so
+each face's candidate vertices are listed once (`FaceCandidates`); on a point cloud the
+points are sorted into a grid of cells two radii wide (`PointGrid`). Either gives exactly
+the set of (vertex, pixel) pairs within the radius, as a KD-tree query would.
+
+Point clouds
+------------
+A point cloud (``faces`` None) is drawn by the point renderer (`geofeat.render.points`),
+which gives each pixel its nearest point instead of a face and barycentrics. ``"face"``
+gives the pixel's feature whole to that point (the point is the pixel's only primitive).
+The ball modes need each pixel's 3D point: where its ray meets its point's disc
+(`geofeat.render.points.splat_points`), or lifted from depth on the corner-aligned grid.
 """
 
 from __future__ import annotations
@@ -50,6 +56,7 @@ from scipy.spatial.distance import pdist
 
 from geofeat.checks import check_choice, check_integer
 from geofeat.errors import RenderError
+from geofeat.multiview.neighbours import FaceCandidates, PointGrid
 from geofeat.render.rasterizer import surface_points
 
 BACKPROJECT_MODES = ("ball", "face", "ball_last")
@@ -99,7 +106,7 @@ def _sparse_rows(rows: torch.Tensor, cols: torch.Tensor, values: torch.Tensor, s
 
 @dataclass
 class Backprojector:
-    """How pixels reach the vertices of one mesh: the mode, the ball radius, each face's candidate vertices.
+    """How pixels reach the vertices of one mesh or point cloud: the mode, the ball radius, the neighbour search.
 
     Makes a `BackprojectionPlan` per batch of views from its fragments alone (`plan`); a
     `VertexFeatureAccumulator` then adds the pixels' features along it.
@@ -107,8 +114,9 @@ class Backprojector:
     Parameters
     ----------
     verts : numpy.ndarray, shape (V, 3)
-        Mesh vertices (the coordinates the rasterizer used).
-    faces : numpy.ndarray, shape (F, 3), int
+        Mesh vertices or cloud points (the coordinates the renderer used).
+    faces : numpy.ndarray, shape (F, 3), int, or None
+        None for a point cloud: its fragments give each pixel a point, not a face.
     mode : {"ball", "face", "ball_last"}
     radius : float, optional
         Ball radius in mesh units; default ``BALL_RADIUS_FRACTION`` x the size that
@@ -124,7 +132,7 @@ class Backprojector:
     """
 
     verts: np.ndarray
-    faces: np.ndarray
+    faces: np.ndarray | None
     mode: str = "ball"
     radius: float | None = None
     device: torch.device | str = "cpu"
@@ -132,6 +140,7 @@ class Backprojector:
     max_neighbours: int | None = None
     _faces_tensor: torch.Tensor | None = field(init=False, default=None, repr=False)
     _face_candidates: FaceCandidates | None = field(init=False, default=None, repr=False)
+    _point_grid: PointGrid | None = field(init=False, default=None, repr=False)
 
     def __post_init__(self) -> None:
         if self.mode not in BACKPROJECT_MODES:
@@ -141,7 +150,7 @@ class Backprojector:
             self.max_neighbours = check_integer(self.max_neighbours, "max_neighbours", low=1, error=RenderError)
         self.device = torch.device(self.device)
         self.verts = np.asarray(self.verts, dtype=np.float64)
-        self.faces = np.asarray(self.faces, dtype=np.int64)
+        self.faces = None if self.faces is None else np.asarray(self.faces, dtype=np.int64)
         if self.radius is None:
             if self.radius_basis == "diameter":
                 size = shape_diameter(self.verts)
@@ -149,7 +158,9 @@ class Backprojector:
                 size = float(np.linalg.norm(self.verts.max(axis=0) - self.verts.min(axis=0)))
             self.radius = BALL_RADIUS_FRACTION * size
 
-    def plan(self, pix_to_face: torch.Tensor, bary: torch.Tensor, points: torch.Tensor | None = None) -> BackprojectionPlan:
+    def plan(
+        self, pix_to_face: torch.Tensor, bary: torch.Tensor | None, points: torch.Tensor | None = None
+    ) -> BackprojectionPlan:
         """Which foreground pixels of a batch of views feed which vertices: the geometry of `add_planned`.
 
         It depends on the fragments only, not on the features, so it can be made before the
@@ -159,10 +170,13 @@ class Backprojector:
         Parameters
         ----------
         pix_to_face : torch.Tensor, shape (N, H, W), int64, -1 on background
-        bary : torch.Tensor, shape (N, H, W, 3), float
+            The face of each pixel; for a point cloud its point (``pix_to_point``).
+        bary : torch.Tensor, shape (N, H, W, 3), float, or None
+            The barycentrics of each pixel in its face; None for a point cloud.
         points : torch.Tensor, shape (M, 3), optional
             Ball modes: the 3D point of each of the M foreground pixels (flat order).
-            Default: the surface point that the face index and barycentrics give.
+            Default on a mesh: the surface point that the face index and barycentrics give;
+            required on a point cloud (`geofeat.render.points.splat_points`).
 
         Returns
         -------
@@ -177,22 +191,46 @@ class Backprojector:
         face_ids = pix_to_face.reshape(-1).to(device)[pixels]
         n_vertices = len(self.verts)
         if self.mode == "face":
-            values = bary.reshape(-1, 3).to(device)[pixels].float().reshape(-1)  # (3 M,)
-            rows = self._faces_on(device)[face_ids].reshape(-1)
-            cols = torch.arange(pixels.numel(), device=device).repeat_interleave(3)
+            rows, cols, values = self._face_weights(face_ids, bary, pixels)
             return BackprojectionPlan(None, rows, values, _sparse_rows(rows, cols, values, (n_vertices, pixels.numel())))
-        on_faces = points is None
-        if on_faces:
-            points = self._surface_points(face_ids, bary.reshape(-1, 3).to(device)[pixels])
-        rows, cols = self._candidates(device).pairs_within(
-            face_ids, points.to(device, torch.float64), self.radius, on_faces=on_faces
-        )
+        if self.faces is None:
+            if points is None:
+                raise RenderError(
+                    "a point cloud's pixels have no barycentrics: give the ball modes each pixel's 3D point "
+                    "(geofeat.render.points.splat_points), or back-project with mode='face'."
+                )
+            rows, cols = self._grid(device).pairs_within(points, self.radius)
+        else:
+            on_faces = points is None
+            if on_faces:
+                points = self._surface_points(face_ids, bary.reshape(-1, 3).to(device)[pixels])
+            rows, cols = self._candidates(device).pairs_within(
+                face_ids, points.to(device, torch.float64), self.radius, on_faces=on_faces
+            )
         used, cols = torch.unique_consecutive(cols, return_inverse=True)  # cols come in increasing order
         if self.mode == "ball_last":
             views = pixels.index_select(0, used) // (pix_to_face.shape[1] * pix_to_face.shape[2])
             return self._plan_last(used, rows, cols, views)
         values = torch.ones(rows.numel(), device=device)
         return BackprojectionPlan(used, rows, values, _sparse_rows(rows, cols, values, (n_vertices, used.numel())))
+
+    def _face_weights(
+        self, face_ids: torch.Tensor, bary: torch.Tensor | None, pixels: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """``"face"``: (vertex, pixel, weight) triples: a face's corners by barycentrics, or a cloud's point whole."""
+        cols = torch.arange(pixels.numel(), device=pixels.device)
+        if self.faces is None:
+            return face_ids, cols, torch.ones(face_ids.numel(), device=pixels.device)
+        if bary is None:
+            raise RenderError("back-projection by face needs the barycentrics of the mesh's fragments; found None.")
+        values = bary.reshape(-1, 3).to(pixels.device)[pixels].float().reshape(-1)  # (3 M,)
+        return self._faces_on(pixels.device)[face_ids].reshape(-1), cols.repeat_interleave(3), values
+
+    def _grid(self, device: torch.device) -> PointGrid:
+        """A point cloud's grid of cells for the ball, on ``device`` (built once, on first use)."""
+        if self._point_grid is None or self._point_grid.device != device:
+            self._point_grid = PointGrid(self.verts, self.radius, device)
+        return self._point_grid
 
     def _faces_on(self, device: torch.device) -> torch.Tensor:
         """The faces as an int64 tensor on ``device``, (F, 3)."""
@@ -237,8 +275,9 @@ class VertexFeatureAccumulator:
     Parameters
     ----------
     verts : numpy.ndarray, shape (V, 3)
-        Mesh vertices (the coordinates the rasterizer used).
-    faces : numpy.ndarray, shape (F, 3), int
+        Mesh vertices or cloud points (the coordinates the renderer used).
+    faces : numpy.ndarray, shape (F, 3), int, or None
+        None for a point cloud (see `Backprojector`).
     n_channels : int
         Feature channels C.
     mode, radius, radius_basis, max_neighbours
@@ -255,7 +294,7 @@ class VertexFeatureAccumulator:
     """
 
     verts: np.ndarray
-    faces: np.ndarray
+    faces: np.ndarray | None
     n_channels: int
     mode: str = "ball"
     radius: float | None = None
@@ -275,7 +314,7 @@ class VertexFeatureAccumulator:
         self.sums = torch.zeros(len(self.verts), self.n_channels, dtype=self.dtype, device=self.device)
         self.weights = torch.zeros(len(self.verts), dtype=torch.float32, device=self.device)
 
-    def add(self, pixel_features: torch.Tensor, pix_to_face: torch.Tensor, bary: torch.Tensor) -> None:
+    def add(self, pixel_features: torch.Tensor, pix_to_face: torch.Tensor, bary: torch.Tensor | None) -> None:
         """Accumulate one batch of views given whole feature images (any per-pixel values).
 
         The foreground rows of ``pixel_features`` go through `add_foreground`. The multi-view
@@ -286,7 +325,10 @@ class VertexFeatureAccumulator:
         ----------
         pixel_features : torch.Tensor, shape (N, H, W, C), float
         pix_to_face : torch.Tensor, shape (N, H, W), int64, -1 on background
-        bary : torch.Tensor, shape (N, H, W, 3), float
+            The face of each pixel; for a point cloud its point.
+        bary : torch.Tensor, shape (N, H, W, 3), float, or None
+            None for a point cloud (which then back-projects by ``"face"`` only: the ball
+            modes need each pixel's point, given to `add_foreground`).
         """
         if pixel_features.shape[:3] != pix_to_face.shape or pixel_features.shape[-1] != self.n_channels:
             raise RenderError(
@@ -297,7 +339,11 @@ class VertexFeatureAccumulator:
         self.add_foreground(pixel_features.reshape(-1, self.n_channels)[foreground], pix_to_face, bary)
 
     def add_foreground(
-        self, features: torch.Tensor, pix_to_face: torch.Tensor, bary: torch.Tensor, points: torch.Tensor | None = None
+        self,
+        features: torch.Tensor,
+        pix_to_face: torch.Tensor,
+        bary: torch.Tensor | None,
+        points: torch.Tensor | None = None,
     ) -> None:
         """Accumulate one batch of views given the features of its foreground pixels only.
 
@@ -309,10 +355,12 @@ class VertexFeatureAccumulator:
             One row per foreground pixel (``pix_to_face >= 0``), in flat (view, row, column)
             order, as `foreground_pixels` lists them.
         pix_to_face : torch.Tensor, shape (N, H, W), int64, -1 on background
-        bary : torch.Tensor, shape (N, H, W, 3), float
+            The face of each pixel; for a point cloud its point.
+        bary : torch.Tensor, shape (N, H, W, 3), float, or None
+            None for a point cloud.
         points : torch.Tensor, shape (M, 3), optional
-            Ball modes: the 3D point of each foreground pixel. Default: the surface point that
-            the face index and barycentrics give.
+            Ball modes: the 3D point of each foreground pixel. Default on a mesh: the surface
+            point that the face index and barycentrics give; required on a point cloud.
         """
         n_foreground = int((pix_to_face >= 0).sum())
         if features.ndim != 2 or features.shape != (n_foreground, self.n_channels):
@@ -474,128 +522,3 @@ class _LastWriteAdd(torch.autograd.Function):
         grad_features = torch.zeros((ctx.n_features, grad.shape[1]), dtype=grad.dtype, device=grad.device)
         grad_features.index_add_(0, cols, grad.index_select(0, rows))
         return grad_sums, grad_features, None, None, None, None, None, None
-
-
-class FaceCandidates:
-    """The vertices that a ball of radius ``r`` around any point of a face can reach, for every face.
-
-    Vertex ``v`` is a candidate of face ``f`` when ``|v - c_f| <= r + R_f + slack``, with
-    ``c_f`` the face's centroid and ``R_f`` its largest centroid-to-corner distance: every
-    point of the face lies within ``R_f`` of ``c_f``, so every vertex within ``r`` of such a
-    point is a candidate. ``slack`` widens the list for points that lie off their face
-    (lifted from depth); `pairs_within` widens it again, once, when a point lies further off.
-    Listed once per mesh: with a KD-tree on the CPU, by brute force in chunks on a GPU.
-
-    Parameters
-    ----------
-    verts : numpy.ndarray, shape (V, 3), float64
-    faces : numpy.ndarray, shape (F, 3), int64
-    radius : float
-        The ball radius r, in mesh units.
-    device : torch.device
-        Where the lists live and `pairs_within` runs.
-    slack : float, optional
-        Default ``1e-6`` x the bounding-box diagonal plus ``1e-3 r`` (rounding margins).
-
-    Attributes
-    ----------
-    verts : torch.Tensor, shape (V, 3), float64, on ``device``
-    start : torch.Tensor, shape (F,), int64
-        Where face ``f``'s candidates begin in ``vertices``.
-    count : torch.Tensor, shape (F,), int64
-        How many candidates face ``f`` has.
-    vertices : torch.Tensor, shape (sum(count),), int64
-        The candidate vertices, face after face.
-    """
-
-    #: Entries (faces x vertices) of one chunk of the GPU's brute-force listing.
-    CHUNK_ENTRIES = 2**24
-
-    def __init__(self, verts: np.ndarray, faces: np.ndarray, radius: float, device, slack: float | None = None):
-        self.device = torch.device(device)
-        self._verts_np = np.asarray(verts, dtype=np.float64)
-        self._faces_np = np.asarray(faces, dtype=np.int64)
-        self.radius = float(radius)
-        self.verts = torch.tensor(self._verts_np, device=self.device)
-        corners = self._verts_np[self._faces_np]  # (F, 3, 3)
-        self._centroids_np = corners.mean(axis=1)
-        self._reach_np = np.linalg.norm(corners - self._centroids_np[:, None], axis=2).max(axis=1)  # R_f
-        self.centroids = torch.as_tensor(self._centroids_np, device=self.device)
-        self.face_reach = torch.as_tensor(self._reach_np, device=self.device)
-        if slack is None:
-            size = float(np.linalg.norm(np.ptp(self._verts_np, axis=0))) if len(self._verts_np) else 0.0
-            slack = 1e-6 * size + 1e-3 * self.radius
-        self._list(float(slack))
-
-    def _list(self, slack: float) -> None:
-        """List every face's candidates within ``radius + R_f + slack`` of its centroid."""
-        self.slack = slack
-        reach = self.radius + self._reach_np + slack
-        if self.device.type == "cpu":
-            found = cKDTree(self._verts_np).query_ball_point(self._centroids_np, reach)
-            count = np.fromiter((len(n) for n in found), dtype=np.int64, count=len(found))
-            vertices = np.fromiter((j for n in found for j in n), dtype=np.int64, count=int(count.sum()))
-            self.count = torch.as_tensor(count)
-            self.vertices = torch.as_tensor(vertices)
-        else:
-            self.count, self.vertices = self._list_by_brute_force(torch.as_tensor(reach, device=self.device))
-        self.start = torch.cumsum(self.count, 0) - self.count
-
-    def _list_by_brute_force(self, reach: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """(count, vertices) from every centroid-to-vertex distance, a chunk of faces at a time."""
-        n_faces, n_verts = len(self._faces_np), len(self._verts_np)
-        step = max(1, self.CHUNK_ENTRIES // max(n_verts, 1))
-        counts, vertices = [], []
-        for first in range(0, n_faces, step):
-            centres = self.centroids[first : first + step]
-            distance_sq = ((centres[:, None, :] - self.verts[None, :, :]) ** 2).sum(-1)  # (chunk, V)
-            face, vertex = torch.nonzero(distance_sq <= reach[first : first + step, None] ** 2, as_tuple=True)
-            counts.append(torch.bincount(face, minlength=centres.shape[0]))
-            vertices.append(vertex)
-        if not counts:
-            return torch.zeros(0, dtype=torch.int64, device=self.device), torch.zeros(0, dtype=torch.int64, device=self.device)
-        return torch.cat(counts), torch.cat(vertices)
-
-    def pairs_within(
-        self, face_ids: torch.Tensor, points: torch.Tensor, radius: float, *, on_faces: bool = False
-    ) -> tuple[torch.Tensor, torch.Tensor]:
-        """All (vertex, point) pairs closer than ``radius`` (``<=``, in float64), points given with their faces.
-
-        Parameters
-        ----------
-        face_ids : torch.Tensor, shape (M,), int64
-            The face each point belongs to (the rasterizer's face of its pixel).
-        points : torch.Tensor, shape (M, 3), float64
-            On or near that face.
-        radius : float
-            At most the radius the candidates were listed for.
-        on_faces : bool
-            The points are known to lie on their faces (interpolated from barycentrics), so
-            the check of how far they lie off them is skipped.
-
-        Returns
-        -------
-        rows : torch.Tensor, shape (P,), int64
-            Vertex of each pair.
-        cols : torch.Tensor, shape (P,), int64
-            Point of each pair (its position in ``points``), in increasing order.
-        """
-        if radius > self.radius:
-            raise RenderError(f"the candidates were listed for a radius of {self.radius}; {radius} is larger.")
-        if face_ids.numel() == 0:
-            empty = torch.zeros(0, dtype=torch.int64, device=self.device)
-            return empty, empty
-        if not on_faces:
-            off = torch.linalg.vector_norm(points - self.centroids[face_ids], dim=1) - self.face_reach[face_ids]
-            off_face = float(off.max())
-            if off_face > self.slack:  # points lifted from depth lie off their face: widen the lists once more
-                self._list(2.0 * off_face)
-        count = self.count[face_ids]
-        total = int(count.sum())
-        cols = torch.repeat_interleave(torch.arange(face_ids.numel(), device=self.device), count, output_size=total)
-        first = torch.repeat_interleave(self.start[face_ids] - (torch.cumsum(count, 0) - count), count, output_size=total)
-        rows = self.vertices.index_select(0, first + torch.arange(total, device=self.device))
-        offset = self.verts.index_select(0, rows) - points.index_select(0, cols)
-        distance_sq = (offset * offset).sum(1)
-        close = distance_sq <= radius * radius
-        return rows[close], cols[close]

@@ -6,6 +6,10 @@
          -> backbone (+ LoRA) patch grid -> bilinear samples at the foreground pixels only,
             L2-normalised -> back-projection ("ball" or "face") -> vertex features
 
+A point cloud (``faces`` None) takes the same path; only drawing it (discs instead of
+triangles) and what a pixel shows (a point instead of a face and barycentrics) differ, and
+those differences live in `geofeat.multiview.views`.
+
 The ``dinov2`` / ``dinov3`` / ``geolora`` descriptors call `multiview_features` with
 gradients off; the GeoLoRA trainer calls it with gradients on (a training step) or off
 (validation). Both take the same route through the same code; what differs is a switch, not
@@ -45,9 +49,7 @@ from contextlib import AbstractContextManager
 from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING, NamedTuple
 
-import numpy as np
 import torch
-import torch.nn.functional as F
 
 from geofeat.backbones.dino import grid_sample_patch_features, sample_patch_features
 from geofeat.checks import check_choice, check_integer
@@ -61,9 +63,9 @@ from geofeat.multiview.backproject import (
     VertexFeatureAccumulator,
     foreground_pixels,
 )
+from geofeat.multiview.views import backbone_input, corner_points, pixel_points, pixel_primitives, shape_renderer
 from geofeat.render.cameras import Cameras
 from geofeat.render.rasterizer import RasterSettings
-from geofeat.render.shading import render_phong
 from geofeat.runtime.progress import progress_bar
 
 if TYPE_CHECKING:
@@ -80,6 +82,7 @@ __all__ = [
     "ViewSegment",
     "auto_batch_size",
     "backbone_input",
+    "corner_points",
     "multiview_features",
     "multiview_features_many",
     "render_batches",
@@ -266,13 +269,14 @@ def render_batches(
     """Render and plan the views of several shapes batch by batch (lazily: one batch per ``next``).
 
     Everything here depends on the geometry only, so it can run ahead of the backbone on
-    another thread: rasterize, shade and resize the views (``render``), then list which
-    foreground pixels reach which vertices (``backproject``: `Backprojector.plan`, with the
-    recipe's mode and radius).
+    another thread: rasterize (or, for a point cloud, splat), shade and resize the views
+    (``render``), then list which foreground pixels reach which vertices (``backproject``:
+    `Backprojector.plan`, with the recipe's mode and radius).
 
     Parameters
     ----------
     meshes : list of Mesh
+        Triangle meshes or point clouds.
     cameras : list of Cameras
         The views of each mesh; all of the same size, on one device.
     patch_size : int
@@ -295,11 +299,15 @@ def render_batches(
     if cameras[0].device.type == "cuda":  # the GPU is kept busy by fewer, larger launches
         raster = replace(raster, views_per_batch=batch_size, max_candidates=CUDA_MAX_CANDIDATES)
     backprojectors: dict[int, Backprojector] = {}
+    renderers: dict[int, Callable] = {}
     for batch in view_batches([len(c) for c in cameras], batch_size):
         with torch.no_grad():  # the images and plans do not depend on any parameter
             with timer("render"):
                 views = [cameras[s.shape][s.start : s.stop] for s in batch]
-                renderings = [render_phong(meshes[s.shape], None, v, raster) for s, v in zip(batch, views, strict=True)]
+                for segment in batch:
+                    if segment.shape not in renderers:
+                        renderers[segment.shape] = shape_renderer(meshes[segment.shape], raster)
+                renderings = [renderers[s.shape](v) for s, v in zip(batch, views, strict=True)]
                 images = torch.cat([backbone_input(r.images, recipe, patch_size) for r in renderings])
             with timer("backproject"):
                 pixels, plans = [], []
@@ -314,10 +322,10 @@ def render_batches(
                             radius_basis=recipe.radius_basis,
                             max_neighbours=recipe.max_neighbours,
                         )
-                    fragments = rendering.fragments
-                    foreground = foreground_pixels(fragments.pix_to_face).to(device)  # (M, 3)
-                    points = corner_points(view, foreground, fragments.depth) if recipe.pixel_grid == "corners" else None
-                    plan = backprojectors[segment.shape].plan(fragments.pix_to_face, fragments.bary, points)
+                    index, bary = pixel_primitives(rendering.fragments)  # faces and barycentrics, or points
+                    foreground = foreground_pixels(index).to(device)  # (M, 3)
+                    points = pixel_points(meshes[segment.shape], view, rendering.fragments, foreground, recipe.pixel_grid)
+                    plan = backprojectors[segment.shape].plan(index, bary, points)
                     pixels.append(foreground if plan.pixels is None else foreground.index_select(0, plan.pixels))
                     plans.append(plan)
         yield RenderedBatch(batch, images, pixels, plans)
@@ -338,7 +346,7 @@ def multiview_features(
     progress: bool = False,
     rendered: Iterable[RenderedBatch] | None = None,
 ) -> MultiviewFeatures:
-    """Render a mesh from every camera, encode the views and back-project the features to vertices.
+    """Render a mesh or point cloud from every camera, encode the views and back-project the features to vertices.
 
     `multiview_features_many` with one shape; see there for the parameters.
 
@@ -378,12 +386,12 @@ def multiview_features_many(
     progress: bool = False,
     rendered: Iterable[RenderedBatch] | None = None,
 ) -> list[MultiviewFeatures]:
-    """Render several meshes from their cameras, encode all views together and back-project per mesh.
+    """Render several meshes or point clouds from their cameras, encode all views together and back-project per shape.
 
     The views of all shapes are packed into batches (`view_batches`), so the backbone runs
     ``ceil(N / batch_size)`` times for ``N`` views in all (the GeoLoRA trainer sends a full
-    shape and its partial shapes in one call). For each batch: rasterize and Phong-shade
-    (``render``), list which foreground pixels reach which vertices (``backproject``:
+    shape and its partial shapes in one call). For each batch: rasterize (splat, for a point
+    cloud) and Phong-shade (``render``), list which foreground pixels reach which vertices (``backproject``:
     `render_batches`, before the backbone, so that its waits on the device hold no backbone
     work up), run the backbone to its patch grid and sample that grid bilinearly at those
     pixels only, L2-normalised (``forward``), and add their features to their shape's
@@ -394,7 +402,8 @@ def multiview_features_many(
     Parameters
     ----------
     meshes : list of Mesh
-        Triangle meshes (point clouds cannot be rendered); mesh ``i`` has V_i vertices.
+        Triangle meshes or point clouds (drawn as discs, `geofeat.multiview.views`); mesh
+        ``i`` has V_i vertices.
     cameras : list of Cameras
         The views of each mesh, all H x W pixels, H and W multiples of ``backbone.patch_size``.
     backbone : DinoBackbone
@@ -402,7 +411,8 @@ def multiview_features_many(
     recipe : FeatureRecipe, optional
         How each stage is done; default ``RECIPES["default"]``.
     backproject : {"ball", "face", "ball_last"}, optional
-        Overrides ``recipe.backproject`` (see `geofeat.multiview.backproject`).
+        Overrides ``recipe.backproject`` (see `geofeat.multiview.backproject`; on a point
+        cloud ``"face"`` gives each pixel's feature to its own point).
     fill : {"nearest", "zero"}
         Features of vertices seen in no view: the nearest seen vertex's, or zeros.
     batch_size : int or None
@@ -430,17 +440,12 @@ def multiview_features_many(
     Raises
     ------
     RenderError
-        A mesh has no faces, the lists differ in length, the cameras differ in size, an
-        unknown ``backproject`` or ``fill`` mode, or a bad ``batch_size``.
+        The lists differ in length, the cameras differ in size, an unknown ``backproject``
+        or ``fill`` mode, a bad ``batch_size``, or a point cloud whose splat radius cannot
+        be derived (fewer than two distinct points).
     """
     if len(meshes) != len(cameras) or not meshes:
         raise RenderError(f"give one Cameras per mesh (at least one); found {len(meshes)} meshes and {len(cameras)} cameras.")
-    for mesh in meshes:
-        if mesh.faces is None:
-            raise RenderError(
-                f"{mesh.name or 'the mesh'!r} is a point cloud: multi-view features need faces to render; "
-                "give a triangle mesh (or reconstruct a surface first)."
-            )
     sizes = {(c.height, c.width) for c in cameras}
     if len(sizes) != 1:
         raise RenderError(f"the cameras of the meshes must all have one image size; found {sorted(sizes)}.")
@@ -505,7 +510,7 @@ def _check_seen(mesh: Mesh, cameras: Cameras, recipe: FeatureRecipe, accumulator
         f"no vertex of {mesh.name or 'the mesh'!r} ({mesh.n_vertices} vertices) received a pixel in any of its "
         f"{len(cameras)} views of {cameras.height} x {cameras.width} pixels (back-projection {recipe.backproject!r}{ball}): "
         "its features would be all zeros. Render larger images or more views, or back-project by face "
-        "(backproject='face'), which gives every pixel to its face's corners."
+        "(backproject='face'), which gives every pixel to its face's corners (on a point cloud, to its point)."
     )
 
 
@@ -552,67 +557,3 @@ def auto_batch_size(n_views: int, height: int, width: int, backbone: DinoBackbon
     per_view = height * width * (8 * channels + 64) + patches * channels * 48
     free, _ = torch.cuda.mem_get_info(device)
     return max(1, min(n_views, int(BATCH_MEMORY_SHARE * free) // per_view))
-
-
-def backbone_input(images: torch.Tensor, recipe: FeatureRecipe, patch_size: int) -> torch.Tensor:
-    """The images that the backbone sees: the renders, resized and cropped as ``recipe`` says.
-
-    Parameters
-    ----------
-    images : torch.Tensor, shape (N, H, W, 3), float in [0, 1]
-    recipe : FeatureRecipe
-    patch_size : int
-
-    Returns
-    -------
-    torch.Tensor, shape (N, H', W', 3), float32 in [0, 1]
-        ``H' = W' = input_size`` rounded down to a multiple of ``patch_size`` (the rows and
-        columns that a strided patch embedding would ignore are dropped); the images as given
-        when ``recipe.input_size`` is None.
-    """
-    if recipe.input_size is None:
-        return images
-    size = recipe.input_size
-    if recipe.input_codec == "uint8":
-        from PIL import Image
-
-        codes = (images * 255).to(torch.uint8).cpu().numpy()  # truncation, as numpy's astype(uint8)
-        resized = [np.asarray(Image.fromarray(c).resize((size, size), Image.BILINEAR)) for c in codes]
-        out = torch.as_tensor(np.stack(resized), device=images.device).float() / 255.0
-    else:
-        chw = images.permute(0, 3, 1, 2).float()
-        out = F.interpolate(chw, size=(size, size), mode="bilinear", align_corners=False, antialias=True).permute(0, 2, 3, 1)
-    keep = size // patch_size * patch_size
-    return out[:, :keep, :keep].contiguous()
-
-
-def corner_points(cameras: Cameras, pixels: torch.Tensor, depth: torch.Tensor) -> torch.Tensor:
-    """3D points of foreground pixels lifted from their depth at GeoLoRA's corner-aligned positions.
-
-    The official code unprojects pixel ``(row, col)`` at NDC ``1 - 2 col / (W - 1)``,
-    ``1 - 2 row / (H - 1)`` (pytorch3d's NDC, ``+x`` left, ``+y`` up): in our pixel
-    coordinates ``(col W / (W - 1), row H / (H - 1))``, not the centre the rasterizer sampled.
-
-    Parameters
-    ----------
-    cameras : Cameras
-        The N views.
-    pixels : torch.Tensor, shape (M, 3), int64
-        (view, row, column) of each foreground pixel.
-    depth : torch.Tensor, shape (N, H, W)
-        Camera-space depth from the rasterizer.
-
-    Returns
-    -------
-    torch.Tensor, shape (M, 3), float64, on the cameras' device
-    """
-    height, width = cameras.height, cameras.width
-    pixels = pixels.to(cameras.device)
-    points = torch.empty((pixels.shape[0], 3), dtype=torch.float64, device=cameras.device)
-    for view in range(len(cameras)):
-        mine = torch.nonzero(pixels[:, 0] == view).squeeze(1)
-        rows, cols = pixels[mine, 1], pixels[mine, 2]
-        where = torch.stack((cols * (width / (width - 1)), rows * (height / (height - 1))), dim=-1).double()
-        z = depth[view].to(cameras.device)[rows, cols].double()
-        points[mine] = cameras[view].unproject(where, z)[0]
-    return points

@@ -1,4 +1,4 @@
-"""Rendering: cameras, a PyTorch rasterizer, gray Phong shading and an optional OpenGL backend.
+"""Rendering: cameras, a PyTorch rasterizer, a point renderer, gray Phong shading and an optional OpenGL backend.
 
 >>> from geofeat.render import make_cameras, render_phong
 >>> cameras = make_cameras(mesh, n_views=9, layout="official", image_size=224, device="auto")
@@ -6,7 +6,9 @@
 >>> images.shape, fragments.pix_to_face.shape
 (torch.Size([9, 224, 224, 3]), torch.Size([9, 224, 224]))
 
-The rasterizer and the shader run on ``cameras.device`` (CPU or CUDA) with no compiled code.
+Point clouds are drawn as camera-facing discs by `rasterize_points` (`render_points_phong`
+shades them). The rasterizers and the shader run on ``cameras.device`` (CPU or CUDA) with no
+compiled code.
 `pyrender_depth` needs the ``gl`` extra and is imported lazily. The features lifted from these
 renders to the vertices are `geofeat.multiview`'s.
 """
@@ -23,9 +25,19 @@ from geofeat.render.camera_layouts import (
     orbit_cameras,
 )
 from geofeat.render.cameras import OFFICIAL_FOV_DEGREES, Cameras, ProjectedPoints
+from geofeat.render.points import PointFragments, PointRasterizer, SplatSettings, rasterize_points, splat_points
 from geofeat.render.pyrender_backend import gl_platform, pyrender_depth
 from geofeat.render.rasterizer import Fragments, MeshRasterizer, RasterSettings, rasterize
-from geofeat.render.shading import PhongSettings, Rendering, render_phong, shade_phong, vertex_normals
+from geofeat.render.shading import (
+    PhongSettings,
+    Rendering,
+    cloud_normals,
+    render_phong,
+    render_points_phong,
+    shade_phong,
+    shade_points_phong,
+    vertex_normals,
+)
 
 __all__ = [
     "CAMERA_LAYOUTS",
@@ -35,9 +47,13 @@ __all__ = [
     "Fragments",
     "MeshRasterizer",
     "PhongSettings",
+    "PointFragments",
+    "PointRasterizer",
     "ProjectedPoints",
     "RasterSettings",
     "Rendering",
+    "SplatSettings",
+    "cloud_normals",
     "fibonacci_cameras",
     "fibonacci_directions",
     "gl_platform",
@@ -48,7 +64,11 @@ __all__ = [
     "orbit_cameras",
     "pyrender_depth",
     "rasterize",
+    "rasterize_points",
     "render_phong",
+    "render_points_phong",
     "shade_phong",
+    "shade_points_phong",
+    "splat_points",
     "vertex_normals",
 ]

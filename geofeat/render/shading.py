@@ -27,6 +27,10 @@ With the light at the camera ``L = V``. On a surface facing the camera head-on t
 ``0.8 * (0.6 + 0.4) + 0.01 = 0.81`` in red and green and ``0.8 * (0.6 + 0.5) + 0.01 = 0.89``
 in blue: the images are gray with a slight blue tint. Normals are not flipped towards the
 camera, so a back face drawn without culling gets ambient light only.
+
+Point clouds (`shade_points_phong`, `render_points_phong`) are shaded by the same formula:
+every pixel of a point's disc takes the point's normal, estimated from its neighbours
+(`cloud_normals`) and turned towards the camera, and the point's colour.
 """
 
 from __future__ import annotations
@@ -42,6 +46,7 @@ from geofeat.errors import RenderError
 from geofeat.geometry.normals import vertex_normals as geometry_normals
 from geofeat.mesh import Mesh
 from geofeat.render.cameras import Cameras, as_tensor
+from geofeat.render.points import PointFragments, SplatSettings, cloud_tensor, rasterize_points, splat_points
 from geofeat.render.rasterizer import Fragments, RasterSettings, mesh_tensors, rasterize, surface_points
 
 Color = tuple[float, float, float]
@@ -89,11 +94,12 @@ class Rendering(NamedTuple):
     ----------
     images : torch.Tensor, shape (N, H, W, 3), float32
         RGB, background as `PhongSettings.background`; not clamped (defaults stay in [0, 1]).
-    fragments : Fragments
+    fragments : Fragments or PointFragments
+        The mesh rasterizer's, or the point renderer's for a point cloud.
     """
 
     images: torch.Tensor
-    fragments: Fragments
+    fragments: Fragments | PointFragments
 
 
 def vertex_normals(verts: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
@@ -200,6 +206,125 @@ def render_phong(
     fragments = rasterize(verts, faces, cameras, raster_settings)
     images = shade_phong(fragments, verts, faces, cameras, settings, vertex_colors)
     return Rendering(images, fragments)
+
+
+def cloud_normals(verts: Mesh | np.ndarray | torch.Tensor) -> torch.Tensor:
+    """Unit normals of a point cloud, estimated from each point's neighbourhood, as a float64 tensor.
+
+    `geofeat.geometry.normals.vertex_normals` without faces: the direction of least variance
+    of each point's 30 nearest points. Their orientation is a guess (away from the centroid);
+    `shade_points_phong` turns each towards the camera, so it does not matter there.
+
+    Parameters
+    ----------
+    verts : Mesh or array_like, shape (V, 3)
+        Points (a `Mesh`'s faces are ignored).
+
+    Returns
+    -------
+    torch.Tensor, shape (V, 3), float64, on the CPU
+    """
+    return torch.from_numpy(geometry_normals(cloud_tensor(verts).numpy(), None, fallback=True))
+
+
+def shade_points_phong(
+    fragments: PointFragments,
+    verts: Mesh | np.ndarray | torch.Tensor,
+    cameras: Cameras,
+    settings: PhongSettings | None = None,
+    normals: np.ndarray | torch.Tensor | None = None,
+    vertex_colors: np.ndarray | torch.Tensor | None = None,
+) -> torch.Tensor:
+    """Phong-shade the splats of a point cloud with a point light at each camera, as `shade_phong` shades faces.
+
+    Every pixel of a splat takes its point's normal, turned towards the camera (a disc is
+    seen from either side, and estimated normals have no reliable orientation), and its
+    point's colour; the lit position is the pixel's surface point (`splat_points`).
+
+    Parameters
+    ----------
+    fragments : PointFragments
+        From `rasterize_points` with the same points and cameras.
+    verts : Mesh or array_like, shape (V, 3)
+    cameras : Cameras
+    settings : PhongSettings, optional
+    normals : array_like, shape (V, 3), optional
+        Point normals (any length > 0); default `cloud_normals`.
+    vertex_colors : array_like, shape (V, 3), optional
+        Per-point RGB; default ``settings.vertex_color`` everywhere.
+
+    Returns
+    -------
+    torch.Tensor, shape (N, H, W, 3), float32
+    """
+    settings = settings if settings is not None else PhongSettings()
+    points = cloud_tensor(verts, cameras.device)
+    expected = (len(cameras), *cameras.image_size)
+    if tuple(fragments.pix_to_point.shape) != expected:
+        raise RenderError(f"fragments of shape {tuple(fragments.pix_to_point.shape)} do not match the cameras {expected}.")
+    normals_t = cloud_normals(points.cpu()) if normals is None else as_tensor(normals).to(torch.float64)
+    if tuple(normals_t.shape) != tuple(points.shape):
+        raise RenderError(f"normals must have shape {tuple(points.shape)}, one per point; found {tuple(normals_t.shape)}.")
+    normals_t = normals_t.to(cameras.device)
+    colors = _vertex_colors(vertex_colors, points.shape[0], settings, cameras.device)
+    images = torch.empty((*expected, 3), dtype=torch.float32, device=cameras.device)
+    images[:] = torch.tensor(settings.background, dtype=torch.float32, device=cameras.device)
+    flat_images = images.view(-1, 3)
+    pix_to_point = fragments.pix_to_point.to(cameras.device)
+    terms = _PhongTerms.of(settings, cameras.device)
+    covered = torch.nonzero(pix_to_point.reshape(-1) >= 0, as_tuple=True)[0]
+    for start in range(0, covered.numel(), _PIXELS_PER_CHUNK):
+        pixel = covered[start : start + _PIXELS_PER_CHUNK]
+        view_row_col = _unflatten(pixel, expected)
+        point = pix_to_point.reshape(-1)[pixel]
+        lit = splat_points(points, cameras, pix_to_point, view_row_col)
+        eye = cameras.position[view_row_col[:, 0]]
+        normal = normals_t[point]
+        facing = ((eye - lit) * normal).sum(dim=-1, keepdim=True) < 0
+        shaded = _phong(lit, torch.where(facing, -normal, normal), colors[point], eye, terms)
+        flat_images[pixel] = shaded.float()
+    return images
+
+
+def render_points_phong(
+    verts: Mesh | np.ndarray | torch.Tensor,
+    cameras: Cameras,
+    splat_settings: SplatSettings | None = None,
+    settings: PhongSettings | None = None,
+    normals: np.ndarray | torch.Tensor | None = None,
+    vertex_colors: np.ndarray | torch.Tensor | None = None,
+    radii: np.ndarray | torch.Tensor | None = None,
+) -> Rendering:
+    """Draw a point cloud as splats (`rasterize_points`) and Phong-shade them (`shade_points_phong`).
+
+    Parameters
+    ----------
+    verts : Mesh or array_like, shape (V, 3)
+        Points (a `Mesh`'s faces are ignored).
+    cameras : Cameras
+    splat_settings : SplatSettings, optional
+        Default: each point's disc 0.5 x its local spacing.
+    settings : PhongSettings, optional
+    normals : array_like, shape (V, 3), optional
+        Default: estimated (`cloud_normals`).
+    vertex_colors : array_like, shape (V, 3), optional
+    radii : array_like, shape (V,), optional
+        The discs' world radii (`geofeat.render.points.splat_radii`); default from ``splat_settings``.
+
+    Returns
+    -------
+    Rendering
+        ``images`` (N, H, W, 3) float32 and the `PointFragments`.
+    """
+    fragments = rasterize_points(verts, cameras, splat_settings, radii)
+    images = shade_points_phong(fragments, verts, cameras, settings, normals, vertex_colors)
+    return Rendering(images, fragments)
+
+
+def _unflatten(pixel: torch.Tensor, shape: tuple[int, int, int]) -> torch.Tensor:
+    """(view, row, column) of flat pixel indices into an (N, H, W) image stack, shape (M, 3) int64."""
+    _, height, width = shape
+    return torch.stack((pixel // (height * width), pixel // width % height, pixel % width), dim=1)
 
 
 class _PhongTerms(NamedTuple):

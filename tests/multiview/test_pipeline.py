@@ -175,8 +175,8 @@ def test_bad_input_is_refused(backbone_folder):
     backbone = load_backbone(backbone_folder, kind="dinov3", device="cpu")
     mesh = bumpy(0, 1)
     cameras = make_cameras(mesh, 2, layout="uniform", image_size=IMAGE_SIZE, device="cpu")
-    with pytest.raises(RenderError, match="point cloud"):
-        multiview_features(geofeat.Mesh(mesh.verts, None, "cloud"), cameras, backbone)
+    with pytest.raises(RenderError, match="distinct point"):  # a cloud of one point, twice: no disc radius
+        multiview_features(geofeat.Mesh(mesh.verts[[0, 0]], None, "cloud"), cameras, backbone)
     with pytest.raises(RenderError, match="fill"):
         multiview_features(mesh, cameras, backbone, fill="mean")
     with pytest.raises(RenderError, match="backproject"):
