@@ -78,6 +78,17 @@ def nearest_template_points(mesh: Mesh, template_map: np.ndarray) -> np.ndarray:
     return inverse
 
 
+def ordered_pairs(indices: list[int], seed: int) -> list[tuple[int, int]]:
+    """Every ordered pair ``(a, b)`` of distinct ``indices``, in an order drawn from ``seed``.
+
+    The derived partial benchmarks and the depth-scan benchmarks share it, so that pair ``i``
+    joins the same two shapes in both.
+    """
+    pairs = [(a, b) for a in indices for b in indices if a != b]
+    order = np.random.default_rng(seed).permutation(len(pairs))
+    return [pairs[i] for i in order]
+
+
 def _compose(first: np.ndarray, second: np.ndarray) -> np.ndarray:
     """``second[first]`` where ``first >= 0``, else -1."""
     out = np.full(first.shape, -1, dtype=np.int64)
@@ -136,9 +147,7 @@ class DerivedPartialBenchmark:
             partial_generator(self.kind, self.partial_options)
         except MeshError as err:
             raise DatasetError(f"{self.name or 'derived benchmark'}: {err}") from None
-        pairs = [(a, b) for a in self.indices for b in self.indices if a != b]
-        order = np.random.default_rng(self.seed).permutation(len(pairs))
-        self.pairs = [pairs[i] for i in order]
+        self.pairs = ordered_pairs(self.indices, self.seed)
         self._meshes: dict[int, Mesh] = {}
 
     def __len__(self) -> int:

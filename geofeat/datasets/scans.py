@@ -37,6 +37,7 @@ from geofeat.datasets.derived import (
     SyntheticCollection,
     TemplateCollection,
     nearest_template_points,
+    ordered_pairs,
     template_inverse,
 )
 from geofeat.datasets.records import ShapePair
@@ -93,9 +94,7 @@ class ScanBenchmark:
     camera: DepthCamera = field(default_factory=DepthCamera)
 
     def __post_init__(self) -> None:
-        pairs = [(a, b) for a in self.indices for b in self.indices if a != b]
-        order = np.random.default_rng(self.seed).permutation(len(pairs))
-        self.pairs = [pairs[i] for i in order]
+        self.pairs = ordered_pairs(self.indices, self.seed)
         self._meshes: dict[int, Mesh] = {}
 
     def __len__(self) -> int:

@@ -66,3 +66,10 @@ def test_faust_r_scans_map_each_point_through_the_faust_r_template(faust_dir):
     np.testing.assert_array_equal(pair.map_yx, np.where(point >= 0, vts_b[np.maximum(point, 0)], -1))
     assert 1_500 < pair.y.n_vertices < 6_000 and 0.6 < (pair.map_yx >= 0).mean() < 0.95
     assert 0.2 < pair.overlap_x.mean() < 0.8
+
+
+def test_scans_and_cuts_pair_the_same_shapes_in_the_same_order():
+    scans = load_dataset("synthetic_scans", split="test", image_size=48)
+    cuts = load_dataset("synthetic_cuts", split="test")
+    assert len(scans) == len(cuts) > 1
+    assert scans.pairs == cuts.pairs
