@@ -371,6 +371,16 @@ def _describe_rows(
         features[row] = hist
 
 
+def _check_arrays(verts: np.ndarray, normals: np.ndarray, queries: np.ndarray, flip_axes: np.ndarray | None) -> None:
+    """`DescriptorError` unless the arrays fit together (the compiled kernels do not check indices)."""
+    if verts.ndim != 2 or verts.shape[1] != 3 or normals.shape != verts.shape:
+        raise DescriptorError(f"shot: verts and normals must both have shape (V, 3); found {verts.shape} and {normals.shape}.")
+    if queries.ndim != 1 or (len(queries) and (queries.min() < 0 or queries.max() >= len(verts))):
+        raise DescriptorError(f"shot: queries must be vertex indices in [0, {len(verts)}), shape (Q,).")
+    if flip_axes is not None and np.shape(flip_axes) != queries.shape:
+        raise DescriptorError(f"shot: flip_axes must have one entry per described vertex, shape {queries.shape}.")
+
+
 def shot_descriptors(
     verts: np.ndarray,
     normals: np.ndarray,
@@ -439,6 +449,7 @@ def shot_descriptors(
     normals = np.ascontiguousarray(normals, dtype=np.float64)
     queries = np.arange(len(verts)) if queries is None else np.ascontiguousarray(queries, dtype=np.int64)
     n_rows = len(queries)
+    _check_arrays(verts, normals, queries, flip_axes)
     width = (32 if double_volumes_sectors else 16) * (n_bins + 1)
     features = np.zeros((n_rows, width), dtype=np.float32)
     frames = np.zeros((n_rows, 3, 3))

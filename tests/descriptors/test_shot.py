@@ -205,3 +205,13 @@ def test_neighbours_are_those_within_the_radius(far):
     _, report = shot_descriptors(points, np.zeros_like(points), radius, return_frames=True)
     expected = cKDTree(points).query_ball_point(points, radius, return_length=True) - 1  # the vertex itself excluded
     np.testing.assert_array_equal(report["frames"].n_neighbors, expected)
+
+
+def test_arrays_that_do_not_fit_are_refused():
+    points = np.random.default_rng(0).uniform(-1, 1, size=(50, 3))
+    with pytest.raises(DescriptorError, match="queries"):
+        shot_descriptors(points, np.zeros_like(points), 0.5, queries=np.array([0, 50]))
+    with pytest.raises(DescriptorError, match="normals"):
+        shot_descriptors(points, np.zeros((49, 3)), 0.5)
+    with pytest.raises(DescriptorError, match="flip_axes"):
+        shot_descriptors(points, np.zeros_like(points), 0.5, flip_axes=np.zeros(3))
