@@ -104,8 +104,35 @@ def _subset_inverse(vertex_map: np.ndarray, n_vertices: int) -> np.ndarray:
     return inverse
 
 
+class CollectionPairs:
+    """What the benchmarks made from a `TemplateCollection` share: their pairs and their full shapes.
+
+    A subclass is a dataclass with the fields ``collection``, ``indices`` and ``seed``, and
+    calls `_order_pairs` in ``__post_init__``.
+    """
+
+    collection: TemplateCollection
+    indices: list[int]
+    seed: int
+    pairs: list[tuple[int, int]]
+
+    def _order_pairs(self) -> None:
+        """Set ``pairs`` (`ordered_pairs` of ``indices`` and ``seed``) and an empty cache of full shapes."""
+        self.pairs = ordered_pairs(self.indices, self.seed)
+        self._meshes: dict[int, Mesh] = {}
+
+    def __len__(self) -> int:
+        return len(self.pairs)
+
+    def _full(self, index: int) -> Mesh:
+        """Full shape ``index`` of the collection, loaded once."""
+        if index not in self._meshes:
+            self._meshes[index] = self.collection.mesh(index)
+        return self._meshes[index]
+
+
 @dataclass
-class DerivedPartialBenchmark:
+class DerivedPartialBenchmark(CollectionPairs):
     """P2F or P2P pairs made from a `TemplateCollection`.
 
     Parameters
@@ -147,22 +174,13 @@ class DerivedPartialBenchmark:
             partial_generator(self.kind, self.partial_options)
         except MeshError as err:
             raise DatasetError(f"{self.name or 'derived benchmark'}: {err}") from None
-        self.pairs = ordered_pairs(self.indices, self.seed)
-        self._meshes: dict[int, Mesh] = {}
-
-    def __len__(self) -> int:
-        return len(self.pairs)
+        self._order_pairs()
 
     @property
     def pair_names(self) -> list[str]:
         """``"<partial of A>-><B>"`` for every pair."""
         names = self.collection.names
         return [f"{names[a]}_{self.kind}->{names[b]}" for a, b in self.pairs]
-
-    def _full(self, index: int) -> Mesh:
-        if index not in self._meshes:
-            self._meshes[index] = self.collection.mesh(index)
-        return self._meshes[index]
 
     def __getitem__(self, i: int) -> ShapePair:
         a, b = self.pairs[i]

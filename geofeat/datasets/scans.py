@@ -33,16 +33,16 @@ from geofeat.datasets.derived import (
     SYNTHETIC_INDIVIDUALS,
     SYNTHETIC_POSES,
     SYNTHETIC_TEST_INDIVIDUALS,
+    CollectionPairs,
     RemeshedCollection,
     SyntheticCollection,
     TemplateCollection,
     nearest_template_points,
-    ordered_pairs,
     template_inverse,
 )
 from geofeat.datasets.records import ShapePair
 from geofeat.errors import DatasetError, RenderError
-from geofeat.mesh import Mesh, require_faces
+from geofeat.mesh import require_faces
 
 __all__ = ["ScanBenchmark", "depth_camera_from_options", "remeshed_scan_benchmark", "synthetic_scan_benchmark"]
 
@@ -65,7 +65,7 @@ def _through(points: np.ndarray, template_map: np.ndarray) -> np.ndarray:
 
 
 @dataclass
-class ScanBenchmark:
+class ScanBenchmark(CollectionPairs):
     """P2F pairs: a depth scan of shape A (a point cloud) matched to the full mesh of shape B.
 
     Parameters
@@ -94,22 +94,13 @@ class ScanBenchmark:
     camera: DepthCamera = field(default_factory=DepthCamera)
 
     def __post_init__(self) -> None:
-        self.pairs = ordered_pairs(self.indices, self.seed)
-        self._meshes: dict[int, Mesh] = {}
-
-    def __len__(self) -> int:
-        return len(self.pairs)
+        self._order_pairs()
 
     @property
     def pair_names(self) -> list[str]:
         """``"<scan of A>-><B>"`` for every pair (equals ``self[i].name``)."""
         names = self.collection.names
         return [f"{names[a]}_scan{i}->{names[b]}" for i, (a, b) in enumerate(self.pairs)]
-
-    def _full(self, index: int) -> Mesh:
-        if index not in self._meshes:
-            self._meshes[index] = self.collection.mesh(index)
-        return self._meshes[index]
 
     def scan(self, i: int) -> Scan:
         """The depth scan of pair ``i``: its points, their surface points and the camera position."""
