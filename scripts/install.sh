@@ -10,9 +10,10 @@ SUDO=""
 if [ "$(id -u)" -ne 0 ]; then SUDO="sudo"; fi
 if command -v apt-get >/dev/null 2>&1; then
     $SUDO apt-get update -qq
-    # python3-venv for the environment; EGL/OSMesa for the optional pyrender backend ([gl] extra).
+    # python3-venv for the environment; EGL/OSMesa for the optional pyrender backend ([gl] extra);
+    # SuiteSparse for CHOLMOD, the eigensolver's optional faster factorisation (below).
     $SUDO env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends \
-        python3-venv libegl1 libgl1 libosmesa6 >/dev/null
+        python3-venv libegl1 libgl1 libosmesa6 libsuitesparse-dev >/dev/null
 fi
 
 PYTHON="${PYTHON:-python3}"
@@ -22,4 +23,10 @@ PYTHON="${PYTHON:-python3}"
 .venv/bin/python -m pip install -q "${GEOFEAT_TORCH:-torch==2.13.0}"
 .venv/bin/python -m pip freeze | grep -i '^torch==' > .venv/constraints.txt
 .venv/bin/python -m pip install -q -c .venv/constraints.txt -e ".[dino,train,gl,bench,test,docs]"
+# Optional: CHOLMOD through scikit-sparse (0.4.16 builds against the SuiteSparse 5 of Debian 12,
+# later releases need SuiteSparse 7). Without it the eigensolver factorises with SuperLU.
+if ! .venv/bin/python -m pip install -q -c .venv/constraints.txt "scikit-sparse==0.4.16" 2>/dev/null \
+    && ! .venv/bin/python -m pip install -q -c .venv/constraints.txt scikit-sparse 2>/dev/null; then
+    echo "scikit-sparse (CHOLMOD) not installed: the Laplacian eigensolver uses SuperLU (slower, same results)"
+fi
 .venv/bin/python -c "import geofeat; print('geofeat', geofeat.__version__, 'installed in .venv')"

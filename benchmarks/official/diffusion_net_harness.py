@@ -1,5 +1,6 @@
 #!/usr/bin/env python
-"""DiffusionNet's own operators of a point cloud, for `benchmarks.parity.diffusion_net_cloud`.
+"""DiffusionNet's own operators of a point cloud or a mesh, for `benchmarks.parity.diffusion_net_cloud`
+and `benchmarks.speed.diffusion_net_operators`.
 
 Runs in an environment of the DiffusionNet reference code (nmwsharp/diffusion-net), not
 geofeat's: ``python -m venv dn-venv`` and ``dn-venv/bin/pip install torch numpy scipy
@@ -8,9 +9,9 @@ imports ``diffusion_net`` from the clone given on the command line:
 
     dn-venv/bin/python diffusion_net_harness.py CLONE IN.npz OUT.npz
 
-IN.npz holds ``verts`` (V, 3) float64 and ``k_eig``. The points are passed to the
-reference's ``compute_operators`` as a float64 tensor with an empty face tensor (its point
-cloud path). OUT.npz holds ``frames`` (V, 3, 3), ``mass`` (V,), ``evals`` (k,), ``evecs``
+IN.npz holds ``verts`` (V, 3) float64, ``k_eig`` and, for a mesh, ``faces`` (F, 3). They
+are passed to the reference's ``compute_operators`` as float64 and int64 tensors; without
+``faces`` the face tensor is empty (its point-cloud path). OUT.npz holds ``frames`` (V, 3, 3), ``mass`` (V,), ``evals`` (k,), ``evecs``
 (V, k), and the sparse ``L``, ``gradX`` and ``gradY`` as ``*_row``, ``*_col`` and ``*_data``
 (COO), all as the reference returns them (float64 tensors; its sparse values pass through
 float32 on the way), and ``wall_time`` (seconds of the call).
@@ -32,7 +33,8 @@ def main() -> None:
     with np.load(source) as inputs:
         verts = torch.from_numpy(np.asarray(inputs["verts"], dtype=np.float64))
         k_eig = int(inputs["k_eig"])
-    faces = torch.zeros((0, 3), dtype=torch.int64)
+        faces = np.asarray(inputs["faces"], dtype=np.int64) if "faces" in inputs else np.zeros((0, 3), dtype=np.int64)
+    faces = torch.from_numpy(faces)
     start = time.perf_counter()
     frames, mass, lap, evals, evecs, grad_x, grad_y = compute_operators(verts, faces, k_eig)
     wall = time.perf_counter() - start

@@ -86,10 +86,13 @@ def clouds(data: Path) -> dict[str, tuple[geofeat.Mesh, int]]:
     }
 
 
-def reference(python: str, repo: str, harness: str, verts: np.ndarray, k: int, work: Path) -> dict:
-    """The reference's operators of a cloud (arrays named as the harness writes them; sparse matrices as scipy CSR)."""
+def reference(
+    python: str, repo: str, harness: str, verts: np.ndarray, k: int, work: Path, faces: np.ndarray | None = None
+) -> dict:
+    """The reference's operators of a cloud, or of a mesh with ``faces`` (arrays named as the harness writes them; sparse matrices as scipy CSR)."""
     source, target = work / "in.npz", work / "out.npz"
-    np.savez(source, verts=np.asarray(verts, dtype=np.float64), k_eig=k)
+    extra = {} if faces is None else {"faces": np.asarray(faces, dtype=np.int64)}
+    np.savez(source, verts=np.asarray(verts, dtype=np.float64), k_eig=k, **extra)
     subprocess.run([python, harness, repo, str(source), str(target)], check=True, capture_output=True, text=True)
     n = len(verts)
     with np.load(target) as out:

@@ -254,3 +254,62 @@ def test_mass_normalize_gives_unit_mass_norm_and_keeps_zero_channels():
     np.testing.assert_allclose(mass @ np.square(out[:, [0, 2]]), [1.0, 1.0])
     np.testing.assert_array_equal(out[:, 1], 0.0)
     np.testing.assert_allclose(out[:, 0] / out[0, 0], features[:, 0])  # a scaling per channel
+
+
+def _eigsh_reference(stiffness, mass, k):
+    """scipy's ``eigsh`` on the generalised problem with its default tolerance."""
+    stiffness = sp.csc_matrix(stiffness)
+    return sla.eigsh(stiffness, k=k, M=sp.diags(mass), sigma=-1e-6 * stiffness.diagonal().sum(), which="LM")
+
+
+def _largest_eigenspace_sine(evecs, reference, evals, mass, gap=1e-3):
+    """Largest sine between the mass-orthonormal eigenspaces of eigenvalues closer than ``gap`` (relative)."""
+    bounds = [0] + [i for i in range(1, len(evals)) if evals[i] - evals[i - 1] > gap * abs(evals[i])] + [len(evals)]
+    worst = 0.0
+    for start, stop in zip(bounds[:-2], bounds[1:-1], strict=True):  # the last space may go on past k
+        overlap = reference[:, start:stop].T @ (mass[:, None] * evecs[:, start:stop])
+        smallest = min(1.0, float(np.linalg.svd(overlap, compute_uv=False).min()))
+        worst = max(worst, float(np.sqrt(1.0 - smallest**2)))
+    return worst
+
+
+@pytest.mark.parametrize("factorization", ["auto", "superlu"])
+def test_sparse_solve_gives_the_eigenpairs_of_scipy_eigsh(faust_mesh, monkeypatch, factorization):
+    monkeypatch.setattr(spectral, "FACTORIZATION", factorization)
+    lap = laplacian(faust_mesh, kind="robust")
+    k = 96
+    evals, evecs = spectral.solve_eigenpairs(lap.stiffness, lap.mass, k)
+    ref_evals, ref_evecs = _eigsh_reference(lap.stiffness, lap.mass, k)
+    np.testing.assert_allclose(evals[1:], ref_evals[1:], rtol=1e-8)
+    assert _largest_eigenspace_sine(evecs, ref_evecs, ref_evals, lap.mass) < 1e-6
+
+
+def test_cholmod_factorisation_solves_like_superlu():
+    pytest.importorskip("sksparse.cholmod", reason="scikit-sparse (CHOLMOD) is an optional speed-up")
+    mesh = bumpy(seed=0)
+    lap = laplacian(mesh, kind="cotan")
+    shifted = sp.csc_matrix(lap.stiffness + 1e-3 * sp.diags(lap.mass))
+    rhs = np.random.default_rng(0).standard_normal(mesh.n_vertices)
+    expected = sla.spsolve(shifted, rhs)
+    np.testing.assert_allclose(spectral._factorize(shifted)(rhs), expected, rtol=1e-8, atol=1e-10 * np.abs(expected).max())
+
+
+def test_first_subspace_is_k_plus_a_margin_below_n():
+    assert spectral.first_subspace(100_000, 128) == 160
+    assert spectral.first_subspace(100_000, 400) == 500
+    assert spectral.first_subspace(100_000, 3) == 35
+    assert spectral.first_subspace(50, 40) == 49
+
+
+def test_a_solve_that_would_not_fit_in_memory_is_refused_before_it_starts(faust_mesh, monkeypatch):
+    monkeypatch.setattr(spectral, "available_memory", lambda: 10_000_000)
+    monkeypatch.setattr(spectral, "_sparse_with_fallbacks", lambda *args: pytest.fail("the solve started"))
+    with pytest.raises(SpectralError, match="need about .* of memory, and 10.0 MB is available"):
+        spectral_basis(faust_mesh, k=128, cache=False)
+
+
+def test_memory_estimate_grows_with_vertices_and_eigenpairs():
+    small, large = spectral.eigensolve_memory(20_000, 128), spectral.eigensolve_memory(200_000, 128)
+    assert large == pytest.approx(10 * small, rel=1e-6)
+    assert spectral.eigensolve_memory(20_000, 256) > small
+    assert 3e9 < spectral.eigensolve_memory(1_000_000, 128) < 5e9
