@@ -14,7 +14,10 @@ are passed to the reference's ``compute_operators`` as float64 and int64 tensors
 ``faces`` the face tensor is empty (its point-cloud path). OUT.npz holds ``frames`` (V, 3, 3), ``mass`` (V,), ``evals`` (k,), ``evecs``
 (V, k), and the sparse ``L``, ``gradX`` and ``gradY`` as ``*_row``, ``*_col`` and ``*_data``
 (COO), all as the reference returns them (float64 tensors; its sparse values pass through
-float32 on the way), and ``wall_time`` (seconds of the call).
+float32 on the way), and ``wall_time`` (seconds of the call). For a mesh it also writes
+``L64_*``: the float64 cotan Laplacian that the reference's eigensolve starts from
+(``potpourri3d.cotan_laplacian`` with the reference's ``denom_eps``), computed after the
+timed call.
 """
 
 import sys
@@ -44,6 +47,11 @@ def main() -> None:
         matrix = matrix.coalesce()
         arrays[f"{name}_row"], arrays[f"{name}_col"] = matrix.indices().numpy()
         arrays[f"{name}_data"] = matrix.values().numpy()
+    if faces.numel():  # the float64 Laplacian the reference's eigsh saw, from the same call it makes
+        import potpourri3d as pp3d
+
+        exact = pp3d.cotan_laplacian(verts.numpy(), faces.numpy(), denom_eps=1e-10).tocoo()
+        arrays["L64_row"], arrays["L64_col"], arrays["L64_data"] = exact.row, exact.col, exact.data
     np.savez(target, wall_time=wall, **arrays)
 
 

@@ -1,7 +1,7 @@
 """WKS on large meshes: time and peak memory of geofeat against pyFM on the same meshes.
 
-The meshes are made from a FAUST_r shape: subdivided three times (about 320k vertices),
-then decimated with fast-simplification to each target size (which leaves some degenerate
+The meshes are made from a FAUST_r shape: subdivided three times (about 320k vertices; four
+times, about 1.3M, for larger sizes), then decimated with fast-simplification to each target size (which leaves some degenerate
 faces, as real scans have). Every run is a fresh Python process, so that its peak resident
 memory (``ru_maxrss``) is its own:
 
@@ -51,7 +51,7 @@ print(json.dumps({"seconds": seconds, "peak_gb": peak_gb, "finite": bool(np.isfi
 
 
 def make_mesh(data_root: Path, n_vertices: int) -> tuple[np.ndarray, np.ndarray]:
-    """FAUST_r ``tr_reg_000`` subdivided three times and decimated to about ``n_vertices`` vertices."""
+    """FAUST_r ``tr_reg_000`` subdivided three times (more where needed) and decimated to about ``n_vertices`` vertices."""
     import fast_simplification
     import trimesh
 
@@ -59,8 +59,10 @@ def make_mesh(data_root: Path, n_vertices: int) -> tuple[np.ndarray, np.ndarray]
 
     base = geofeat.load_mesh(data_root / "FAUST_r" / "off" / "tr_reg_000.off")
     verts, faces = base.verts, base.faces
-    for _ in range(3):
+    subdivisions = 0
+    while subdivisions < 3 or len(verts) < n_vertices:
         verts, faces = trimesh.remesh.subdivide(verts, faces)
+        subdivisions += 1
     reduction = 1.0 - n_vertices / len(verts)
     if reduction > 0:
         verts, faces = fast_simplification.simplify(verts.astype(np.float32), faces.astype(np.int32), target_reduction=reduction)
@@ -85,6 +87,7 @@ def main(argv=None) -> int:
     parser.add_argument("--data", type=Path, default=DEFAULT_DATA, help="the folder holding FAUST_r/ (default $GEOFEAT_DATA)")
     parser.add_argument("--sizes", type=int, nargs="+", default=[20000, 80000, 200000])
     parser.add_argument("--pyfm-max", type=int, default=200000, help="run pyFM only up to this many vertices")
+    parser.add_argument("--cotan-max", type=int, default=None, help="run geofeat's cotan row only up to this many vertices")
     parser.add_argument("--timeout", type=float, default=900.0, help="seconds per run")
     parser.add_argument("--out", type=Path, default=RESULTS / "speed_large_mesh")
     args = parser.parse_args(argv)
@@ -100,6 +103,8 @@ def main(argv=None) -> int:
             row = {"vertices": len(verts), "faces": len(faces), "zero_area_faces": degenerate}
             for which in ("robust", "cotan", "pyfm"):
                 if which == "pyfm" and len(verts) > args.pyfm_max:
+                    continue
+                if which == "cotan" and args.cotan_max is not None and len(verts) > args.cotan_max:
                     continue
                 row[which] = run(path, which, args.timeout)
                 print(json.dumps({"vertices": len(verts), which: row[which]}), flush=True)
