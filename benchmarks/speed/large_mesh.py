@@ -90,7 +90,11 @@ def main(argv=None) -> int:
     parser.add_argument("--cotan-max", type=int, default=None, help="run geofeat's cotan row only up to this many vertices")
     parser.add_argument("--timeout", type=float, default=900.0, help="seconds per run")
     parser.add_argument("--out", type=Path, default=RESULTS / "speed_large_mesh")
+    parser.add_argument("--table-only", action="store_true", help="only rewrite OUT/results.md from OUT/results.json")
     args = parser.parse_args(argv)
+    if args.table_only:
+        write_table(args.out)
+        return 0
     data = data_folder(args.data)
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
@@ -112,11 +116,18 @@ def main(argv=None) -> int:
     args.out.mkdir(parents=True, exist_ok=True)
     record = {"date": datetime.date.today().isoformat(), "machine": machine(), "rows": rows}
     (args.out / "results.json").write_text(json.dumps(record, indent=1) + "\n")
+    write_table(args.out)
+    return 0
+
+
+def write_table(out: Path) -> str:
+    """Write ``out/results.md`` from ``out/results.json`` and return it."""
+    record = json.loads((out / "results.json").read_text())
     lines = [
         f"WKS (128 eigenpairs, 128 energies), {record['machine']}, {record['date']}; seconds / peak GB per fresh process",
         "",
-        "| vertices | zero-area faces | geofeat robust | geofeat cotan | pyFM (cotan) |",
-        "|---|---|---|---|---|",
+        "| vertices | zero-area faces | geofeat robust | geofeat cotan | pyFM (cotan) | pyFM / geofeat robust |",
+        "|---|---|---|---|---|---|",
     ]
 
     def cell(result):
@@ -128,13 +139,21 @@ def main(argv=None) -> int:
             return f"{error}{after} (see results.json)"
         return f"{result['seconds']:.1f} s / {result['peak_gb']:.2f} GB"
 
-    for row in rows:
+    def ratio(row):
+        robust, pyfm = row.get("robust") or {}, row.get("pyfm") or {}
+        if robust.get("seconds") and pyfm.get("seconds"):
+            return f"{pyfm['seconds'] / robust['seconds']:.2f}x"
+        return "-"
+
+    for row in record["rows"]:
         lines.append(
-            f"| {row['vertices']} | {row['zero_area_faces']} | {cell(row.get('robust'))} | {cell(row.get('cotan'))} | {cell(row.get('pyfm'))} |"
+            f"| {row['vertices']} | {row['zero_area_faces']} | {cell(row.get('robust'))} | {cell(row.get('cotan'))} | "
+            f"{cell(row.get('pyfm'))} | {ratio(row)} |"
         )
-    (args.out / "results.md").write_text("\n".join(lines) + "\n")
-    print("\n".join(lines))
-    return 0
+    text = "\n".join(lines) + "\n"
+    (out / "results.md").write_text(text)
+    print(text)
+    return text
 
 
 if __name__ == "__main__":
