@@ -334,7 +334,7 @@ def write_table(out: Path, benchmark: str, published: list[dict], invocation: st
             ("differs", "how our setting differs", "s"),
         ]
         lines += [markdown_table(mine, pub_columns), ""]
-        lines += [f"[{n}] {source}" + ("  " if n < len(sources) else "") for n, source in enumerate(sources, 1)]
+        lines += [f"\\[{n}\\] {source}" + ("  " if n < len(sources) else "") for n, source in enumerate(sources, 1)]
     text = "\n".join(lines) + "\n"
     (out / f"{benchmark}.md").write_text(text)
     curves = {
