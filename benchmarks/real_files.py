@@ -38,7 +38,8 @@ nor SHREC'16 in DPFM's layout ships one, so that row is listed as not available.
 A run whose ``results.json`` exists is not repeated (``--force`` repeats it), so an
 interrupted call continues where it stopped; ``--tables-only`` rewrites the tables from what
 is there. The published figures are typed in by hand, each with its source, in
-``<out>/published_figures.json`` (``benchmarks``: for each benchmark table the entry is shown
+``<out>/published_figures.json`` (``source``: where it was read; ``cite``: how the tables name it, with a link;
+``benchmarks``: for each benchmark table the entry is shown
 in, how our setting differs from the published one); each table numbers the sources of its
 published rows and lists them once below them.
 
@@ -289,6 +290,11 @@ def _when_where(rows: list[dict]) -> str:
     return f"{', '.join(dates)}; {'; '.join(machines)}"
 
 
+def _cite(published: dict) -> str:
+    """How a table names the source of a published figure: ``cite`` (short, with a link), else ``source``."""
+    return published.get("cite") or published["source"]
+
+
 def write_table(out: Path, benchmark: str, published: list[dict], invocation: str) -> str | None:
     """``<out>/<benchmark>.md`` and ``<out>/<benchmark>_pck.png``; returns the Markdown (None: no runs)."""
     folder = out / benchmark
@@ -301,21 +307,22 @@ def write_table(out: Path, benchmark: str, published: list[dict], invocation: st
     lines.append(
         f"`mirrored_truth`: not available ({NOT_AVAILABLE[benchmark]}). "
         "Geodesic error: mean over every evaluated vertex of all pairs, in hundredths of the square root "
-        f"of {divided_by} (geofeat's protocol, `docs/heads.md`)."
+        f"of {divided_by} (geofeat's protocol, see Concepts in the documentation)."
     )
     splits = sorted({r["split"] for r in rows})
     lines.append(
         f"Split evaluated: {', '.join(splits)}. Each run's exact `run.py` command and settings are in "
-        f"`{benchmark}/<run>/results.json`. Written by `{invocation}`; runs of {_when_where(rows)}."
+        f"`{benchmark}/<run>/results.json`. Written by `{invocation}` (the call and the data: "
+        f"`benchmarks/results/real_files/README.md`); runs of {_when_where(rows)}."
     )
     mine = [p | {"differs": p["benchmarks"][benchmark]} for p in published if benchmark in p["benchmarks"]]
     if mine:
-        sources = list(dict.fromkeys(p["source"] for p in mine))
+        sources = list(dict.fromkeys(_cite(p) for p in mine))
         for p in mine:
-            p["cited"] = f"[{sources.index(p['source']) + 1}]"
+            p["cited"] = f"[{sources.index(_cite(p)) + 1}]"
         lines += [
             "",
-            "Published figures (typed in by hand from `published_figures.json`; not the same setting, see the last column):",
+            "Published figures (typed in from `published_figures.json`; not the same setting, see the last column):",
             "",
         ]
         pub_columns = [
@@ -327,7 +334,7 @@ def write_table(out: Path, benchmark: str, published: list[dict], invocation: st
             ("differs", "how our setting differs", "s"),
         ]
         lines += [markdown_table(mine, pub_columns), ""]
-        lines += [f"[{n}] {source}" + ("  " if n < len(sources) else "") for n, source in enumerate(sources, 1)]
+        lines += [f"\\[{n}\\] {source}" + ("  " if n < len(sources) else "") for n, source in enumerate(sources, 1)]
     text = "\n".join(lines) + "\n"
     (out / f"{benchmark}.md").write_text(text)
     curves = {
@@ -375,7 +382,7 @@ def main(argv=None) -> int:
     published_path = args.out / "published_figures.json"
     published = json.loads(published_path.read_text()) if published_path.is_file() else []
     for benchmark in TITLES:
-        text = write_table(args.out, benchmark, published, "python -m benchmarks.real_files (the call is in README.md)")
+        text = write_table(args.out, benchmark, published, "python -m benchmarks.real_files")
         if text is not None:
             print(text)
     if failed:

@@ -1,8 +1,9 @@
 #!/usr/bin/env bash
 # One-command set-up on Debian/Ubuntu: system packages, a virtual environment in .venv,
-# the CPU build of PyTorch, then geofeat with all its extras (docs included). Run from the repository root:
+# PyTorch (torch==2.13.0: the build your pip index serves), then geofeat with all its extras (docs included). Run from the repository root:
 #   bash scripts/install.sh
-# Set GEOFEAT_TORCH to choose another torch requirement (for example a CUDA build).
+# Set GEOFEAT_TORCH to another torch requirement, and PIP_INDEX_URL / PIP_EXTRA_INDEX_URL to the index
+# that serves the build you want (docs/install.md).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -10,10 +11,10 @@ SUDO=""
 if [ "$(id -u)" -ne 0 ]; then SUDO="sudo"; fi
 if command -v apt-get >/dev/null 2>&1; then
     $SUDO apt-get update -qq
-    # python3-venv for the environment; EGL/OSMesa for the optional pyrender backend ([gl] extra);
+    # python3-venv for the environment; EGL for the optional pyrender backend ([gl] extra);
     # SuiteSparse for CHOLMOD, the eigensolver's optional faster factorisation (below).
     $SUDO env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends \
-        python3-venv libegl1 libgl1 libosmesa6 libsuitesparse-dev >/dev/null
+        python3-venv libegl1 libgl1 libsuitesparse-dev >/dev/null
 fi
 
 PYTHON="${PYTHON:-python3}"

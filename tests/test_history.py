@@ -17,7 +17,7 @@ from test_docs import ISSUE
 #: Folders whose ``.py`` files are scanned.
 SCANNED = ("geofeat", "adapters", "tests", "scripts", "benchmarks")
 #: Files that hold examples of what the patterns catch, on purpose.
-EXAMPLES = {Path("tests/test_docs.py"), Path("tests/test_history.py")}
+EXAMPLES = {Path("tests/test_docs.py"), Path("tests/test_docs_site.py"), Path("tests/test_history.py")}
 #: A checklist item as a whole string or as the prefix of an id (``"R7"``, ``"D3-load"``); norm names are spared.
 LABEL = re.compile(r"""(?<![\w"'])["'](?!(?:L[0-9]|F1)["'])[A-Z]\d{1,2}(?:-[a-z][\w-]*)?["']""")
 #: A list named after a review pass (``SECOND_PASS``), or the word checklist.

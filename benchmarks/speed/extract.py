@@ -65,7 +65,7 @@ def markdown(report: dict) -> str:
     lines = [
         f"`geofeat extract --descriptor {report['descriptor']}` ({params}) over the {report['rows'][0]['shapes']} shapes "
         f"of `{report['dataset']}` (split {report['split']}), each run a fresh process from launch to exit, "
-        f"imports included; {report['machine']}, {report.get('date', 'date not recorded')}",
+        f"imports included; {report['machine']}, {report['date']}",
         "",
         "| run | wall time | shapes computed | already in the store | sum of per-shape compute times | 1-min load before / after |",
         "|---|---|---|---|---|---|",

@@ -1,4 +1,4 @@
-"""The ``geofeat`` command line: ``cache info|verify|clear``, ``descriptors``, ``demo``, ``train-geolora``, ``extract``, ``data check|prepare``.
+"""The ``geofeat`` command line (``geofeat --version`` prints the version): ``cache info|verify|clear``, ``descriptors``, ``demo``, ``train-geolora``, ``extract``, ``data check|prepare``.
 
 Help texts are plain text (no markup): `build_parser` holds them, and the settings of
 ``train-geolora`` take theirs from the `geofeat.train.config.TrainConfig` docstring.
@@ -20,6 +20,7 @@ import tempfile
 import textwrap
 from pathlib import Path
 
+from geofeat._version import __version__
 from geofeat.descriptors.cache import FeatureCache
 from geofeat.errors import ExtractError, GeofeatError, StoreError
 from geofeat.runtime.progress import hidden_progress
@@ -489,6 +490,7 @@ def build_parser() -> argparse.ArgumentParser:
     """The argument parser of the ``geofeat`` command (every option has a plain-text help)."""
     parser = argparse.ArgumentParser(prog="geofeat", description=DESCRIPTION, epilog=EPILOG)
     parser.add_argument("-v", "--verbose", action="store_true", help="log at INFO level")
+    parser.add_argument("--version", action="version", version=f"geofeat {__version__}", help="print the version and exit")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND", title="commands")
     cache = sub.add_parser(
         "cache",

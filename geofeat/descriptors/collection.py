@@ -371,9 +371,11 @@ def compute_many(
     ----------
     meshes_or_paths : sequence of Mesh, path, (verts, faces) or trimesh object
         The shapes (see `compute`).
-    descriptor, cache, **params
-        As for `compute`; the descriptor is built (and its parameters checked) once, before
-        any work starts, and used for every shape.
+    descriptor : str or Descriptor
+        A registered descriptor name or a descriptor instance, as for `compute`; a name is
+        built (and its parameters checked) once, before any work starts, and used for every shape.
+    cache : bool, path or FeatureCache
+        Where to look up and store the results, as for `compute`; ``False`` computes without caching.
     n_jobs : int
         Worker processes; 1 computes in this process. Workers are started with ``spawn``
         (safe with PyTorch and OpenMP), which costs about a second before the first result.
@@ -382,6 +384,8 @@ def compute_many(
     prefetch : int or None
         With ``n_jobs == 1``: shapes read and prepared ahead on a background thread (see
         `compute_each`); None: 2 for the DINO descriptors, 0 for the others.
+    **params
+        Descriptor parameters with a name, as for `compute` (none with an instance).
 
     Returns
     -------

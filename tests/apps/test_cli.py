@@ -1,10 +1,12 @@
 import argparse
+import importlib.metadata
 import subprocess
 import sys
 from pathlib import Path
 
 import pytest
 
+import geofeat
 from geofeat.apps import cli
 from geofeat.apps.cli import build_parser, main, numpydoc_parameters
 from geofeat.descriptors.registry import descriptor_entry
@@ -164,6 +166,13 @@ def test_console_script_help():
     console_script = Path(sys.executable).parent / "geofeat"  # installed beside the interpreter, on PATH or not
     result = subprocess.run([str(console_script), "--help"], capture_output=True, text=True)
     assert result.returncode == 0 and "cache" in result.stdout and "``" not in result.stdout
+
+
+def test_version_prints_the_installed_version():
+    console_script = Path(sys.executable).parent / "geofeat"
+    result = subprocess.run([str(console_script), "--version"], capture_output=True, text=True)
+    assert result.returncode == 0
+    assert result.stdout.strip() == f"geofeat {importlib.metadata.version('geofeat')}" == f"geofeat {geofeat.__version__}"
 
 
 @pytest.mark.parametrize(

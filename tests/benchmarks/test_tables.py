@@ -156,7 +156,7 @@ def test_real_files_tables_list_each_published_source_once_under_its_rows(tmp_pa
     assert "| A | PSMAL P2P | error | 1.0 | [1] | differs a |" in text
     assert "| B | PSMAL P2P | error | 2.0 | [2] | differs b |" in text
     assert "| C | PSMAL P2P | error | 3.0 | [1] | differs c |" in text
-    assert text.count("[1] paper one") == 1 and text.count("[2] paper two") == 1
+    assert text.count("\\[1\\] paper one") == 1 and text.count("\\[2\\] paper two") == 1  # escaped: not a reference link
     assert "paper three" not in text and "| D |" not in text
     assert not (tmp_path / "becos_p2p.md").exists()
 
