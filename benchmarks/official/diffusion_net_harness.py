@@ -15,7 +15,7 @@ are passed to the reference's ``compute_operators`` as float64 and int64 tensors
 (V, k), and the sparse ``L``, ``gradX`` and ``gradY`` as ``*_row``, ``*_col`` and ``*_data``
 (COO), all as the reference returns them (float64 tensors; its sparse values pass through
 float32 on the way), and ``wall_time`` (seconds of the call). For a mesh it also writes
-``L64_*``: the float64 cotan Laplacian that the reference's eigensolve starts from
+``L_exact_*``: the float64 cotan Laplacian that the reference's eigensolve starts from
 (``potpourri3d.cotan_laplacian`` with the reference's ``denom_eps``), computed after the
 timed call.
 """
@@ -51,7 +51,7 @@ def main() -> None:
         import potpourri3d as pp3d
 
         exact = pp3d.cotan_laplacian(verts.numpy(), faces.numpy(), denom_eps=1e-10).tocoo()
-        arrays["L64_row"], arrays["L64_col"], arrays["L64_data"] = exact.row, exact.col, exact.data
+        arrays["L_exact_row"], arrays["L_exact_col"], arrays["L_exact_data"] = exact.row, exact.col, exact.data
     np.savez(target, wall_time=wall, **arrays)
 
 

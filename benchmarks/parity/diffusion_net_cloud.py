@@ -97,7 +97,7 @@ def reference(
     n = len(verts)
     with np.load(target) as out:
         result = {name: out[name] for name in ("frames", "mass", "evals", "evecs")}
-        for name in ("L", "gradX", "gradY", "L64")[: 4 if "L64_data" in out else 3]:
+        for name in ("L", "gradX", "gradY", "L_exact")[: 4 if "L_exact_data" in out else 3]:
             coo = (out[f"{name}_data"], (out[f"{name}_row"], out[f"{name}_col"]))
             result[name] = sp.csr_matrix(coo, shape=(n, n))
         result["wall_time"] = float(out["wall_time"])

@@ -103,14 +103,14 @@ def agreement(mesh: geofeat.Mesh, ops, ref: dict) -> dict:
     for name, ours_matrix in (("gradX", as_scipy(ops.grad_x)), ("gradY", as_scipy(ops.grad_y))):
         apart = abs(ours_matrix - ref[name]).max(axis=1).toarray().ravel()
         rows_apart[name] = int((apart > GRADIENT_ROW_TOLERANCE * abs(ref[name]).max()).sum())
-    problem = ref["L64"] + REFERENCE_SHIFT * sp.identity(mesh.n_vertices)
+    problem = ref["L_exact"] + REFERENCE_SHIFT * sp.identity(mesh.n_vertices)
     solved_evals, solved_evecs = solve_eigenpairs(problem, ref["mass"], len(ref["evals"]), progress=False)
     solved = np.abs(solved_evals[1:] - ref["evals"][1:]) / np.abs(ref["evals"][1:])
     return {
         "solver_eigenvalues_relative_each": float(solved.max()),
         "solver_eigenspace_sine": eigenspace_stage(solved_evecs, ref["evecs"], ref["evals"], ref["mass"]).max_abs,
         "gradient_rows_apart": max(rows_apart.values()),
-        "laplacian": float(abs(laplacian(mesh, "cotan").stiffness - ref["L64"]).max() / abs(ref["L64"]).max()),
+        "laplacian": float(abs(laplacian(mesh, "cotan").stiffness - ref["L_exact"]).max() / abs(ref["L_exact"]).max()),
         "mass": stages[0].relative,
         "eigenvalues_relative_each": float(relative_evals.max()),
         "eigenspace_sine": stages[2].max_abs,
