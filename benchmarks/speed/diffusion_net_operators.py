@@ -15,7 +15,10 @@ each shape, in this order:
 The shapes are those the heads see: FAUST_r test shapes and the PSMAL sample, each scaled to
 unit area (`geofeat.adapters.inputs.normalized_mesh`), so both sides get the same arrays.
 Agreement per shape: mass, eigenvalues (the reference's shift ``1e-8 |phi|^2`` removed),
-eigenspaces (eigenvalues closer than 1e-3 form one space) and the gradient matrices.
+eigenspaces (eigenvalues closer than 1e-3 form one space) and the gradient matrices; the
+Laplacian against the float64 one the reference's ``eigsh`` saw (the harness returns it),
+and our eigensolver on exactly the reference's problem (that Laplacian plus ``1e-8 I``, its
+mass), which isolates the solver from the Laplacian's construction.
 
     python -m benchmarks.speed.diffusion_net_operators --reference-python DN_VENV/bin/python \\
         --diffusion-net-repo PATH/TO/diffusion-net --data /data

@@ -242,7 +242,7 @@ def eigensolve_memory(n: int, k: int) -> int:
     """Estimated peak bytes of the sparse eigensolve of ``n`` vertices and ``k`` eigenpairs.
 
     The Lanczos vectors of the first attempt, twice the ``(n, k)`` eigenvectors (ARPACK's and
-    their rescaled copy) and `FACTOR_BYTES_PER_VERTEX` for the factorisation: about 0.7 GB for
+    their rescaled copy) and `FACTOR_BYTES_PER_VERTEX` for the factorisation: about 0.75 GB for
     200,000 vertices and 3.7 GB for 1,000,000 at ``k = 128``.
     """
     return 8 * n * (first_subspace(n, k) + 2 * k) + FACTOR_BYTES_PER_VERTEX * n
