@@ -93,17 +93,14 @@ def ours(mesh: geofeat.Mesh, settings: dict) -> tuple[object, float]:
 def agreement(mesh: geofeat.Mesh, ops, ref: dict) -> dict:
     """Largest differences of one shape's operators, relative to the reference's largest value."""
     evals, evecs = ops.evals.double().numpy(), ops.evecs.double().numpy()
+    grads = {"gradX": as_scipy(ops.grad_x), "gradY": as_scipy(ops.grad_y)}
     shift = REFERENCE_SHIFT * np.square(ref["evecs"]).sum(axis=0)
-    stages = [
-        dense_stage("mass", ops.mass.numpy(), ref["mass"]),
-        dense_stage("eigenvalues", evals[1:], (ref["evals"] - shift)[1:]),
-        eigenspace_stage(evecs, ref["evecs"], ref["evals"], ref["mass"]),
-        sparse_stage("gradient X", as_scipy(ops.grad_x), ref["gradX"]),
-        sparse_stage("gradient Y", as_scipy(ops.grad_y), ref["gradY"]),
-    ]
+    mass = dense_stage("mass", ops.mass.numpy(), ref["mass"])
+    eigenspaces = eigenspace_stage(evecs, ref["evecs"], ref["evals"], ref["mass"])
+    grad_x, grad_y = (sparse_stage(f"gradient {axis}", grads[f"grad{axis}"], ref[f"grad{axis}"]) for axis in "XY")
     relative_evals = np.abs(evals[1:] - (ref["evals"] - shift)[1:]) / np.abs((ref["evals"] - shift)[1:])
     rows_apart = {}
-    for name, ours_matrix in (("gradX", as_scipy(ops.grad_x)), ("gradY", as_scipy(ops.grad_y))):
+    for name, ours_matrix in grads.items():
         apart = abs(ours_matrix - ref[name]).max(axis=1).toarray().ravel()
         rows_apart[name] = int((apart > GRADIENT_ROW_TOLERANCE * abs(ref[name]).max()).sum())
     problem = ref["L_exact"] + REFERENCE_SHIFT * sp.identity(mesh.n_vertices)
@@ -114,11 +111,11 @@ def agreement(mesh: geofeat.Mesh, ops, ref: dict) -> dict:
         "solver_eigenspace_sine": eigenspace_stage(solved_evecs, ref["evecs"], ref["evals"], ref["mass"]).max_abs,
         "gradient_rows_apart": max(rows_apart.values()),
         "laplacian": float(abs(laplacian(mesh, "cotan").stiffness - ref["L_exact"]).max() / abs(ref["L_exact"]).max()),
-        "mass": stages[0].relative,
+        "mass": mass.relative,
         "eigenvalues_relative_each": float(relative_evals.max()),
-        "eigenspace_sine": stages[2].max_abs,
-        "grad_x": stages[3].relative,
-        "grad_y": stages[4].relative,
+        "eigenspace_sine": eigenspaces.max_abs,
+        "grad_x": grad_x.relative,
+        "grad_y": grad_y.relative,
     }
 
 

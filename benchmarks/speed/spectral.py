@@ -34,6 +34,7 @@ import scipy.sparse.linalg as sla
 
 import geofeat
 from benchmarks.common import DEFAULT_DATA, RESULTS, faust_test_shapes, machine, write_results
+from benchmarks.parity.diffusion_net_cloud import eigenspace_stage
 from geofeat.geometry import laplacian, spectral
 from geofeat.geometry.spectral import clear_basis_cache, solve_eigenpairs
 
@@ -78,8 +79,6 @@ def eigsh_agreement(mesh: geofeat.Mesh, k: int) -> tuple[float, float]:
     Returns the largest eigenvalue difference relative to the eigenvalue (the zero one left
     out) and the largest sine between eigenspaces (eigenvalues closer than 1e-3 form one).
     """
-    from benchmarks.parity.diffusion_net_cloud import eigenspace_stage
-
     lap = laplacian(mesh, kind="robust")
     stiffness = sp.csc_matrix(lap.stiffness)
     evals, evecs = solve_eigenpairs(stiffness, lap.mass, k, progress=False)
