@@ -15,6 +15,7 @@ from scipy.spatial import cKDTree
 from geofeat.checks import check_integer
 from geofeat.errors import SpectralError
 from geofeat.geometry.geodesic_memory import available_memory
+from geofeat.geometry.lanczos import largest_eigenpairs
 from geofeat.geometry.laplacian import laplacian
 from geofeat.mesh import Mesh
 from geofeat.runtime.progress import progress_bar
@@ -42,7 +43,14 @@ ZERO_EIGENVALUE_TOL = 1e-6
 SPARSE_SOLVES_PER_VECTOR = 5
 #: A sparse solve that runs longer than this shows a progress bar (linear solves done).
 PROGRESS_AFTER_SECONDS = 5.0
-#: Lanczos vectors beyond ``k`` in the first sparse attempt (`first_subspace`): ``k + max(SUBSPACE_EXTRA, k // 4)``.
+#: Bound on the steps of the first sparse attempt (Lanczos with partial reorthogonalisation,
+#: `lanczos_steps`): ``LANCZOS_STEPS_PER_EIGENPAIR * k + 64``. It converges in about ``2.4 k``
+#: (304 steps for k=128 from 5,000 to 80,000 vertices); its basis grows to that many vectors.
+LANCZOS_STEPS_PER_EIGENPAIR = 3
+#: The eigenvalues of the Lanczos attempt are counted below their largest times ``1 + COUNT_MARGIN``;
+#: a count other than ``k`` (a mode missed, or eigenvalues this close straddling ``k``) hands over to ARPACK.
+COUNT_MARGIN = 1e-8
+#: Lanczos vectors beyond ``k`` in ARPACK's attempt (`first_subspace`): ``k + max(SUBSPACE_EXTRA, k // 4)``.
 #: The linear solves barely depend on it (about 320 for k=128 from 5,000 to 200,000 vertices
 #: with 160 or 257 vectors), while ARPACK's orthogonalisation and memory grow with its square.
 SUBSPACE_EXTRA = 32
@@ -202,13 +210,18 @@ def solve_eigenpairs(
     -----
     The problem is solved scale-free: the mass is divided by its total (the shape's area),
     which makes the spectrum of a cotangent or robust Laplacian independent of the size
-    of the shape, and the eigenpairs are scaled back at the end. Small meshes and requests of more than `SPARSE_MAX_FRACTION` of the
-    spectrum go to the dense solver directly; otherwise ARPACK in shift-invert mode with a
-    sparse factorisation (`_factorize`: CHOLMOD where scikit-sparse is installed, SuperLU
-    otherwise), ``k + max(32, k // 4)`` Lanczos vectors, a deterministic start vector and a
-    bounded number of iterations, retried once with a larger shift and subspace, then the
-    dense solver for meshes up to `DENSE_MAX_VERTICES` vertices. Before a sparse solve the
-    memory it needs (`eigensolve_memory`) is compared with the memory available, and a solve
+    of the shape, and the eigenpairs are scaled back at the end. Small meshes and requests
+    of more than `SPARSE_MAX_FRACTION` of the spectrum go to the dense solver directly.
+    Otherwise the shifted problem is factorised (`_factorize`: CHOLMOD where scikit-sparse
+    is installed, SuperLU otherwise) and solved in shift-invert mode by a sequence of
+    attempts: Lanczos with partial reorthogonalisation (`geofeat.geometry.lanczos`),
+    whose eigenvalue count is then confirmed by Sylvester's law of inertia (a factorisation
+    shifted just above the largest eigenvalue found has exactly ``k`` negative pivots);
+    ARPACK with ``k + max(32, k // 4)`` Lanczos vectors; ARPACK with a larger shift and
+    subspace; then the dense solver for meshes up to `DENSE_MAX_VERTICES` vertices. Every
+    attempt has a deterministic start vector and a bounded number of linear solves. Before
+    a sparse solve the memory it needs (`eigensolve_memory`) is compared with the memory
+    available, and a solve
     that would not fit raises `SpectralError` instead of starting.
     """
     n = mass.shape[0]
@@ -238,14 +251,20 @@ def first_subspace(n: int, k: int) -> int:
     return min(n - 1, max(k + max(SUBSPACE_EXTRA, k // 4), 20))
 
 
+def lanczos_steps(n: int, k: int) -> int:
+    """Bound on the steps (and basis vectors) of the Lanczos attempt for ``k`` of ``n`` eigenpairs."""
+    return min(n, LANCZOS_STEPS_PER_EIGENPAIR * k + 64)
+
+
 def eigensolve_memory(n: int, k: int) -> int:
     """Estimated peak bytes of the sparse eigensolve of ``n`` vertices and ``k`` eigenpairs.
 
-    The Lanczos vectors of the first attempt, twice the ``(n, k)`` eigenvectors (ARPACK's and
-    their rescaled copy) and `FACTOR_BYTES_PER_VERTEX` for the factorisation: about 0.75 GB for
-    200,000 vertices and 3.7 GB for 1,000,000 at ``k = 128``.
+    A Lanczos basis of `lanczos_steps` vectors (an upper bound: it stops growing when the
+    solve converges, at about ``2.4 k``), twice the ``(n, k)`` eigenvectors and
+    `FACTOR_BYTES_PER_VERTEX` for the factorisation: about 1.2 GB for 200,000 vertices and
+    6.0 GB for 1,000,000 at ``k = 128``.
     """
-    return 8 * n * (first_subspace(n, k) + 2 * k) + FACTOR_BYTES_PER_VERTEX * n
+    return 8 * n * (lanczos_steps(n, k) + 1 + 2 * k) + FACTOR_BYTES_PER_VERTEX * n
 
 
 def _check_memory(n: int, k: int, name: str) -> None:
@@ -267,24 +286,26 @@ class _OutOfBudget(Exception):
 
 
 def _shift_invert(
-    stiffness: sp.csc_matrix, mass: np.ndarray, k: int, sigma: float, ncv: int, maxiter: int, bar
+    stiffness: sp.csc_matrix, mass: np.ndarray, k: int, sigma: float, method: str, steps: int, maxiter: int, bar
 ) -> tuple[np.ndarray, np.ndarray]:
-    """ARPACK shift-invert on the standard form of the problem, counting the linear solves on ``bar``.
+    """Shift-invert on the standard form of the problem, counting the linear solves on ``bar``.
 
     The lumped mass is diagonal, so ``L phi = lambda M phi`` is ``A psi = lambda psi`` with
-    ``A = M^-1/2 L M^-1/2`` and ``phi = M^-1/2 psi``: ARPACK then needs no mass products, about
-    15% less time than the generalised form for the same eigenpairs up to rounding, also on
-    meshes with nearly degenerate faces (the mass sums to one here, so the scaling does not
-    depend on the size of the shape).
+    ``A = M^-1/2 L M^-1/2`` and ``phi = M^-1/2 psi``: no mass products, about 15% less time
+    than the generalised form for the same eigenpairs up to rounding, also on meshes with
+    nearly degenerate faces (the mass sums to one here, so the scaling does not depend on
+    the size of the shape). ``method`` is "lanczos" (`largest_eigenpairs`, at most
+    ``steps`` solves, its count of eigenvalues checked by `_count_below`) or "arpack"
+    (``steps`` Lanczos vectors, at most ``maxiter`` restarts).
     """
     n = stiffness.shape[0]
     inv_sqrt_mass = 1.0 / np.sqrt(mass)
     scaling = sp.diags(inv_sqrt_mass)
     standard = (scaling @ stiffness @ scaling).tocsc()
-    shifted = (standard - sigma * sp.identity(n, format="csc")).tocsc()
-    factor = _factorize(shifted)
+    identity = sp.identity(n, format="csc")
+    factor = _factorize((standard - sigma * identity).tocsc())
 
-    budget = SPARSE_SOLVES_PER_VECTOR * ncv
+    budget = SPARSE_SOLVES_PER_VECTOR * steps
     done = 0
 
     def solve(x: np.ndarray) -> np.ndarray:
@@ -295,9 +316,20 @@ def _shift_invert(
         bar.update(1)
         return factor(x)
 
+    if method == "lanczos":
+        theta, vecs = largest_eigenpairs(solve, n, k, max_steps=steps)
+        evals = sigma + 1.0 / theta
+        limit = float(evals.max()) * (1.0 + COUNT_MARGIN)
+        below = _count_below((standard - limit * identity).tocsc())
+        if below != k:
+            raise SpectralError(
+                f"{below} eigenvalues lie below the largest of the {k} found, {limit:.6g} (a mode missed, or a "
+                "cluster of nearly equal eigenvalues straddling k)"
+            )
+        return evals, vecs * inv_sqrt_mass[:, None]
     op_inv = sla.LinearOperator((n, n), matvec=solve, dtype=np.float64)
     start = np.random.default_rng(0).standard_normal(n)
-    evals, vecs = sla.eigsh(standard, k=k, sigma=sigma, which="LM", OPinv=op_inv, v0=start, ncv=ncv, maxiter=maxiter)
+    evals, vecs = sla.eigsh(standard, k=k, sigma=sigma, which="LM", OPinv=op_inv, v0=start, ncv=steps, maxiter=maxiter)
     return evals, vecs * inv_sqrt_mass[:, None]
 
 
@@ -331,17 +363,43 @@ def _factorize(shifted: sp.csc_matrix):
     return lu.solve
 
 
+def _count_below(shifted: sp.csc_matrix) -> int:
+    """How many eigenvalues of the symmetric ``shifted`` are negative: its negative LDL' pivots (Sylvester's law of inertia).
+
+    CHOLMOD's simplicial LDL' where scikit-sparse is installed, SuperLU without pivoting
+    (whose ``U`` has the pivots on its diagonal) otherwise.
+    """
+    if FACTORIZATION == "auto" and cholmod_available():
+        from sksparse.cholmod import CholmodError, cholesky
+
+        try:
+            pivots = cholesky(shifted, mode="simplicial", ordering_method="amd").D()
+        except CholmodError as err:
+            log.debug("CHOLMOD could not factorise the shifted Laplacian (%s); using SuperLU", err)
+        else:
+            return int(np.count_nonzero(pivots < 0))
+    lu = sla.splu(shifted, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
+    return int(np.count_nonzero(lu.U.diagonal() < 0))
+
+
 def _sparse_with_fallbacks(
     stiffness: sp.csc_matrix, mass: np.ndarray, k: int, name: str, progress: bool
 ) -> tuple[np.ndarray, np.ndarray]:
     n = stiffness.shape[0]
     scale = float(stiffness.diagonal().sum())  # sum of diag(L) / sum(mass), the mass summing to one
     attempts = [
-        ("shift-invert, sigma=-1e-6*scale", -1e-6 * scale, first_subspace(n, k), SPARSE_MAXITER),
-        ("shift-invert, larger shift sigma=-1e-3*scale and subspace", -1e-3 * scale, min(n - 1, 3 * k + 32), 2 * SPARSE_MAXITER),
+        ("Lanczos, sigma=-1e-6*scale", -1e-6 * scale, "lanczos", lanczos_steps(n, k), 0),
+        ("shift-invert, sigma=-1e-6*scale", -1e-6 * scale, "arpack", first_subspace(n, k), SPARSE_MAXITER),
+        (
+            "shift-invert, larger shift sigma=-1e-3*scale and subspace",
+            -1e-3 * scale,
+            "arpack",
+            min(n - 1, 3 * k + 32),
+            2 * SPARSE_MAXITER,
+        ),
     ]
     failures = []
-    for label, sigma, ncv, maxiter in attempts:
+    for label, sigma, method, steps, maxiter in attempts:
         with progress_bar(
             desc=f"eigenpairs of {name or 'mesh'} (k={k}, {n} vertices)",
             unit="solve",
@@ -350,8 +408,8 @@ def _sparse_with_fallbacks(
             leave=False,
         ) as bar:
             try:
-                evals, vecs = _shift_invert(stiffness, mass, k, sigma, ncv, maxiter, bar)
-            except (RuntimeError, sla.ArpackError, ValueError, _OutOfBudget) as err:
+                evals, vecs = _shift_invert(stiffness, mass, k, sigma, method, steps, maxiter, bar)
+            except (SpectralError, RuntimeError, sla.ArpackError, ValueError, _OutOfBudget) as err:
                 failures.append(f"{label}: {type(err).__name__}: {err}")
                 log.warning("eigensolver on %r failed (%s); retrying", name, failures[-1])
                 continue

@@ -66,9 +66,19 @@ def test_in_memory_cache_by_content():
         first.evecs[0, 0] = 1.0  # cached arrays are read-only
 
 
+def _without_lanczos(monkeypatch):
+    """Make the Lanczos attempt fail, so that ARPACK's attempts run."""
+
+    def failing_lanczos(*args, **kwargs):
+        raise SpectralError("Lanczos failure (simulated)")
+
+    monkeypatch.setattr(spectral, "largest_eigenpairs", failing_lanczos)
+
+
 def test_fallback_chain_retries_then_uses_dense_solver(monkeypatch, caplog):
     mesh = bumpy(4, 3)
     reference = spectral_basis(mesh, k=12, cache=False)
+    _without_lanczos(monkeypatch)
     calls = []
 
     def failing_eigsh(*args, **kwargs):
@@ -79,12 +89,13 @@ def test_fallback_chain_retries_then_uses_dense_solver(monkeypatch, caplog):
     with caplog.at_level(logging.WARNING, logger="geofeat"):
         basis = spectral_basis(mesh, k=12, cache=False)
     assert len(calls) == 2 and calls[1] < calls[0] < 0  # second try: a larger shift
-    assert "retrying" in caplog.text and "dense solver" in caplog.text
+    assert "Lanczos failure (simulated)" in caplog.text and "retrying" in caplog.text and "dense solver" in caplog.text
     np.testing.assert_allclose(basis.evals, reference.evals, atol=1e-8 * reference.evals.max())
 
 
 def test_second_attempt_success_is_reported(monkeypatch, caplog):
     mesh = bumpy(5, 3)
+    _without_lanczos(monkeypatch)
     real = spectral.sla.eigsh
     state = {"n": 0}
 
@@ -102,6 +113,7 @@ def test_second_attempt_success_is_reported(monkeypatch, caplog):
 
 def test_large_mesh_without_dense_fallback_raises(monkeypatch):
     mesh = bumpy(6, 3)
+    _without_lanczos(monkeypatch)
 
     def failing_eigsh(*args, **kwargs):
         raise RuntimeError("simulated failure")
@@ -181,6 +193,19 @@ def test_every_sparse_attempt_is_bounded(monkeypatch):
         return real(*args, **kwargs)
 
     monkeypatch.setattr(spectral.sla, "eigsh", spy)
+    spectral_basis(bumpy(4, 4), k=20, cache=False)
+    assert not seen  # the Lanczos attempt answered
+    steps = []
+    real_lanczos = spectral.largest_eigenpairs
+
+    def lanczos_spy(*args, **kwargs):
+        steps.append(kwargs["max_steps"])
+        return real_lanczos(*args, **kwargs)
+
+    monkeypatch.setattr(spectral, "largest_eigenpairs", lanczos_spy)
+    spectral_basis(bumpy(4, 4), k=20, cache=False)
+    assert steps == [spectral.lanczos_steps(bumpy(4, 4).n_vertices, 20)] and steps[0] <= 3 * 20 + 64
+    _without_lanczos(monkeypatch)
     spectral_basis(bumpy(4, 4), k=20, cache=False)
     assert seen and all(isinstance(m, int) and 0 < m <= 1000 for m in seen)
 
@@ -312,4 +337,4 @@ def test_memory_estimate_grows_with_vertices_and_eigenpairs():
     small, large = spectral.eigensolve_memory(20_000, 128), spectral.eigensolve_memory(200_000, 128)
     assert large == pytest.approx(10 * small, rel=1e-6)
     assert spectral.eigensolve_memory(20_000, 256) > small
-    assert 3e9 < spectral.eigensolve_memory(1_000_000, 128) < 5e9
+    assert 5e9 < spectral.eigensolve_memory(1_000_000, 128) < 7e9
