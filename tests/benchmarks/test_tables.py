@@ -232,6 +232,30 @@ def test_real_files_tables_list_each_published_source_once_under_its_rows(tmp_pa
     assert not (tmp_path / "becos_p2p.md").exists()
 
 
+def test_real_files_tables_are_narrow_and_dated_above(tmp_path):
+    common = {"descriptor": "wks", "split": "test", "n_pairs": 2, "geodesic_error": 12.5, "pck_auc": 0.4}
+    common |= {"pck_thresholds": [0.0, 0.1], "pck": [0.0, 1.0], "pairs": [], "miou": 0.5}
+    records = {
+        "nn_wks": {**common, "pipeline": "nn", "date": "2026-01-02", "machine": "box D"},
+        "dpfm": {**common, "pipeline": "dpfm", "date": "2026-01-03", "machine": "box D", "overlap_auc": 0.6}
+        | {"train_steps": 10, "train_pairs": 5, "train_seconds": 60.0},
+    }
+    for name, record in records.items():
+        (tmp_path / "psmal" / name).mkdir(parents=True)
+        (tmp_path / "psmal" / name / "results.json").write_text(json.dumps(record))
+    command = [*REAL_FILES, "--tables-only", "--no-plots", "--out", str(tmp_path)]
+    done = subprocess.run(command, capture_output=True, text=True, check=False, cwd=REPO)
+    assert done.returncode == 0, done.stderr
+    text = (tmp_path / "psmal.md").read_text()
+    assert "Runs of 2026-01-02, 2026-01-03; box D." in text
+    tables = _tables(text)
+    assert len(tables) == 2
+    assert all(_columns(t) <= 7 and t[0].startswith("| pipeline | input |") for t in tables)
+    assert text.index("Runs of") < text.index("| pipeline |")
+    assert "| DPFM | WKS | 0.500 | 0.600 | 10 steps (2.0 passes) on 5 pairs of train, 1.0 min |" in text
+    assert not list(tmp_path.glob("*.png"))  # --no-plots
+
+
 def test_real_files_plan_runs_shot_with_its_radius_on_becos(tmp_path):
     from benchmarks.real_files import plan
 
