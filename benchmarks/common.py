@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import subprocess
 from pathlib import Path
 
 import geofeat
@@ -48,6 +49,26 @@ def faust_test_shapes(data: str | os.PathLike | None, n_shapes: int) -> list[geo
     if missing:
         raise SystemExit(f"FAUST_r shapes not found (first missing: {missing[0]}); pass --data or set GEOFEAT_DATA")
     return [geofeat.load_mesh(p) for p in paths]
+
+
+def commit_date(path: str | os.PathLike) -> str | None:
+    """The date (YYYY-MM-DD) of the last commit that changed ``path``: when a run that kept no date was recorded.
+
+    None outside a git checkout, or for a file git does not track.
+    """
+    path = Path(path).resolve()
+    try:
+        done = subprocess.run(
+            ["git", "-C", str(path.parent), "log", "-1", "--format=%ad", "--date=short", "--", path.name],
+            capture_output=True,
+            text=True,
+            check=False,
+        )
+    except OSError:
+        return None
+    if done.returncode != 0:
+        return None
+    return done.stdout.strip() or None
 
 
 def write_results(out: str | os.PathLike, result: dict, table: str) -> None:

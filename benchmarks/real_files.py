@@ -208,17 +208,28 @@ def execute(run: Run, out: Path, force: bool) -> bool:
 
 # ----------------------------------------------------------------------------- tables
 
-COLUMNS = [
+#: The columns that name a row, in both tables of a benchmark.
+KEY_COLUMNS = [
     ("label", "pipeline", "s"),
     ("input", "input", "s"),
+]
+#: The first table: the accuracy of the maps.
+ACCURACY_COLUMNS = [
+    *KEY_COLUMNS,
     ("n_pairs", "pairs", "d"),
     ("geodesic_error", "geodesic error x100", ".2f"),
     ("same_pairs_no_tta", "same pairs, no TTA", ".2f"),
     ("pck_auc", "PCK AUC", ".3f"),
+]
+#: The second table: the partial-shape scores and the training of the same runs.
+OTHER_COLUMNS = [
+    *KEY_COLUMNS,
     ("miou", "mIoU", ".3f"),
     ("overlap_auc", "overlap AUC", ".3f"),
     ("training", "training", "s"),
 ]
+#: Every column, in the order of the two tables.
+COLUMNS = ACCURACY_COLUMNS + OTHER_COLUMNS[len(KEY_COLUMNS) :]
 ORDER = ("nn", "fmap", "dpfm", "echomatch", "ulrssm", "random")
 
 
@@ -285,9 +296,10 @@ def table_rows(folder: Path) -> list[dict]:
 
 
 def _when_where(rows: list[dict]) -> str:
-    machines = sorted({r.get("machine") or "machine not recorded" for r in rows})
-    dates = sorted({r["date"] for r in rows})
-    return f"{', '.join(dates)}; {'; '.join(machines)}"
+    """The runs' dates, then the machines they recorded (runs that kept none are given their date alone)."""
+    machines = sorted({r["machine"] for r in rows if r.get("machine")})
+    dates = ", ".join(sorted({r["date"] for r in rows}))
+    return f"{dates}; {'; '.join(machines)}" if machines else dates
 
 
 def _cite(published: dict) -> str:
@@ -295,14 +307,31 @@ def _cite(published: dict) -> str:
     return published.get("cite") or published["source"]
 
 
-def write_table(out: Path, benchmark: str, published: list[dict], invocation: str) -> str | None:
-    """``<out>/<benchmark>.md`` and ``<out>/<benchmark>_pck.png``; returns the Markdown (None: no runs)."""
+def write_table(out: Path, benchmark: str, published: list[dict], invocation: str, plots: bool = True) -> str | None:
+    """``<out>/<benchmark>.md`` and (``plots``) ``<out>/<benchmark>_pck.png``; returns the Markdown (None: no runs).
+
+    Two tables that share the pipeline and input columns (the accuracy, then the partial-shape
+    scores and the training; columns no run fills are left out), under the runs' dates and machines.
+    """
     folder = out / benchmark
     rows = table_rows(folder) if folder.is_dir() else []
     if not rows:
         return None
-    columns = [c for c in COLUMNS if any(r.get(c[0]) is not None for r in rows)]
-    lines = [f"### {TITLES[benchmark]}", "", markdown_table(rows, columns), ""]
+
+    def filled(columns):
+        return [c for c in columns if c in KEY_COLUMNS or any(r.get(c[0]) is not None for r in rows)]
+
+    lines = [
+        f"### {TITLES[benchmark]}",
+        "",
+        f"Runs of {_when_where(rows)}.",
+        "",
+        markdown_table(rows, filled(ACCURACY_COLUMNS)),
+        "",
+    ]
+    other = filled(OTHER_COLUMNS)
+    if len(other) > len(KEY_COLUMNS):
+        lines += ["The same runs' partial-shape scores and training:", "", markdown_table(rows, other), ""]
     divided_by = AREA_OF.get(benchmark, "the target shape's area")
     lines.append(
         f"`mirrored_truth`: not available ({NOT_AVAILABLE[benchmark]}). "
@@ -313,7 +342,7 @@ def write_table(out: Path, benchmark: str, published: list[dict], invocation: st
     lines.append(
         f"Split evaluated: {', '.join(splits)}. Each run's exact `run.py` command and settings are in "
         f"`{benchmark}/<run>/results.json`. Written by `{invocation}` (the call and the data: "
-        f"`benchmarks/results/real_files/README.md`); runs of {_when_where(rows)}."
+        f"`benchmarks/results/real_files/README.md`)."
     )
     mine = [p | {"differs": p["benchmarks"][benchmark]} for p in published if benchmark in p["benchmarks"]]
     if mine:
@@ -337,6 +366,8 @@ def write_table(out: Path, benchmark: str, published: list[dict], invocation: st
         lines += [f"\\[{n}\\] {source}" + ("  " if n < len(sources) else "") for n, source in enumerate(sources, 1)]
     text = "\n".join(lines) + "\n"
     (out / f"{benchmark}.md").write_text(text)
+    if not plots:
+        return text
     curves = {
         f"{r['label']}{'' if r['input'] == '-' else ' + ' + r['input']}": (np.array(r["pck_thresholds"]), np.array(r["pck"]))
         for r in rows
@@ -362,6 +393,7 @@ def main(argv=None) -> int:
     parser.add_argument("--only", nargs="+", choices=sorted(TITLES), help="run only these benchmarks")
     parser.add_argument("--force", action="store_true", help="repeat runs whose results.json exists")
     parser.add_argument("--tables-only", action="store_true", help="run nothing; rewrite the tables from the results")
+    parser.add_argument("--no-plots", action="store_true", help="write the tables, not the PCK plots")
     parser.add_argument("--out", type=Path, default=RESULTS / "real_files")
     args = parser.parse_args(argv)
     for name in ("psmal", "psmal_sample", "becos", "shrec16", "ulrssm_checkpoint"):
@@ -382,7 +414,7 @@ def main(argv=None) -> int:
     published_path = args.out / "published_figures.json"
     published = json.loads(published_path.read_text()) if published_path.is_file() else []
     for benchmark in TITLES:
-        text = write_table(args.out, benchmark, published, "python -m benchmarks.real_files")
+        text = write_table(args.out, benchmark, published, "python -m benchmarks.real_files", plots=not args.no_plots)
         if text is not None:
             print(text)
     if failed:

@@ -21,6 +21,7 @@ these weights work better with; see `geofeat.adapters.dpfm`).
 from __future__ import annotations
 
 import argparse
+import datetime
 import json
 import sys
 import time
@@ -28,7 +29,7 @@ from pathlib import Path
 
 from tqdm.auto import tqdm
 
-from benchmarks.common import DEFAULT_DATA, data_folder
+from benchmarks.common import DEFAULT_DATA, data_folder, machine
 from geofeat.adapters.dpfm import DPFMHead
 from geofeat.adapters.heads import load_head
 from geofeat.datasets import load_dataset
@@ -69,6 +70,8 @@ def transfer(
         "checkpoint": checkpoint,
         "interpolation": interpolation,
         "seconds": time.perf_counter() - start,
+        "date": datetime.date.today().isoformat(),
+        "machine": machine(),
         "head": head.config.to_dict(),
         **{k: v for k, v in summary.to_dict().items() if k not in ("pck", "pck_thresholds")},
     }

@@ -14,10 +14,13 @@ same outside the vertices whose frame has a sign tie (as many neighbours on each
 axis: pyshot keeps Eigen's arbitrary sign there), the share of vertices differing by more
 than 1e-5, the ties, how many tie vertices differ by more than 1e-5 as computed and with the
 best of the four signs of X and Z (``flip_axes``: where that is 0, pyshot simply chose the other
-sign), the zero rows of each side and both wall times.
+sign), the zero rows of each side and both wall times. So that it fits a laptop's width it is
+two tables with the shape and the parameter set in each: the differences, then the ties, zero
+rows and times; above them, the date and the machine of the run.
 
     python -m benchmarks.parity.shot --reference-python PYSHOT_VENV/bin/python --data /data --data-ext /data_ext \\
         [--record tests/data]
+    python -m benchmarks.parity.shot --render-only     # rewrites OUT.md from OUT.json, runs nothing
 
 ``--record DIR`` also writes ``DIR/shot_reference.npz``: pyshot's rows of every 50th vertex of
 tr_reg_080 (DeepShapeMatchingKit's parameters and a second set) and of every 10th point of a
@@ -38,7 +41,7 @@ from pathlib import Path
 import numpy as np
 
 import geofeat
-from benchmarks.common import DEFAULT_DATA, DEFAULT_DATA_EXT, RESULTS, data_folder, write_results
+from benchmarks.common import DEFAULT_DATA, DEFAULT_DATA_EXT, RESULTS, data_folder, machine, write_results
 from geofeat.descriptors.shot import SHOT, SHOT_RECIPES, shot_descriptors
 from geofeat.geometry.partial import make_partial
 
@@ -126,19 +129,35 @@ def compare(mesh: geofeat.Mesh, params: dict, python: str, harness: str, work: P
     }
 
 
-def table(rows: list[dict]) -> str:
-    """Markdown table of the comparison rows."""
+def table(result: dict) -> str:
+    """Markdown of a result: the date and machine of the run, then two tables (differences; ties, zero rows and times)."""
+    date = result["date"][:10]
+    where = f"{date}, {result['machine']}" if result.get("machine") else date
     lines = [
-        "| shape | parameters | V | max abs | max abs w/o ties (largest value) | share > 1e-5 | > 1e-5 w/o ties | ties "
-        "| ties > 1e-5: as computed / best other sign | zero rows ours / pyshot | NaN rows pyshot | s ours / pyshot |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|",
+        f"Run of {where}; tolerance {result['tolerance']:g}. The differences per entry:",
+        "",
+        "| shape | parameters | V | max abs | max abs w/o ties (largest value) | share > 1e-5 | > 1e-5 w/o ties |",
+        "|---|---|---|---|---|---|---|",
     ]
+    rows = result["rows"]
     for r in rows:
         lines.append(
             f"| {r['shape']} | {r['params']} | {r['vertices']} | {r['max_abs']:.2e} | {r['max_abs_without_ties']:.2e} ({r['max_abs_reference']:.3g}) | "
-            f"{100 * r['share_over_tol']:.2f}% | {r['over_tol_without_ties']} | {r['sign_ties']} | "
-            f"{r['ties_over_tol']} / {r['ties_over_tol_flipped']} | {r['zero_rows_ours']} / {r['zero_rows_reference']} | "
-            f"{r['nan_rows_reference']} | {r['seconds_ours']:.2f} / {r['seconds_reference']:.2f} |"
+            f"{100 * r['share_over_tol']:.2f}% | {r['over_tol_without_ties']} |"
+        )
+    lines += [
+        "",
+        "Sign ties, zero rows and wall times of the same runs:",
+        "",
+        "| shape | parameters | ties | ties > 1e-5: as computed / best other sign | zero rows ours / pyshot | NaN rows pyshot "
+        "| s ours / pyshot |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        lines.append(
+            f"| {r['shape']} | {r['params']} | {r['sign_ties']} | {r['ties_over_tol']} / {r['ties_over_tol_flipped']} | "
+            f"{r['zero_rows_ours']} / {r['zero_rows_reference']} | {r['nan_rows_reference']} | "
+            f"{r['seconds_ours']:.2f} / {r['seconds_reference']:.2f} |"
         )
     return "\n".join(lines)
 
@@ -178,13 +197,20 @@ def record_reference(folder: Path, faust: geofeat.Mesh, python: str, harness: st
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n", 1)[0])
-    parser.add_argument("--reference-python", required=True, help="python of pyshot's environment")
+    parser.add_argument("--reference-python", help="python of pyshot's environment (required unless --render-only)")
     parser.add_argument("--harness", default=str(PYSHOT_HARNESS), help="the harness pyshot's python runs (default: ours)")
     parser.add_argument("--data", default=DEFAULT_DATA, help="folder with FAUST_r/ (default $GEOFEAT_DATA)")
     parser.add_argument("--data-ext", default=DEFAULT_DATA_EXT, help="folder with PSMAL/ (default $GEOFEAT_DATA_EXT)")
     parser.add_argument("--record", help="also write shot_reference.npz (the CI test's reference rows) to this folder")
     parser.add_argument("--out", default=str(RESULTS / "parity" / "parity_shot"))
+    parser.add_argument("--render-only", action="store_true", help="rewrite OUT.md from OUT.json without running anything")
     args = parser.parse_args()
+    if args.render_only:
+        out = Path(args.out)
+        out.with_suffix(".md").write_text(table(json.loads(out.with_suffix(".json").read_text())) + "\n")
+        return
+    if not args.reference_python:
+        parser.error("--reference-python is required (or --render-only)")
     meshes = shapes(data_folder(args.data), data_folder(args.data_ext, "--data-ext"))
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
@@ -196,11 +222,12 @@ def main() -> None:
             record_reference(Path(args.record), meshes["FAUST_r tr_reg_080"], args.reference_python, args.harness, work)
     result = {
         "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+        "machine": machine(),
         "param_sets": PARAM_SETS,
         "tolerance": TOLERANCE,
         "rows": rows,
     }
-    write_results(args.out, result, table(rows))
+    write_results(args.out, result, table(result))
 
 
 if __name__ == "__main__":

@@ -13,7 +13,10 @@ Reads what other scripts wrote and writes two Markdown tables (nothing is measur
   short name shown in the table's notes).
 
 Writes ``summary.md`` (one row per reproduced checkpoint, the headline table) and
-``details.md`` (every release run, test-time adaptation and transfer runs included)::
+``details.md`` (every release run, test-time adaptation and transfer runs included, as two
+tables that share the key columns checkpoint, setting and benchmark: the error, then the other
+scores). Above the tables: the dates of the runs and the machines they recorded (a run that
+kept no date is dated by the commit that recorded it)::
 
     python -m benchmarks.tables.release [--results benchmarks/results]
 """
@@ -26,7 +29,7 @@ import logging
 import sys
 from pathlib import Path
 
-from benchmarks.common import RESULTS
+from benchmarks.common import RESULTS, commit_date
 from geofeat.evaluation.report import markdown_table
 
 TITLES = {"ulrssm": "ULRSSM", "dpfm": "DPFM", "echomatch": "EchoMatch"}
@@ -172,7 +175,7 @@ def summary_rows(runs: list[dict], references: dict, published: list[dict]) -> t
             }
         )
         settings.add((r.get("pairs_option"), r.get("protocol")))
-        ours.append((r["date"], r.get("machine") or "machine not recorded in results.json"))
+        ours.append((r["date"], r.get("machine")))
         if ref is not None:
             theirs.append((f"`{ref['script']}` ({TITLES[r['pipeline']]})", ref["date"], ref["machine"]))
     if settings == {("combinations", "template")}:
@@ -189,13 +192,16 @@ def summary_rows(runs: list[dict], references: dict, published: list[dict]) -> t
     return rows, notes
 
 
-def _when_where(runs: list[tuple[str, str]]) -> str:
-    """``date(s), machine`` of runs, each machine once."""
+def _when_where(runs: list[tuple[str | None, str | None]]) -> str:
+    """``date(s), machine`` of runs, each machine once; the dates alone for runs that kept no machine.
+
+    Where those runs ran is said in the results folder's README.md, not on the page.
+    """
     machines = dict.fromkeys(m for _, m in runs)
     parts = []
-    for m in machines:
-        dates = ", ".join(sorted({d for d, mm in runs if mm == m}))
-        parts.append(f"{dates}, {m}")
+    for m in sorted(machines, key=lambda m: m is None):
+        dates = ", ".join(sorted({d for d, mm in runs if mm == m and d})) or "date unknown"
+        parts.append(f"{dates}, {m}" if m else dates)
     return "; ".join(parts)
 
 
@@ -207,19 +213,47 @@ SUMMARY_COLUMNS = [
     ("reference", "authors' code, same pairs", ".3f"),
     ("published", "published", "s"),
 ]
-DETAILS_COLUMNS = [
+#: The columns that name a row of details.md, in both of its tables.
+DETAILS_KEY_COLUMNS = [
     ("checkpoint", "checkpoint", "s"),
     ("setting", "setting", "s"),
     ("dataset", "benchmark", "s"),
+]
+#: details.md, first table: what was evaluated and the geodesic error.
+DETAILS_ERROR_COLUMNS = [
+    *DETAILS_KEY_COLUMNS,
     ("protocol", "evaluated", "s"),
     ("pairs", "pairs", "s"),
     ("geodesic_error", "error x100", ".2f"),
     ("without_tta", "same pairs, no TTA", ".2f"),
+]
+#: details.md, second table: the other scores of the same runs.
+DETAILS_SCORE_COLUMNS = [
+    *DETAILS_KEY_COLUMNS,
     ("pck_auc", "PCK AUC", ".3f"),
     ("miou", "mIoU", ".3f"),
     ("overlap_auc", "overlap AUC", ".3f"),
     ("chirality_accuracy", "chirality acc.", ".3f"),
 ]
+
+
+def details_text(details: list[dict], dated: list[tuple[str | None, str | None]]) -> str:
+    """details.md: the dates and machines of the runs (``dated``: (date, machine) per run), then its two tables."""
+    groups = []
+    for m in sorted(dict.fromkeys(m for _, m in dated), key=lambda m: m is None):
+        runs = [d for d, mm in dated if mm == m]
+        dates = ", ".join(sorted({d for d in runs if d})) or "date unknown"
+        groups.append(f"{dates}{f' on {m}' if m else ''} ({len(runs)} {'run' if len(runs) == 1 else 'runs'})")
+    return (
+        f"geofeat runs: {'; '.join(groups)}. Settings, per-pair errors and, where the run recorded it, the machine"
+        " in each results.json under `benchmarks/results/release/` (see its README.md); the DPFM transfer rows"
+        " from `transfer_dpfm_partial.py` (`release/dpfm_transfer/results.json`).\n\n"
+        "Geodesic error:\n\n"
+        + markdown_table(details, DETAILS_ERROR_COLUMNS)
+        + "\n\nThe other scores of the same runs:\n\n"
+        + markdown_table(details, DETAILS_SCORE_COLUMNS)
+        + "\n"
+    )
 
 
 def main(argv=None) -> int:
@@ -238,24 +272,21 @@ def main(argv=None) -> int:
     rows, notes = summary_rows(runs, reference_figures(args.results), published)
     sources = ", ".join(f"{p['cite']} ({p['published']})" for p in published)
     summary = (
-        markdown_table(rows, SUMMARY_COLUMNS)
-        + "\n\n"
-        + "".join(f"{line}.  \n" for line in notes)
-        + f"Published: {sources}; typed in from `published_figures.json`, whose entries name their sources.\n"
+        "".join(f"{line}.  \n" for line in notes)
+        + f"Published: {sources}; typed in from `published_figures.json`, whose entries name their sources.\n\n"
+        + markdown_table(rows, SUMMARY_COLUMNS)
+        + "\n"
     )
     (folder / "summary.md").write_text(summary)
 
     details = details_rows(runs, transfer)
-    dates = sorted({r["date"] for r in runs})
-    details_text = (
-        markdown_table(details, DETAILS_COLUMNS)
-        + f"\n\ngeofeat runs of {', '.join(dates)}; settings and per-pair errors in each results.json"
-        " under `benchmarks/results/release/`; the DPFM transfer rows from `transfer_dpfm_partial.py`"
-        " (`release/dpfm_transfer/results.json`).\n"
-    )
-    (folder / "details.md").write_text(details_text)
+    transfer_date = commit_date(transfer_path) if transfer_path.is_file() else None
+    dated = [(r["date"], r.get("machine")) for r in runs]
+    dated += [(t.get("date") or transfer_date, t.get("machine")) for t in transfer]
+    text = details_text(details, dated)
+    (folder / "details.md").write_text(text)
     print(summary)
-    print(details_text)
+    print(text)
     return 0
 
 

@@ -1,8 +1,15 @@
-"""Gather the results.json files of several `run.py` runs into one table and one PCK plot.
+"""Gather the results.json files of several `run.py` runs into two tables and one PCK plot per dataset.
+
+The tables share the key columns (dataset, descriptor, matcher) so that each fits a laptop's
+width: the accuracy of the maps, then the partial-shape scores (mIoU, overlap AUC), training
+steps and time, without the columns that no run fills. Above them, the dates of the runs and
+the machines they recorded.
 
 Usage::
 
     python -m benchmarks.tables.summarize benchmarks/results/*/results.json --out benchmarks/results/summary
+
+``--tables-only`` rewrites ``OUT.md`` and leaves the plots as they are.
 """
 
 from __future__ import annotations
@@ -18,14 +25,26 @@ import numpy as np
 from geofeat.evaluation.protocol import SUMMARY_COLUMNS
 from geofeat.evaluation.report import markdown_table, plot_pck
 
-COLUMNS = [
+KEY_COLUMNS = [
     ("dataset", "dataset", "s"),
     ("descriptor", "descriptor", "s"),
     ("matcher", "matcher", "s"),
-    *SUMMARY_COLUMNS,
+]
+_METRICS = {column[0]: column for column in SUMMARY_COLUMNS}
+#: The first table: how good the maps are.
+ACCURACY_COLUMNS = [
+    *KEY_COLUMNS,
+    *(_METRICS[key] for key in ("n_pairs", "geodesic_error", "pck_auc", "chirality_accuracy")),
+]
+#: The second table: partial-shape scores, training and time (columns no row fills are left out).
+OTHER_COLUMNS = [
+    *KEY_COLUMNS,
+    *(_METRICS[key] for key in ("miou", "overlap_auc")),
     ("train_steps", "training steps", "d"),
     ("seconds", "time (s)", ".0f"),
 ]
+#: Every column, in the order of the two tables.
+COLUMNS = ACCURACY_COLUMNS + OTHER_COLUMNS[len(KEY_COLUMNS) :]
 #: Keys every results.json of `run.py` has; other scripts' results.json (speed, parity, profile) lack them.
 RUN_KEYS = ("pipeline", "dataset", "descriptor", "date", "pck_thresholds", "pck")
 log = logging.getLogger("benchmarks.tables.summarize")
@@ -55,11 +74,37 @@ def read_runs(paths: list[Path]) -> list[dict]:
     return rows
 
 
+def provenance(rows: list[dict]) -> str:
+    """One line: the dates of the runs and the machines they recorded."""
+    dates = sorted({r["date"] for r in rows})
+    text = f"Runs of {', '.join(dates)}; per-run settings in each results.json."
+    machines = sorted({r["machine"] for r in rows if r.get("machine")})
+    if machines:
+        unrecorded = sum(1 for r in rows if not r.get("machine"))
+        text += (
+            f" Machine: {'; '.join(machines)}"
+            + (f" ({unrecorded} of the {len(rows)} runs recorded none)" if unrecorded else "")
+            + "."
+        )
+    return text
+
+
+def tables(rows: list[dict]) -> str:
+    """The Markdown of ``OUT.md``: the provenance line, then the accuracy table and the partial/training/time table."""
+    other = [c for c in OTHER_COLUMNS if c in KEY_COLUMNS or any(r.get(c[0]) is not None for r in rows)]
+    parts = [provenance(rows), "Accuracy:", markdown_table(rows, ACCURACY_COLUMNS)]
+    if len(other) > len(KEY_COLUMNS):
+        names = ", ".join(header for _, header, _ in other[len(KEY_COLUMNS) :])
+        parts += [f"Same runs, {names}:", markdown_table(rows, other)]
+    return "\n\n".join(parts) + "\n"
+
+
 def main(argv=None) -> int:
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(message)s")
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("results", nargs="+", type=Path, help="results.json files")
     parser.add_argument("--out", type=Path, required=True, help="writes OUT.md and OUT_pck_<dataset>.png")
+    parser.add_argument("--tables-only", action="store_true", help="write OUT.md only, not the plots")
     args = parser.parse_args(argv)
     rows = read_runs(args.results)
     if not rows:
@@ -68,18 +113,10 @@ def main(argv=None) -> int:
         row["matcher"] = matcher_label(row)
     rows.sort(key=lambda r: (r["dataset"], r["descriptor"], r["matcher"]))
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    dates = sorted({r["date"] for r in rows})
-    text = markdown_table(rows, COLUMNS) + f"\n\nRuns of {', '.join(dates)}; per-run settings in each results.json.\n"
-    machines = sorted({r["machine"] for r in rows if r.get("machine")})
-    if machines:
-        unrecorded = sum(1 for r in rows if not r.get("machine"))
-        text += (
-            f"Machine: {'; '.join(machines)}"
-            + (f" ({unrecorded} of the {len(rows)} runs recorded none)" if unrecorded else "")
-            + ".\n"
-        )
+    text = tables(rows)
     args.out.with_suffix(".md").write_text(text)
-    for dataset in sorted({r["dataset"] for r in rows}):
+    datasets = [] if args.tables_only else sorted({r["dataset"] for r in rows})
+    for dataset in datasets:
         curves = {
             f"{r['descriptor']} + {r['matcher']}": (np.array(r["pck_thresholds"]), np.array(r["pck"]))
             for r in rows

@@ -75,7 +75,11 @@ def test_release_summary_puts_the_reference_beside_geofeat(tmp_path):
     assert rows == ["| ULRSSM `faust_scape.pth` | faust_r | 3 | 2.000 | 2.001 | about 2 |"]
     text = "\n".join(summary)
     assert "Authors' code: `benchmarks/swap_in.py` (ULRSSM), 2026-01-03, test machine." in text
-    assert "machine not recorded" in text  # the run.py records above hold none
+    # the run.py records above hold no machine: their date alone, and nothing the site's checks refuse
+    assert "geofeat: `benchmarks/run.py --checkpoint`, 2026-01-02." in text
+    assert "not recorded" not in text
+    # the dates and machines come before the table
+    assert text.index("2026-01-03, test machine") < text.index("| checkpoint |")
 
 
 def test_release_details_give_the_same_pairs_without_tta_pooled_over_vertices(tmp_path):
@@ -88,6 +92,41 @@ def test_release_details_give_the_same_pairs_without_tta_pooled_over_vertices(tm
     tta_cuts = next(line for line in details if "shrec16_cuts.pth" in line and "15 test-time" in line)
     # pair p0 of the plain run alone (the TTA run has one pair): 10.0
     assert "| first 1 of 2 | 5.00 | 10.00 |" in tta_cuts
+
+
+def _tables(text: str) -> list[list[str]]:
+    """The Markdown tables of ``text``, each as its lines."""
+    tables, current = [], []
+    for line in text.splitlines() + [""]:
+        if line.startswith("|"):
+            current.append(line)
+        elif current:
+            tables.append(current)
+            current = []
+    return tables
+
+
+def _columns(table: list[str]) -> int:
+    return table[0].count("|") - 1
+
+
+def test_release_details_are_two_narrow_tables_under_their_dates_and_machines(tmp_path):
+    release = _results_tree(tmp_path)
+    machined = json.loads((release / "ulrssm_faust_r" / "results.json").read_text())
+    (release / "ulrssm_faust_r" / "results.json").write_text(json.dumps({**machined, "machine": "box B", "date": "2026-01-05"}))
+    assert _release_table(tmp_path).returncode == 0
+    text = (release / "details.md").read_text()
+    tables = _tables(text)
+    assert len(tables) == 2
+    assert all(_columns(t) <= 7 for t in tables)
+    for table in tables:  # the same key columns and rows in both
+        assert table[0].startswith("| checkpoint | setting | benchmark |")
+        assert len(table) == 2 + 4
+    first_line = text.splitlines()[0]
+    assert "2026-01-05 on box B (1 run)" in first_line
+    assert "2026-01-02 (3 runs)" in first_line
+    assert "not recorded" not in text
+    assert text.index(first_line) < text.index("| checkpoint |")
 
 
 def test_release_summary_refuses_a_reference_on_other_pairs(tmp_path):
@@ -111,7 +150,39 @@ def test_summarize_states_the_machines_the_runs_recorded(tmp_path):
         cwd=REPO,
     )
     assert result.returncode == 0, result.stderr
-    assert "Machine: box A (1 of the 2 runs recorded none)." in (tmp_path / "s.md").read_text()
+    text = (tmp_path / "s.md").read_text()
+    assert "Machine: box A (1 of the 2 runs recorded none)." in text
+    assert text.index("Machine: box A") < text.index("| dataset |")
+
+
+def test_summarize_writes_two_narrow_tables_without_empty_columns(tmp_path):
+    curve = {"pck_thresholds": [0.0, 0.25], "pck": [0.2, 0.8], "head": None}
+    base = {"dataset": "faust_r", "descriptor": "wks", "date": "2026-01-02", "n_pairs": 1, "geodesic_error": 25.0, **curve}
+    full = {
+        **base,
+        "pck_auc": 0.5,
+        "miou": 0.7,
+        "overlap_auc": 0.6,
+        "chirality_accuracy": 0.9,
+        "train_steps": 10,
+        "seconds": 3.0,
+    }
+    (tmp_path / "a.json").write_text(json.dumps({**full, "pipeline": "dpfm"}))
+    (tmp_path / "b.json").write_text(json.dumps({**base, "pipeline": "nn", "seconds": 1.0}))
+    command = [*SUMMARIZE, str(tmp_path / "a.json"), str(tmp_path / "b.json"), "--out", str(tmp_path / "s"), "--tables-only"]
+    result = subprocess.run(command, capture_output=True, text=True, cwd=REPO)
+    assert result.returncode == 0, result.stderr
+    text = (tmp_path / "s.md").read_text()
+    assert text.splitlines()[0] == "Runs of 2026-01-02; per-run settings in each results.json."
+    tables = _tables(text)
+    assert [_columns(t) for t in tables] == [7, 7]
+    assert all(t[0].startswith("| dataset | descriptor | matcher |") for t in tables)
+    assert not list(tmp_path.glob("*.png"))  # --tables-only draws no plot
+    # without the head run, the mIoU, overlap AUC and training steps columns are empty and left out
+    command = [*SUMMARIZE, str(tmp_path / "b.json"), "--out", str(tmp_path / "t"), "--tables-only"]
+    assert subprocess.run(command, capture_output=True, text=True, cwd=REPO).returncode == 0
+    second = _tables((tmp_path / "t.md").read_text())[1]
+    assert second[0] == "| dataset | descriptor | matcher | time (s) |"
 
 
 REAL_FILES = [sys.executable, "-m", "benchmarks.real_files"]
@@ -159,6 +230,30 @@ def test_real_files_tables_list_each_published_source_once_under_its_rows(tmp_pa
     assert text.count("\\[1\\] paper one") == 1 and text.count("\\[2\\] paper two") == 1  # escaped: not a reference link
     assert "paper three" not in text and "| D |" not in text
     assert not (tmp_path / "becos_p2p.md").exists()
+
+
+def test_real_files_tables_are_narrow_and_dated_above(tmp_path):
+    common = {"descriptor": "wks", "split": "test", "n_pairs": 2, "geodesic_error": 12.5, "pck_auc": 0.4}
+    common |= {"pck_thresholds": [0.0, 0.1], "pck": [0.0, 1.0], "pairs": [], "miou": 0.5}
+    records = {
+        "nn_wks": {**common, "pipeline": "nn", "date": "2026-01-02", "machine": "box D"},
+        "dpfm": {**common, "pipeline": "dpfm", "date": "2026-01-03", "machine": "box D", "overlap_auc": 0.6}
+        | {"train_steps": 10, "train_pairs": 5, "train_seconds": 60.0},
+    }
+    for name, record in records.items():
+        (tmp_path / "psmal" / name).mkdir(parents=True)
+        (tmp_path / "psmal" / name / "results.json").write_text(json.dumps(record))
+    command = [*REAL_FILES, "--tables-only", "--no-plots", "--out", str(tmp_path)]
+    done = subprocess.run(command, capture_output=True, text=True, check=False, cwd=REPO)
+    assert done.returncode == 0, done.stderr
+    text = (tmp_path / "psmal.md").read_text()
+    assert "Runs of 2026-01-02, 2026-01-03; box D." in text
+    tables = _tables(text)
+    assert len(tables) == 2
+    assert all(_columns(t) <= 7 and t[0].startswith("| pipeline | input |") for t in tables)
+    assert text.index("Runs of") < text.index("| pipeline |")
+    assert "| DPFM | WKS | 0.500 | 0.600 | 10 steps (2.0 passes) on 5 pairs of train, 1.0 min |" in text
+    assert not list(tmp_path.glob("*.png"))  # --no-plots
 
 
 def test_real_files_plan_runs_shot_with_its_radius_on_becos(tmp_path):
