@@ -78,6 +78,7 @@ def _without_lanczos(monkeypatch):
 def test_fallback_chain_retries_then_uses_dense_solver(monkeypatch, caplog):
     mesh = bumpy(4, 3)
     reference = spectral_basis(mesh, k=12, cache=False)
+    monkeypatch.setattr(spectral, "LANCZOS_FROM_VERTICES", 0)  # the whole chain: Lanczos, ARPACK twice, dense
     _without_lanczos(monkeypatch)
     calls = []
 
@@ -193,6 +194,7 @@ def test_every_sparse_attempt_is_bounded(monkeypatch):
         return real(*args, **kwargs)
 
     monkeypatch.setattr(spectral.sla, "eigsh", spy)
+    monkeypatch.setattr(spectral, "LANCZOS_FROM_VERTICES", 0)
     spectral_basis(bumpy(4, 4), k=20, cache=False)
     assert not seen  # the Lanczos attempt answered
     steps = []
@@ -298,9 +300,11 @@ def _largest_eigenspace_sine(evecs, reference, evals, mass, gap=1e-3):
     return worst
 
 
-@pytest.mark.parametrize("factorization", ["auto", "superlu"])
-def test_sparse_solve_gives_the_eigenpairs_of_scipy_eigsh(faust_mesh, monkeypatch, factorization):
+@pytest.mark.parametrize(("factorization", "lanczos_from"), [("auto", 0), ("superlu", 0), ("auto", 10**9)])
+def test_sparse_solve_gives_the_eigenpairs_of_scipy_eigsh(faust_mesh, monkeypatch, factorization, lanczos_from):
+    """Lanczos (tried from `LANCZOS_FROM_VERTICES` on) and ARPACK, with either factorisation."""
     monkeypatch.setattr(spectral, "FACTORIZATION", factorization)
+    monkeypatch.setattr(spectral, "LANCZOS_FROM_VERTICES", lanczos_from)
     lap = laplacian(faust_mesh, kind="robust")
     k = 96
     evals, evecs = spectral.solve_eigenpairs(lap.stiffness, lap.mass, k)
