@@ -264,12 +264,14 @@ def lanczos_steps(n: int, k: int) -> int:
 def eigensolve_memory(n: int, k: int) -> int:
     """Estimated peak bytes of the sparse eigensolve of ``n`` vertices and ``k`` eigenpairs.
 
-    A Lanczos basis of `lanczos_steps` vectors (an upper bound: it stops growing when the
-    solve converges, at about ``2.4 k``), twice the ``(n, k)`` eigenvectors and
-    `FACTOR_BYTES_PER_VERTEX` for the factorisation: about 1.2 GB for 200,000 vertices and
-    6.0 GB for 1,000,000 at ``k = 128``.
+    The Lanczos basis (from `LANCZOS_FROM_VERTICES` vertices `lanczos_steps` vectors, an
+    upper bound: it stops growing when the solve converges, at about ``2.4 k``; ARPACK's
+    `first_subspace` below), twice the ``(n, k)`` eigenvectors and `FACTOR_BYTES_PER_VERTEX`
+    for the factorisation: about 1.2 GB for 200,000 vertices and 6.0 GB for 1,000,000 at
+    ``k = 128``.
     """
-    return 8 * n * (lanczos_steps(n, k) + 1 + 2 * k) + FACTOR_BYTES_PER_VERTEX * n
+    basis = lanczos_steps(n, k) + 1 if n >= LANCZOS_FROM_VERTICES else first_subspace(n, k)
+    return 8 * n * (basis + 2 * k) + FACTOR_BYTES_PER_VERTEX * n
 
 
 def _check_memory(n: int, k: int, name: str) -> None:
