@@ -3,13 +3,14 @@
 The Lanczos vectors are kept semi-orthogonal (every inner product below ``sqrt(eps)``)
 rather than orthogonal to rounding: Simon's recurrence estimates how orthogonality is lost
 at each step, and a new vector is orthogonalised against the earlier ones only when the
-estimate passes that level (about one step in three on a shift-inverted Laplacian), then
-once more at the next step. Semi-orthogonality is enough for the tridiagonal matrix to give
-the eigenvalues to rounding (H. D. Simon, "The Lanczos algorithm with partial
-reorthogonalization", Math. Comp. 42, 1984). Each reorthogonalisation reads the whole
-basis, so this reads it about five times less often than an implicitly restarted Lanczos
-(ARPACK), which orthogonalises every step and rotates the basis by matrix-vector products
-at each restart.
+estimate passes that level, then once more at the next step. Semi-orthogonality is enough
+for the tridiagonal matrix to give the eigenvalues to rounding (H. D. Simon, "The Lanczos
+algorithm with partial reorthogonalization", Math. Comp. 42, 1984). Each
+reorthogonalisation reads the whole basis. On a shift-inverted Laplacian of 20,000 vertices
+(k = 128) it runs at 94 of 312 steps; an implicitly restarted Lanczos (ARPACK)
+orthogonalises at every step and also rotates its basis by one matrix-vector product per
+kept vector at each restart. On small meshes the estimate grows faster and the saving
+shrinks (two steps in three at 5,000 vertices).
 
 There is no restart: the basis grows to the number of steps the solve takes (about
 ``2.4 k`` for the ``k`` lowest modes of a shift-inverted Laplacian), and the memory of the

@@ -50,7 +50,7 @@ PROGRESS_AFTER_SECONDS = 5.0
 LANCZOS_FROM_VERTICES = 15_000
 #: Bound on the steps of the Lanczos attempt (partial reorthogonalisation,
 #: `lanczos_steps`): ``LANCZOS_STEPS_PER_EIGENPAIR * k + 64``. It converges in about ``2.4 k``
-#: (304 steps for k=128 from 5,000 to 80,000 vertices); its basis grows to that many vectors.
+#: (312 steps for k=128 on 20,000 vertices); its basis grows to that many vectors.
 LANCZOS_STEPS_PER_EIGENPAIR = 3
 #: The eigenvalues of the Lanczos attempt are counted below their largest times ``1 + COUNT_MARGIN``;
 #: a count other than ``k`` (a mode missed, or eigenvalues this close straddling ``k``) hands over to ARPACK.
@@ -219,15 +219,15 @@ def solve_eigenpairs(
     of more than `SPARSE_MAX_FRACTION` of the spectrum go to the dense solver directly.
     Otherwise the shifted problem is factorised (`_factorize`: CHOLMOD where scikit-sparse
     is installed, SuperLU otherwise) and solved in shift-invert mode by a sequence of
-    attempts: from `LANCZOS_FROM_VERTICES` vertices, Lanczos with partial reorthogonalisation (`geofeat.geometry.lanczos`),
-    whose eigenvalue count is then confirmed by Sylvester's law of inertia (a factorisation
-    shifted just above the largest eigenvalue found has exactly ``k`` negative pivots);
-    ARPACK with ``k + max(32, k // 4)`` Lanczos vectors; ARPACK with a larger shift and
-    subspace; then the dense solver for meshes up to `DENSE_MAX_VERTICES` vertices. Every
-    attempt has a deterministic start vector and a bounded number of linear solves. Before
-    a sparse solve the memory it needs (`eigensolve_memory`) is compared with the memory
-    available, and a solve
-    that would not fit raises `SpectralError` instead of starting.
+    attempts. From `LANCZOS_FROM_VERTICES` vertices the first is Lanczos with partial
+    reorthogonalisation (`geofeat.geometry.lanczos`), whose eigenvalue count is then
+    confirmed by Sylvester's law of inertia (a factorisation shifted just above the largest
+    eigenvalue found has exactly ``k`` negative pivots). Then ARPACK with
+    ``k + max(32, k // 4)`` Lanczos vectors; ARPACK with a larger shift and subspace; then
+    the dense solver for meshes up to `DENSE_MAX_VERTICES` vertices. Every attempt has a
+    deterministic start vector and a bounded number of linear solves. Before a sparse solve
+    the memory it needs (`eigensolve_memory`) is compared with the memory available, and a
+    solve that would not fit raises `SpectralError` instead of starting.
     """
     n = mass.shape[0]
     total = float(mass.sum())
