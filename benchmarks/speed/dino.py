@@ -206,14 +206,18 @@ def table(result: dict) -> str:
         "| backbone (random DINOv3 weights) | render | backbone | back-project (ball) | total |" + (" wall |" if wall else ""),
         "|---|---|---|---|---|" + ("---|" if wall else ""),
     ]
-    costs = ["| backbone (random DINOv3 weights) | first pass | peak GPU memory |", "|---|---|---|"]
+    memory = any(row["peak_gib"] is not None for row in result["rows"])  # none on the CPU
+    costs = [
+        "| backbone (random DINOv3 weights) | first pass |" + (" peak GPU memory |" if memory else ""),
+        "|---|---|" + ("---|" if memory else ""),
+    ]
     for row in result["rows"]:
         peak = f"{row['peak_gib']:.2f} GiB" if row["peak_gib"] is not None else "-"
         lines.append(
             f"| {row['name']} | {row['render']:.3f} s | {row['backbone']:.3f} s | {row['backproject']:.3f} s | "
             f"{row['total']:.3f} s |" + (f" {row['wall']:.3f} s |" if wall else "")
         )
-        costs.append(f"| {row['name']} | {row['first_pass']:.2f} s | {peak} |")
+        costs.append(f"| {row['name']} | {row['first_pass']:.2f} s |" + (f" {peak} |" if memory else ""))
     lines += ["", *costs]
     if "compile" in result:
         cost, saved = result["compile"]["compile_s"], result["compile"]["saved_per_shape_s"]

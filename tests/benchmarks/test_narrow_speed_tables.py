@@ -107,9 +107,18 @@ def test_dino_table_is_two_narrow_tables_under_machine_and_date():
     assert text.splitlines()[0].endswith(f"2026-01-02, {MACHINE}")
     tables = _narrow(text, "| backbone (random DINOv3 weights) |", 2, 3)
     assert tables[0][2] == "| tiny | 0.010 s | 0.020 s | 0.030 s | 0.060 s | 0.050 s |"
-    assert tables[1][2] == "| tiny | 0.50 s | - |"
+    assert tables[1][2] == "| tiny | 0.50 s |"
     assert "torch.compile: 30.0 s to compile" in text
     assert "| wall |" not in dino.table(_dino_record(wall=False))
+
+
+def test_dino_table_keeps_the_memory_column_where_a_row_has_memory():
+    record = _dino_record()
+    record["rows"][1]["peak_gib"] = 4.0
+    tables = _tables(dino.table(record))
+    assert tables[1][0] == "| backbone (random DINOv3 weights) | first pass | peak GPU memory |"
+    assert tables[1][2] == "| tiny | 0.50 s | - |"
+    assert tables[1][3] == "| big | 0.50 s | 4.00 GiB |"
 
 
 def test_dino_profile_gives_date_machine_and_gpu_and_keeps_the_written_tables(tmp_path):
