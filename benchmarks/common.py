@@ -136,11 +136,43 @@ def profile_tables(prof, wall: float, top: int = 15) -> tuple[dict, list[str]]:
 
 
 def profile_summary_line(what: str, summary: dict) -> str:
-    """One sentence: wall time, kernel time and its share, launches, host waits, host time."""
+    """One sentence: wall time, kernel time and its share, launches, host waits, host time.
+
+    Host waits and host time are left out where ``summary`` (of an older run) lacks them.
+    """
     share = summary["kernel_s"] / summary["wall_s"] if summary["wall_s"] else 0.0
-    return (
-        f"{what}: wall {summary['wall_s']:.3f} s, device kernels {summary['kernel_s']:.3f} s ({share:.0%} of the wall time), "
-        f"{summary['kernel_launches']} kernel launches, {summary['host_waits']} host waits on the device, "
-        f"{summary['host_op_s']:.3f} s of host time in operations. The profiler slows the host down, so the wall time "
-        "here is above the unprofiled one."
-    )
+    parts = [
+        f"wall {summary['wall_s']:.3f} s",
+        f"device kernels {summary['kernel_s']:.3f} s ({share:.0%} of the wall time)",
+        f"{summary['kernel_launches']} kernel launches",
+    ]
+    if "host_waits" in summary:
+        parts.append(f"{summary['host_waits']} host waits on the device")
+    if "host_op_s" in summary:
+        parts.append(f"{summary['host_op_s']:.3f} s of host time in operations")
+    return f"{what}: {', '.join(parts)}. The profiler slows the host down, so the wall time here is above the unprofiled one."
+
+
+def profile_markdown(what: str, result: dict, tables: list[str], where: str | None = None) -> str:
+    """``OUT_profile.md``: the run's date and machine, then `profile_summary_line` and the profile's tables.
+
+    ``result`` is the run's record, holding ``profile`` (the summary), ``date`` and ``machine``;
+    ``where`` names the device the record gives beyond the machine (a GPU's name), if any.
+    """
+    run = ", ".join(str(result[key]) for key in ("date", "machine") if result.get(key))
+    run = "; ".join(part for part in (run, f"device {where}" if where else "") if part)
+    head = [f"Run of {run}.", ""] if run else []
+    return "\n".join([*head, profile_summary_line(what, result["profile"]), "", *tables]) + "\n"
+
+
+def stored_profile_tables(record: dict, path: str | os.PathLike) -> list[str]:
+    """The profile's tables: the record's ``profile_tables``, else those of the ``OUT_profile.md`` written with it.
+
+    Runs recorded before ``profile_tables`` kept the tables only in the Markdown; its lines from
+    the first table on are returned as written.
+    """
+    if "profile_tables" in record:
+        return list(record["profile_tables"])
+    lines = Path(path).read_text().splitlines()
+    first = next(i for i, line in enumerate(lines) if line.startswith("|"))
+    return lines[first:]

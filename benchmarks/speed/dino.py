@@ -25,6 +25,7 @@ Usage::
     python -m benchmarks.speed.dino --data ../shared/data --views 49 --image-size 512
     python -m benchmarks.speed.dino --device cuda --repeats 5 --compile --out results/h100/speed_dino
     python -m benchmarks.speed.dino --device cuda --repeats 5 --profile --bf16-weights --out results/h100/speed_dino_bf16
+    python -m benchmarks.speed.dino --render-only --out results/h100/speed_dino_bf16   # the Markdown from OUT.json
 """
 
 from __future__ import annotations
@@ -32,6 +33,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import datetime
+import json
 import sys
 import time
 from pathlib import Path
@@ -44,8 +46,9 @@ from benchmarks.common import (
     RESULTS,
     faust_test_shapes,
     machine,
-    profile_summary_line,
+    profile_markdown,
     profile_tables,
+    stored_profile_tables,
     write_results,
 )
 from geofeat.backbones import DinoBackbone
@@ -171,6 +174,86 @@ def save_view_grid(images: list, path: Path) -> None:
     plt.close(fig)
 
 
+def caption(result: dict) -> str:
+    """The first line of the table: shape, views, batches, device, precision, passes, date and machine."""
+    if result["batch_size"] != "auto":
+        batches = f"batches of {result['batch_size']} views"
+    elif result["device"].startswith("cuda"):
+        batches = "views per batch as memory allows"
+    else:
+        batches = f"batches of {CPU_BATCH_SIZE} views (the CPU's automatic batch)"
+    return (
+        f"One FAUST_r shape ({result['shape']}, {result['vertices']} vertices), {result['views']} views at "
+        f"{result['image_size']} x {result['image_size']}, {batches}, device {result['device']} ({result['gpu'] or 'CPU'}), "
+        f"{'bfloat16 autocast' if result['autocast'] else 'float32'}, median of {result['repeats']} pass(es), "
+        f"{result['date']}, {result['machine']}"
+    )
+
+
+def varied_backbone(result: dict) -> str:
+    """The backbone whose variants (torch.compile, bfloat16 weights) were timed: the largest."""
+    names = [row["name"] for row in result["rows"]]
+    variants = [name for name in names if name.endswith((", torch.compile", ", bfloat16 weights"))]
+    return variants[0].rsplit(", ", 1)[0] if variants else names[-1]
+
+
+def table(result: dict) -> str:
+    """The Markdown of a result: the seconds per stage, then the first pass and memory, each backbone a row."""
+    wall = all("wall" in row for row in result["rows"])  # runs before the wall column kept none
+    lines = [
+        caption(result),
+        "",
+        "| backbone (random DINOv3 weights) | render | backbone | back-project (ball) | total |" + (" wall |" if wall else ""),
+        "|---|---|---|---|---|" + ("---|" if wall else ""),
+    ]
+    memory = any(row["peak_gib"] is not None for row in result["rows"])  # none on the CPU
+    costs = [
+        "| backbone (random DINOv3 weights) | first pass |" + (" peak GPU memory |" if memory else ""),
+        "|---|---|" + ("---|" if memory else ""),
+    ]
+    for row in result["rows"]:
+        peak = f"{row['peak_gib']:.2f} GiB" if row["peak_gib"] is not None else "-"
+        lines.append(
+            f"| {row['name']} | {row['render']:.3f} s | {row['backbone']:.3f} s | {row['backproject']:.3f} s | "
+            f"{row['total']:.3f} s |" + (f" {row['wall']:.3f} s |" if wall else "")
+        )
+        costs.append(f"| {row['name']} | {row['first_pass']:.2f} s |" + (f" {peak} |" if memory else ""))
+    lines += ["", *costs]
+    if "compile" in result:
+        cost, saved = result["compile"]["compile_s"], result["compile"]["saved_per_shape_s"]
+        lines += [
+            "",
+            f"torch.compile: {cost:.1f} s to compile, {saved * 1000:.1f} ms saved per shape, so over 100 shapes it "
+            + ("pays" if 100 * saved > cost else "does not pay")
+            + f" ({100 * saved:.1f} s saved against {cost:.1f} s).",
+        ]
+    if "cosine_to_float32" in result:
+        similarity = result["cosine_to_float32"]
+        lines += [
+            "",
+            f"Mean cosine similarity of the vertex features to float32 ones (same weights): "
+            f"{'bfloat16 autocast' if result['autocast'] else 'float32'} {similarity['autocast']:.5f}, "
+            f"bfloat16 weights {similarity['bfloat16_weights']:.5f}.",
+        ]
+    return "\n".join(lines)
+
+
+def write_profile(out: Path, result: dict) -> None:
+    """``OUT_profile.md`` of a result holding ``profile``: date, machine and GPU above the summary and tables."""
+    path = out.parent / f"{out.name}_profile.md"
+    tables = stored_profile_tables(result, path)
+    what = f"One pass of the {varied_backbone(result)} backbone under torch.profiler ({caption(result).split(', median')[0]})"
+    path.write_text(profile_markdown(what, result, tables, where=result.get("gpu")))
+
+
+def render_only(out: Path) -> None:
+    """Rewrite ``OUT.md`` (and ``OUT_profile.md`` where the run was profiled) from ``OUT.json``."""
+    result = json.loads(out.with_name(f"{out.name}.json").read_text())
+    out.with_name(f"{out.name}.md").write_text(table(result) + "\n")
+    if "profile" in result:
+        write_profile(out, result)
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--data", default=DEFAULT_DATA, help="the folder holding FAUST_r/ (default $GEOFEAT_DATA)")
@@ -199,7 +282,13 @@ def main(argv=None) -> int:
     parser.add_argument("--profile", action="store_true", help="profile one pass of the ViT-B/16-size backbone (OUT_profile.md)")
     parser.add_argument("--repeats", type=int, default=1, help="timed passes per backbone; the median is reported")
     parser.add_argument("--out", default=str(RESULTS / "speed_dino"), help="writes OUT.json, OUT.md, OUT_views.png, OUT_pca.png")
+    parser.add_argument(
+        "--render-only", action="store_true", help="rewrite OUT.md (and OUT_profile.md) from OUT.json without running anything"
+    )
     args = parser.parse_args(argv)
+    if args.render_only:
+        render_only(Path(args.out))
+        return 0
 
     device = torch.device(args.device if args.device != "auto" else ("cuda" if torch.cuda.is_available() else "cpu"))
     autocast = args.precision == "bfloat16" or (args.precision == "auto" and device.type == "cuda")
@@ -249,57 +338,23 @@ def main(argv=None) -> int:
         "gpu": torch.cuda.get_device_name(backbone.device) if backbone.device.type == "cuda" else None,
         "rows": rows,
     }
-    if args.batch_size:
-        batches = f"batches of {args.batch_size} views"
-    elif device.type == "cuda":
-        batches = "views per batch as memory allows"
-    else:
-        batches = f"batches of {CPU_BATCH_SIZE} views (the CPU's automatic batch)"
-    lines = [
-        f"One FAUST_r shape ({mesh.name}, {mesh.n_vertices} vertices), {args.views} views at {args.image_size} x {args.image_size}, "
-        f"{batches}, device {result['device']} ({result['gpu'] or 'CPU'}), "
-        f"{'bfloat16 autocast' if autocast else 'float32'}, median of {args.repeats} pass(es), {result['date']}, {result['machine']}",
-        "",
-        "| backbone (random DINOv3 weights) | render | backbone | back-project (ball) | total | wall | first pass | peak GPU memory |",
-        "|---|---|---|---|---|---|---|---|",
-    ]
-    for row in rows:
-        peak = f"{row['peak_gib']:.2f} GiB" if row["peak_gib"] is not None else "-"
-        lines.append(
-            f"| {row['name']} | {row['render']:.3f} s | {row['backbone']:.3f} s | {row['backproject']:.3f} s | "
-            f"{row['total']:.3f} s | {row['wall']:.3f} s | {row['first_pass']:.2f} s | {peak} |"
-        )
     if args.compile:
         eager = next(r for r in rows if r["name"] == main_label)
         timed = next(r for r in rows if r["name"] == compiled)
         saved = eager["total"] - timed["total"]
         cost = timed["first_pass"] - timed["total"] - (eager["first_pass"] - eager["total"])
         result["compile"] = {"saved_per_shape_s": saved, "compile_s": cost, "pays_over_100_shapes": 100 * saved > cost}
-        lines += [
-            "",
-            f"torch.compile: {cost:.1f} s to compile, {saved * 1000:.1f} ms saved per shape, so over 100 shapes it "
-            + ("pays" if 100 * saved > cost else "does not pay")
-            + f" ({100 * saved:.1f} s saved against {cost:.1f} s).",
-        ]
     if args.bf16_weights:
         reference = features_by_label["float32"]
-        similarity = {
+        result["cosine_to_float32"] = {
             "autocast": mean_cosine(features_by_label[main_label], reference),
             "bfloat16_weights": mean_cosine(features_by_label[bf16_weights], reference),
         }
-        result["cosine_to_float32"] = similarity
-        lines += [
-            "",
-            f"Mean cosine similarity of the vertex features to float32 ones (same weights): "
-            f"{'bfloat16 autocast' if autocast else 'float32'} {similarity['autocast']:.5f}, "
-            f"bfloat16 weights {similarity['bfloat16_weights']:.5f}.",
-        ]
     if profile is not None:
-        summary, table = profile
-        result["profile"] = summary
-        what = f"One pass of the {main_label} backbone under torch.profiler ({lines[0].split(', median')[0]})"
-        (out.parent / f"{out.name}_profile.md").write_text("\n".join([profile_summary_line(what, summary), "", *table]) + "\n")
-    write_results(out, result, "\n".join(lines))
+        result["profile"], result["profile_tables"] = profile
+    write_results(out, result, table(result))
+    if profile is not None:
+        write_profile(out, result)
     save_view_grid(images_for_figure, out.parent / f"{out.name}_views.png")
     plot_mesh_colors(
         mesh, pca_colors(features_for_figure), out.parent / f"{out.name}_pca.png", "PCA of back-projected features (random ViT-B)"

@@ -40,7 +40,8 @@ Usage::
     python -m benchmarks.speed.dsmk_ulrssm --dsmk /tmp/dsmk --work /tmp/dsmk_work \\
         --data-root ../shared/data --device auto --iters 20
 
-Writes ``OUT.json`` and ``OUT.md`` (default ``benchmarks/results/speed_dsmk_ulrssm``).
+Writes ``OUT.json`` and ``OUT.md`` (default ``benchmarks/results/speed_dsmk_ulrssm``); ``--render-only``
+rewrites ``OUT.md`` from ``OUT.json``, running nothing.
 """
 
 from __future__ import annotations
@@ -421,7 +422,7 @@ def _version(name: str) -> str | None:
 
 
 def table(result: dict) -> str:
-    """The Markdown table of a result."""
+    """The Markdown of a result: the milliseconds per iteration, then the rate and memory, each timing a row."""
     where = result.get("gpu", result["machine"])
     memory = f"{result['peak_cuda_memory_gib']:.2f} GiB" if result["peak_cuda_memory_gib"] is not None else "-"
     lines = [
@@ -429,17 +430,19 @@ def table(result: dict) -> str:
         f"FAUST_r pairs of {result['shapes']} training shapes ({min(result['vertices'])}-{max(result['vertices'])} vertices), "
         f"batch {result['setting']['batch_size']}, device {result['device']} ({where}), {result['date']}",
         "",
-        "| timing | iterations | median ms/iteration | mean | min | max | iterations/s (from mean) | peak CUDA memory |",
-        "|---|---|---|---|---|---|---|---|",
     ]
+    times = ["| timing | iterations | median ms/iteration | mean | min | max |", "|---|---|---|---|---|---|"]
+    rates = ["| timing | iterations/s (from mean) | peak CUDA memory |", "|---|---|---|"]
     for key, label in (("step", "step (batches in memory)"), ("loader", "train.py loop (with its data loader)")):
         row = result[key]
         if row is None:
             continue
-        lines.append(
+        times.append(
             f"| {label} | {row['iterations']} | {row['median_ms']:.1f} | {row['mean_ms']:.1f} | {row['min_ms']:.1f} | "
-            f"{row['max_ms']:.1f} | {1000.0 / row['mean_ms']:.2f} | {memory if key == 'step' else '-'} |"
+            f"{row['max_ms']:.1f} |"
         )
+        rates.append(f"| {label} | {1000.0 / row['mean_ms']:.2f} | {memory if key == 'step' else '-'} |")
+    lines += [*times, "", *rates]
     lines += [
         "",
         f"Trainable parameters {result['parameters']:,}; {result['warmup_iterations']} warm-up iterations excluded; "
@@ -452,15 +455,25 @@ def table(result: dict) -> str:
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--dsmk", required=True, help="root of a DeepShapeMatchingKit checkout")
-    parser.add_argument("--work", required=True, help="folder for DSMK's data layout and operator cache (outside the repository)")
+    parser.add_argument("--dsmk", help="root of a DeepShapeMatchingKit checkout (required unless --render-only)")
+    parser.add_argument(
+        "--work", help="folder for DSMK's data layout and operator cache, outside the repository (required unless --render-only)"
+    )
     parser.add_argument("--data-root", default=DEFAULT_DATA, help="folder holding FAUST_r/off (default $GEOFEAT_DATA)")
     parser.add_argument("--shapes", type=int, default=5, help="training shapes whose ordered pairs are used (1-80)")
     parser.add_argument("--iters", type=int, default=20, help="timed iterations of each timing")
     parser.add_argument("--warmup", type=int, default=3, help="untimed iterations before each timing")
     parser.add_argument("--device", default="auto", help="auto, cpu or cuda")
     parser.add_argument("--out", default=str(RESULTS / "speed_dsmk_ulrssm"), help="writes OUT.json and OUT.md")
+    parser.add_argument("--render-only", action="store_true", help="rewrite OUT.md from OUT.json without running anything")
     args = parser.parse_args(argv)
+    if args.render_only:
+        out = Path(args.out)
+        result = json.loads(out.with_suffix(".json").read_text())
+        out.with_suffix(".md").write_text(table(result) + "\n")
+        return 0
+    if not args.dsmk or not args.work:
+        parser.error("--dsmk and --work are required (or --render-only)")
     if not args.data_root:
         parser.error("no data folder: pass --data-root (the folder that holds FAUST_r/) or set $GEOFEAT_DATA")
     if not 1 <= args.shapes <= N_TRAIN:

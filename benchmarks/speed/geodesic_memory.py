@@ -27,7 +27,8 @@ Usage::
     python -m benchmarks.speed.geodesic_memory --sizes 40000 --runs default streamed
     python -m benchmarks.speed.geodesic_memory --sizes 80000 --runs default --merge
 
-The results are written after every run (``--merge`` keeps those of other sizes and runs).
+The results are written after every run (``--merge`` keeps those of other sizes and runs);
+``--render-only`` rewrites ``OUT.md`` from ``OUT.json``, running nothing.
 """
 
 from __future__ import annotations
@@ -36,6 +37,7 @@ import argparse
 import datetime
 import json
 import os
+import re
 import subprocess
 import sys
 import tempfile
@@ -152,25 +154,44 @@ def measure(target: Path, run: str, work: Path) -> dict:
 
 
 def table(records: list[dict], header: str) -> str:
+    """The header, then two tables sharing the target and run columns: the times, and memory, disk and accuracy."""
     lines = [
         header,
         "",
-        "| target vertices | run | what it did | evaluation s | process s | process CPU s | load | peak memory | written to the store | geodesic error x100 | chirality |",
-        "|---:|---|---|---:|---:|---:|---:|---:|---:|---:|---:|",
+        "| target vertices | run | what it did | evaluation s | process s | process CPU s | load |",
+        "|---:|---|---|---:|---:|---:|---:|",
+    ]
+    costs = [
+        "| target vertices | run | peak memory | written to the store | geodesic error x100 | chirality |",
+        "|---:|---|---:|---:|---:|---:|",
     ]
     for r in records:
         if r["returncode"] != 0:
-            lines.append(
-                f"| {r.get('n_vertices', '?')} | {LABELS[r['run']]} | failed | {'; '.join(r['warnings'])} | | | | | | | |"
-            )
+            lines.append(f"| {r.get('n_vertices', '?')} | {LABELS[r['run']]} | failed | {'; '.join(r['warnings'])} | | | |")
+            costs.append(f"| {r.get('n_vertices', '?')} | {LABELS[r['run']]} | | | | |")
             continue
         lines.append(
             f"| {r['n_vertices']:,} | {LABELS[r['run']]} | {r['path']} | {r['seconds']:.0f} | {r['process_seconds']:.0f} | "
-            f"{r['cpu_seconds']:.0f} | {r['load_average']:.1f} | "
-            f"{r['peak_rss_bytes'] / 1e9:.2f} GB | {r['disk_bytes'] / 1e9:.2f} GB | {r['geodesic_error']:.4f} | "
-            f"{r['chirality_accuracy']:.4f} |"
+            f"{r['cpu_seconds']:.0f} | {r['load_average']:.1f} |"
         )
-    return "\n".join(lines)
+        costs.append(
+            f"| {r['n_vertices']:,} | {LABELS[r['run']]} | {r['peak_rss_bytes'] / 1e9:.2f} GB | {r['disk_bytes'] / 1e9:.2f} GB | "
+            f"{r['geodesic_error']:.4f} | {r['chirality_accuracy']:.4f} |"
+        )
+    return "\n".join([*lines, "", *costs])
+
+
+def header(result: dict) -> str:
+    """The line above the tables: machine, memory, date and time of the last run."""
+    memory = f"; memory {result['memory_gb']:.0f} GB" if result.get("memory_gb") is not None else ""
+    return f"Machine: {result['machine']}{memory}; {result['date']}. Written by `benchmarks/speed/geodesic_memory.py`."
+
+
+def stored_memory_gb(out: Path) -> float | None:
+    """The machine's memory as the Markdown written with an older record gives it (those records kept none)."""
+    path = out.with_suffix(".md")
+    found = re.search(r"; memory (\d+) GB;", path.read_text()) if path.exists() else None
+    return float(found.group(1)) if found else None
 
 
 def main() -> None:
@@ -181,9 +202,17 @@ def main() -> None:
     parser.add_argument("--out", default=str(RESULTS / "geodesic_memory"))
     parser.add_argument("--merge", action="store_true", help="keep the records of other sizes and runs already in OUT.json")
     parser.add_argument("--child", default=None, help=argparse.SUPPRESS)
+    parser.add_argument("--render-only", action="store_true", help="rewrite OUT.md from OUT.json without running anything")
     args = parser.parse_args()
     if args.child:
         child(Path(args.child))
+        return
+    if args.render_only:
+        out = Path(args.out)
+        result = json.loads(out.with_suffix(".json").read_text())
+        if "memory_gb" not in result:
+            result["memory_gb"] = stored_memory_gb(out)
+        out.with_suffix(".md").write_text(table(result["records"], header(result)) + "\n")
         return
     work = Path(args.work or tempfile.mkdtemp(prefix="geodesic_memory_"))
     work.mkdir(parents=True, exist_ok=True)
@@ -201,12 +230,13 @@ def main() -> None:
             print(json.dumps(record), flush=True)
             records = [r for r in records if (r.get("size"), r["run"]) != (size, run)] + [record]
             records.sort(key=lambda r: (r.get("size", 0), list(RUNS).index(r["run"])))
-            stamp = datetime.datetime.now().strftime("%Y-%m-%d %H:%M")
-            header = (
-                f"Machine: {machine()}; memory {os.sysconf('SC_PHYS_PAGES') * os.sysconf('SC_PAGE_SIZE') / 1e9:.0f} GB; "
-                f"{stamp}. Written by `benchmarks/speed/geodesic_memory.py`."
-            )
-            write_results(out, {"machine": machine(), "date": stamp, "records": records}, table(records, header))
+            result = {
+                "machine": machine(),
+                "memory_gb": os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE") / 1e9,
+                "date": datetime.datetime.now().strftime("%Y-%m-%d %H:%M"),
+                "records": records,
+            }
+            write_results(out, result, table(records, header(result)))
 
 
 if __name__ == "__main__":

@@ -10,7 +10,8 @@ steps after the first (warm-up). Random weights cost the same time as trained on
     python -m benchmarks.speed.geolora --model vitb16 --image-size 512 --device cuda      # on a GPU
 
 Writes ``benchmarks/results/speed_geolora_<model>_<size>_<device>.json`` and ``.md`` (``_reference``
-appended under ``--recipe reference``), or ``OUT.json`` and ``OUT.md`` with ``--out OUT``.
+appended under ``--recipe reference``), or ``OUT.json`` and ``OUT.md`` with ``--out OUT``;
+``--render-only --out OUT`` rewrites the Markdown from ``OUT.json``, running nothing.
 """
 
 from __future__ import annotations
@@ -26,7 +27,15 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from benchmarks.common import DEFAULT_DATA, RESULTS, data_folder, machine, profile_summary_line, profile_tables
+from benchmarks.common import (
+    DEFAULT_DATA,
+    RESULTS,
+    data_folder,
+    machine,
+    profile_markdown,
+    profile_tables,
+    stored_profile_tables,
+)
 from geofeat.backbones import DinoBackbone
 from geofeat.train.config import TrainConfig
 from geofeat.train.trainer import PHASES, GeoLoraTrainer
@@ -63,6 +72,79 @@ def profile_steps(trainer: GeoLoraTrainer, steps: int) -> tuple[dict, list[str]]
     return profile_tables(prof, wall)
 
 
+def caption(result: dict) -> str:
+    """What was timed, where and when: the line above the tables.
+
+    Older records lack some of the settings (workers, recipe, precision, wall time); the
+    caption names only those the record holds.
+    """
+    cuda = result["device"].startswith("cuda")
+    full, partial = result["views"]
+    parts = [
+        f"GeoLoRA step time: random DINOv3 {result['model']}",
+        f"{result['image_size']} x {result['image_size']}",
+        f"{full} + {result['partials_per_step']} x {partial} views",
+        result["device"] + (f" ({result['gpu']})" if result.get("gpu") else ""),
+    ]
+    if "workers" in result:
+        parts.append(f"{result['workers']} sample worker(s)")
+    autocast = result.get("autocast")
+    if autocast is None and "workers" in result:  # recorded before "autocast": the trainer's rule then and now
+        autocast = result["amp"] == "on" or (result["amp"] == "auto" and cuda)
+    if autocast is not None:
+        parts.append("bfloat16 autocast" if autocast else "float32")
+    recipe = result.get("recipe", result.get("preset"))
+    if recipe is not None:
+        parts += [f"recipe {recipe}", f"back-projection {result.get('backproject') or 'of the recipe'}"]
+    timing = f"median seconds of {result['steps_timed']} steps"
+    if "wall_steps_per_second" in result:
+        timing += (
+            f" (step: the sum of the phases, {'device time between CUDA events' if cuda else 'wall time'}; wall: the timed "
+            f"steps' wall clock, {result['hours_for_50000_steps']:.1f} h for 50,000 steps)"
+        )
+    parts.append(timing)
+    return ", ".join(parts) + f"; {result['machine']}, {result['date']}"
+
+
+def table(result: dict) -> str:
+    """The caption, then two tables: the phases up to the back-projection, and the rest with the step's totals.
+
+    The wall rate and the GPU memory are columns only where the record holds them.
+    """
+    seconds = result["median_seconds"]
+    first, second = PHASES[: PHASES.index("backproject") + 1], PHASES[PHASES.index("backproject") + 1 :]
+    heads, cells = list(second) + ["step", "steps/s"], [f"{seconds[p]:.3f}" for p in second]
+    cells += [f"{result['median_step_seconds']:.3f}", f"{result['steps_per_second']:.2f}"]
+    if "wall_steps_per_second" in result:
+        heads.append("wall steps/s")
+        cells.append(f"{result['wall_steps_per_second']:.2f}")
+    if result.get("peak_cuda_memory_gib") is not None:
+        heads.append("peak GPU memory")
+        cells.append(f"{result['peak_cuda_memory_gib']:.2f} GiB")
+    return "\n".join(
+        [
+            caption(result),
+            "",
+            "| " + " | ".join(first) + " |",
+            "|" + "---|" * len(first),
+            "| " + " | ".join(f"{seconds[p]:.3f}" for p in first) + " |",
+            "",
+            "| " + " | ".join(heads) + " |",
+            "|" + "---|" * len(heads),
+            "| " + " | ".join(cells) + " |",
+        ]
+    )
+
+
+def write_markdown(out: Path, result: dict) -> None:
+    """``OUT.md``, and ``OUT_profile.md`` where the run was profiled (date, machine and GPU above it)."""
+    out.with_name(f"{out.name}.md").write_text(table(result) + "\n")
+    if "profile" in result:
+        path = out.with_name(f"{out.name}_profile.md")
+        what = f"3 GeoLoRA steps under torch.profiler ({caption(result).split(', median')[0]})"
+        path.write_text(profile_markdown(what, result, stored_profile_tables(result, path), where=result.get("gpu")))
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--model", choices=sorted(MODELS), default="small")
@@ -90,7 +172,16 @@ def main(argv=None) -> int:
         help="profile 3 more steps with torch.profiler (OUT_profile.md: kernels and host operations)",
     )
     parser.add_argument("--data-root", default=DEFAULT_DATA, help="the folder holding FAUST_r/ (default $GEOFEAT_DATA)")
+    parser.add_argument(
+        "--render-only", action="store_true", help="rewrite OUT.md (and OUT_profile.md) from OUT.json; run nothing (needs --out)"
+    )
     args = parser.parse_args(argv)
+    if args.render_only:
+        if not args.out:
+            parser.error("--render-only needs --out, the OUT of an earlier run")
+        out = Path(args.out)
+        write_markdown(out, json.loads(out.with_name(f"{out.name}.json").read_text()))
+        return 0
     data_root = str(data_folder(args.data_root, "--data-root"))
 
     with tempfile.TemporaryDirectory() as tmp:
@@ -144,36 +235,19 @@ def main(argv=None) -> int:
         "peak_cuda_memory_gib": torch.cuda.max_memory_allocated() / 2**30 if trainer.device.type == "cuda" else None,
         "machine": machine(),
         "date": datetime.date.today().isoformat(),
+        "backproject": config.backproject,
+        "autocast": trainer._autocast(),
     }
+    if trainer.device.type == "cuda":
+        result["gpu"] = torch.cuda.get_device_name(trainer.device)
+    if profile is not None:
+        result["profile"], result["profile_tables"] = profile
     recipe = "" if config.recipe == "default" else f"_{config.recipe}"
     out = Path(args.out or RESULTS / f"speed_geolora_{args.model}_{args.image_size}_{trainer.device.type}{recipe}")
     out.parent.mkdir(parents=True, exist_ok=True)
     out.with_name(f"{out.name}.json").write_text(json.dumps(result, indent=1) + "\n")
-    lines = [
-        f"GeoLoRA step time: random DINOv3 {args.model}, {args.image_size} x {args.image_size}, "
-        f"{args.views_full} + {config.partials_per_shape} x {args.views_partial} views, {trainer.device}, "
-        f"{trainer.workers} sample worker(s), "
-        f"{'bfloat16 autocast' if trainer._autocast() else 'float32'}, recipe {config.recipe}, back-projection "
-        f"{config.backproject or 'of the recipe'}, median seconds of {len(records)} steps "
-        f"(step: the sum of the phases, "
-        f"{'device time between CUDA events' if trainer.device.type == 'cuda' else 'wall time'}; wall: the timed steps' "
-        f"wall clock, {result['hours_for_50000_steps']:.1f} h for 50,000 steps); {result['machine']}, {result['date']}",
-        "",
-        "| " + " | ".join(PHASES) + " | step | steps/s | wall steps/s | peak GPU memory |",
-        "|" + "---|" * (len(PHASES) + 4),
-        "| "
-        + " | ".join(f"{seconds[p]:.3f}" for p in PHASES)
-        + f" | {step:.3f} | {1.0 / step:.2f} | {1.0 / wall:.2f} | "
-        + (f"{result['peak_cuda_memory_gib']:.2f} GiB |" if result["peak_cuda_memory_gib"] is not None else "- |"),
-    ]
-    out.with_name(f"{out.name}.md").write_text("\n".join(lines) + "\n")
-    if profile is not None:
-        summary, table = profile
-        result["profile"] = summary
-        out.with_name(f"{out.name}.json").write_text(json.dumps(result, indent=1) + "\n")
-        what = f"3 GeoLoRA steps under torch.profiler ({lines[0].split(', median')[0]})"
-        out.with_name(f"{out.name}_profile.md").write_text("\n".join([profile_summary_line(what, summary), "", *table]) + "\n")
-    print("\n".join(lines))
+    write_markdown(out, result)
+    print(table(result))
     return 0
 
 

@@ -11,14 +11,17 @@ step per pair. On CUDA the timer synchronises the device.
 Usage::
 
     python -m benchmarks.speed.heads --data-root ../shared/data --pairs 8 --device auto
+    python -m benchmarks.speed.heads --render-only --out benchmarks/results/h100/speed_heads   # OUT.md from OUT.json
 """
 
 from __future__ import annotations
 
 import argparse
 import datetime
+import json
 import sys
 import time
+from pathlib import Path
 
 import torch
 
@@ -69,6 +72,24 @@ def time_head(name: str, data_root: str, n_pairs: int, device: torch.device) -> 
     }
 
 
+def table(result: dict) -> str:
+    """The Markdown of a result: the steps per second, then the first pass, parameters and memory, each head a row."""
+    where = result.get("gpu", result["machine"])
+    lines = [
+        f"Head training at the authors' settings, FAUST_r train pairs (about 5k vertices), one pair per step, "
+        f"device {result['device']} ({where}), {result['date']}",
+        "",
+        "| head | preset | training pairs | steps timed | steps/s |",
+        "|---|---|---|---|---|",
+    ]
+    costs = ["| head | first pass (inputs + steps) | trainable parameters | peak CUDA memory |", "|---|---|---|---|"]
+    for row in result["rows"]:
+        memory = f"{row['peak_cuda_memory_gib']:.2f} GiB" if row["peak_cuda_memory_gib"] is not None else "-"
+        lines.append(f"| {row['head']} | {row['preset']} | {row['dataset']} | {row['steps']} | {row['steps_per_second']:.2f} |")
+        costs.append(f"| {row['head']} | {row['first_pass_seconds']:.1f} s | {row['parameters']:,} | {memory} |")
+    return "\n".join([*lines, "", *costs])
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--data-root", default=DEFAULT_DATA, help="the folder holding the datasets (default $GEOFEAT_DATA)")
@@ -76,7 +97,12 @@ def main(argv=None) -> int:
     parser.add_argument("--pairs", type=int, default=8, help="training pairs per timed pass (one step each)")
     parser.add_argument("--device", default="auto")
     parser.add_argument("--out", default=str(RESULTS / "speed_heads"), help="writes OUT.json and OUT.md")
+    parser.add_argument("--render-only", action="store_true", help="rewrite OUT.md from OUT.json without running anything")
     args = parser.parse_args(argv)
+    if args.render_only:
+        out = Path(args.out)
+        out.with_suffix(".md").write_text(table(json.loads(out.with_suffix(".json").read_text())) + "\n")
+        return 0
 
     device = resolve_device(args.device)
     data_root = str(data_folder(args.data_root, "--data-root"))
@@ -90,21 +116,7 @@ def main(argv=None) -> int:
     result = {"date": datetime.date.today().isoformat(), "machine": machine(), "device": str(device), "rows": rows}
     if device.type == "cuda":
         result["gpu"] = torch.cuda.get_device_name(device)
-    where = result.get("gpu", result["machine"])
-    lines = [
-        f"Head training at the authors' settings, FAUST_r train pairs (about 5k vertices), one pair per step, "
-        f"device {device} ({where}), {result['date']}",
-        "",
-        "| head | preset | training pairs | steps timed | steps/s | first pass (inputs + steps) | trainable parameters | peak CUDA memory |",
-        "|---|---|---|---|---|---|---|---|",
-    ]
-    for row in rows:
-        memory = f"{row['peak_cuda_memory_gib']:.2f} GiB" if row["peak_cuda_memory_gib"] is not None else "-"
-        lines.append(
-            f"| {row['head']} | {row['preset']} | {row['dataset']} | {row['steps']} | {row['steps_per_second']:.2f} | "
-            f"{row['first_pass_seconds']:.1f} s | {row['parameters']:,} | {memory} |"
-        )
-    write_results(args.out, result, "\n".join(lines))
+    write_results(args.out, result, table(result))
     return 0
 
 
