@@ -2,34 +2,21 @@
 
 import json
 
+import markdown_tables as md
+
 from benchmarks.speed import dino, dsmk_ulrssm, geodesic_memory, geolora, heads, point_clouds
 
 MACHINE = "test machine, 2 cores"
 
 
-def _tables(text: str) -> list[list[str]]:
-    tables, current = [], []
-    for line in text.splitlines() + [""]:
-        if line.startswith("|"):
-            current.append(line)
-        elif current:
-            tables.append(current)
-            current = []
-    return tables
-
-
-def _columns(line: str) -> int:
-    return line.count("|") - 1
-
-
 def _narrow(text: str, key: str, parts: int, rows: int) -> list[list[str]]:
-    tables = _tables(text)
+    tables = md.tables(text)
     assert len(tables) == parts
     for lines in tables:
-        assert _columns(lines[0]) <= 7
+        assert md.columns(lines[0]) <= 7
         assert lines[0].startswith(key)
         assert len(lines) == 2 + rows
-        assert all(_columns(line) == _columns(lines[0]) for line in lines)
+        assert all(md.columns(line) == md.columns(lines[0]) for line in lines)
     return tables
 
 
@@ -115,7 +102,7 @@ def test_dino_table_is_two_narrow_tables_under_machine_and_date():
 def test_dino_table_keeps_the_memory_column_where_a_row_has_memory():
     record = _dino_record()
     record["rows"][1]["peak_gib"] = 4.0
-    tables = _tables(dino.table(record))
+    tables = md.tables(dino.table(record))
     assert tables[1][0] == "| backbone (random DINOv3 weights) | first pass | peak GPU memory |"
     assert tables[1][2] == "| tiny | 0.50 s | - |"
     assert tables[1][3] == "| big | 0.50 s | 4.00 GiB |"
@@ -133,7 +120,7 @@ def test_dino_profile_gives_date_machine_and_gpu_and_keeps_the_written_tables(tm
     assert "One pass of the big backbone under torch.profiler" in lines[2]
     assert "3000 kernel launches." in lines[2]
     assert lines[4:] == kernels
-    assert len(_tables((tmp_path / "run.md").read_text())) == 2
+    assert len(md.tables((tmp_path / "run.md").read_text())) == 2
 
 
 def _geolora_record(cuda: bool) -> dict:
@@ -161,7 +148,7 @@ def _geolora_record(cuda: bool) -> dict:
 def test_geolora_cpu_table_drops_the_gpu_and_wall_columns():
     text = geolora.table(_geolora_record(cuda=False))
     assert text.splitlines()[0].endswith(f"{MACHINE}, 2026-01-02")
-    tables = _tables(text)
+    tables = md.tables(text)
     assert [lines[0] for lines in tables] == [
         "| geodesics | partial | render | forward | backproject |",
         "| loss | backward | optimizer | step | steps/s |",
@@ -175,9 +162,9 @@ def test_geolora_cuda_table_is_two_tables_of_at_most_seven_columns():
     first = text.splitlines()[0]
     assert "4 sample worker(s), bfloat16 autocast, recipe default, back-projection of the recipe" in first
     assert first.endswith(f"{MACHINE}, 2026-01-02")
-    tables = _tables(text)
+    tables = md.tables(text)
     assert len(tables) == 2
-    assert all(_columns(lines[0]) <= 7 for lines in tables)
+    assert all(md.columns(lines[0]) <= 7 for lines in tables)
     assert tables[1][2] == "| 0.010 | 0.010 | 0.010 | 0.080 | 12.50 | 10.00 | 2.00 GiB |"
 
 
@@ -216,9 +203,9 @@ def test_point_cloud_large_table_is_seconds_then_memory():
     }
     text = point_clouds.table(record)
     assert text.splitlines()[-1].endswith(f"2026-01-02, {MACHINE}.")
-    tables = _tables(text)
+    tables = md.tables(text)
     assert len(tables) == 3
-    assert all(_columns(lines[0]) <= 7 for lines in tables)
+    assert all(md.columns(lines[0]) <= 7 for lines in tables)
     for lines in tables[1:]:
         assert lines[0].startswith("| points | work |")
     assert tables[1][3] == "| 50,000 | normals (0.5 s) and radii (0.1 s) alone |  |  |  | 0.6 |"

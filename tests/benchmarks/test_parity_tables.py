@@ -1,5 +1,7 @@
 """The parity tables of benchmarks/parity/shot.py and ray_reference.py, rendered from made-up records."""
 
+import markdown_tables as md
+
 from benchmarks.parity.shot import table
 
 ROW = {
@@ -22,22 +24,11 @@ ROW = {
 }
 
 
-def _tables(text: str) -> list[list[str]]:
-    tables, current = [], []
-    for line in text.splitlines() + [""]:
-        if line.startswith("|"):
-            current.append(line)
-        elif current:
-            tables.append(current)
-            current = []
-    return tables
-
-
 def test_shot_parity_is_two_narrow_tables_under_the_date_and_machine():
     record = {"date": "2026-01-02T10:00:00+00:00", "machine": "box C", "tolerance": 1e-5, "rows": [ROW, {**ROW, "params": "x"}]}
     text = table(record)
     assert text.splitlines()[0].startswith("Run of 2026-01-02, box C;")
-    tables = _tables(text)
+    tables = md.tables(text)
     assert len(tables) == 2
     for lines in tables:
         assert lines[0].count("|") - 1 <= 7
@@ -79,7 +70,7 @@ def test_ray_parity_tables_are_narrow_under_the_date_and_machine():
     speed["official_versions"] = {"open3d": "0", "trimesh": "0"}
     text = ray_table({"date": "2026-01-02", "machine": "box E", "seed": 0, "shapes": [shape], "speed": speed})
     assert text.index("2026-01-02; box E.") < text.index("| shape |")
-    tables = _tables(text)
+    tables = md.tables(text)
     assert len(tables) == 3
     assert all(lines[0].count("|") - 1 <= 7 and lines[0].startswith("| shape |") for lines in tables)
     assert "| FAUST_r tr_reg_080 | 2 | 2 | 1 | hit triangles differ: 1 |" in text

@@ -5,6 +5,7 @@ import json
 import subprocess
 import sys
 
+import markdown_tables as md
 from shapes import REPO
 
 RELEASE_TABLE = [sys.executable, "-m", "benchmarks.tables.release"]
@@ -94,31 +95,15 @@ def test_release_details_give_the_same_pairs_without_tta_pooled_over_vertices(tm
     assert "| first 1 of 2 | 5.00 | 10.00 |" in tta_cuts
 
 
-def _tables(text: str) -> list[list[str]]:
-    """The Markdown tables of ``text``, each as its lines."""
-    tables, current = [], []
-    for line in text.splitlines() + [""]:
-        if line.startswith("|"):
-            current.append(line)
-        elif current:
-            tables.append(current)
-            current = []
-    return tables
-
-
-def _columns(table: list[str]) -> int:
-    return table[0].count("|") - 1
-
-
 def test_release_details_are_two_narrow_tables_under_their_dates_and_machines(tmp_path):
     release = _results_tree(tmp_path)
     machined = json.loads((release / "ulrssm_faust_r" / "results.json").read_text())
     (release / "ulrssm_faust_r" / "results.json").write_text(json.dumps({**machined, "machine": "box B", "date": "2026-01-05"}))
     assert _release_table(tmp_path).returncode == 0
     text = (release / "details.md").read_text()
-    tables = _tables(text)
+    tables = md.tables(text)
     assert len(tables) == 2
-    assert all(_columns(t) <= 7 for t in tables)
+    assert all(md.columns(t[0]) <= 7 for t in tables)
     for table in tables:  # the same key columns and rows in both
         assert table[0].startswith("| checkpoint | setting | benchmark |")
         assert len(table) == 2 + 4
@@ -174,14 +159,14 @@ def test_summarize_writes_two_narrow_tables_without_empty_columns(tmp_path):
     assert result.returncode == 0, result.stderr
     text = (tmp_path / "s.md").read_text()
     assert text.splitlines()[0] == "Runs of 2026-01-02; per-run settings in each results.json."
-    tables = _tables(text)
-    assert [_columns(t) for t in tables] == [7, 7]
+    tables = md.tables(text)
+    assert [md.columns(t[0]) for t in tables] == [7, 7]
     assert all(t[0].startswith("| dataset | descriptor | matcher |") for t in tables)
     assert not list(tmp_path.glob("*.png"))  # --tables-only draws no plot
     # without the head run, the mIoU, overlap AUC and training steps columns are empty and left out
     command = [*SUMMARIZE, str(tmp_path / "b.json"), "--out", str(tmp_path / "t"), "--tables-only"]
     assert subprocess.run(command, capture_output=True, text=True, cwd=REPO).returncode == 0
-    second = _tables((tmp_path / "t.md").read_text())[1]
+    second = md.tables((tmp_path / "t.md").read_text())[1]
     assert second[0] == "| dataset | descriptor | matcher | time (s) |"
 
 
@@ -248,9 +233,9 @@ def test_real_files_tables_are_narrow_and_dated_above(tmp_path):
     assert done.returncode == 0, done.stderr
     text = (tmp_path / "psmal.md").read_text()
     assert "Runs of 2026-01-02, 2026-01-03; box D." in text
-    tables = _tables(text)
+    tables = md.tables(text)
     assert len(tables) == 2
-    assert all(_columns(t) <= 7 and t[0].startswith("| pipeline | input |") for t in tables)
+    assert all(md.columns(t[0]) <= 7 and t[0].startswith("| pipeline | input |") for t in tables)
     assert text.index("Runs of") < text.index("| pipeline |")
     assert "| DPFM | WKS | 0.500 | 0.600 | 10 steps (2.0 passes) on 5 pairs of train, 1.0 min |" in text
     assert not list(tmp_path.glob("*.png"))  # --no-plots
