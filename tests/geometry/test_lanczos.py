@@ -59,19 +59,26 @@ def test_vectors_far_from_orthonormal_are_refused():
 
 
 def test_partial_reorthogonalisation_skips_most_steps(monkeypatch):
-    """The basis is read by a reorthogonalisation at a fraction of the steps, not at each."""
+    """The basis is read by a reorthogonalisation at a fraction of the steps, not at each,
+    and each covers every earlier vector."""
     matrix = _spd(400, seed=1)
-    spans = []
+    blocks, steps = [], []
     real = lanczos._reorthogonalise
 
     def spy(block, residual):
-        spans.append(len(block))
+        blocks.append((len(block), len(steps)))
         return real(block, residual)
 
+    def apply(x):
+        steps.append(1)
+        return matrix @ x
+
     monkeypatch.setattr(lanczos, "_reorthogonalise", spy)
-    theta, vectors = lanczos.largest_eigenpairs(lambda x: matrix @ x, 400, 30, max_steps=300)
+    theta, vectors = lanczos.largest_eigenpairs(apply, 400, 30, max_steps=300)
     np.testing.assert_allclose(theta, la.eigvalsh(matrix)[::-1][:30], rtol=1e-10)
-    assert 0 < len(spans) < 0.7 * 300
+    np.testing.assert_allclose(vectors.T @ vectors, np.eye(30), atol=1e-12)
+    assert 0 < len(blocks) < 0.5 * len(steps)
+    assert all(size == step for size, step in blocks)  # at step j, against all j vectors before the new one
 
 
 def test_a_missed_mode_hands_over_to_arpack(monkeypatch, caplog):
