@@ -78,7 +78,7 @@ def test_partial_reorthogonalisation_skips_most_steps(monkeypatch):
     np.testing.assert_allclose(theta, la.eigvalsh(matrix)[::-1][:30], rtol=1e-10)
     np.testing.assert_allclose(vectors.T @ vectors, np.eye(30), atol=1e-12)
     assert 0 < len(blocks) < 0.5 * len(steps)
-    assert all(size == step for size, step in blocks)  # at step j, against all j vectors before the new one
+    assert all(size == step for size, step in blocks)  # against every Lanczos vector so far
 
 
 def test_a_missed_mode_hands_over_to_arpack(monkeypatch, caplog):
