@@ -44,10 +44,11 @@ SPARSE_SOLVES_PER_VECTOR = 5
 #: A sparse solve that runs longer than this shows a progress bar (linear solves done).
 PROGRESS_AFTER_SECONDS = 5.0
 #: Meshes from this many vertices try Lanczos with partial reorthogonalisation before ARPACK.
-#: Below, its basis (no restart, about 2.4 k vectors) sits in cache as ARPACK's does, and it
-#: reorthogonalises two steps in three: ARPACK was faster on 5,000 and 9,000 vertices (190
-#: against 320 ms, 320 against 440-570 ms at k=128), Lanczos on 20,000 and more.
-LANCZOS_FROM_VERTICES = 15_000
+#: Medians of 5 solves (k=128; 40 on the smallest), same process, AMD EPYC 2 cores: ARPACK
+#: was faster on 642 vertices (12 against 20-26 ms); Lanczos on 2,562 (132-160 against
+#: 183-192 ms), 5,000 (185 against 226 ms, robust), 9,237 (279 against 511 ms) and 20,001
+#: vertices (0.61-0.64 against 1.07-1.27 s).
+LANCZOS_FROM_VERTICES = 2_000
 #: Bound on the steps of the Lanczos attempt (partial reorthogonalisation,
 #: `lanczos_steps`): ``LANCZOS_STEPS_PER_EIGENPAIR * k + 64``. It converges in about ``2.4 k``
 #: (312 steps for k=128 on 20,000 vertices); its basis grows to that many vectors.
