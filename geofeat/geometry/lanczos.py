@@ -22,7 +22,6 @@ from __future__ import annotations
 from collections.abc import Callable
 
 import numpy as np
-import scipy.linalg as la
 
 from geofeat.errors import SpectralError
 
@@ -166,8 +165,16 @@ def _reorthogonalise(block: np.ndarray, residual: np.ndarray) -> float:
 
 
 def _ritz_pairs(alpha: np.ndarray, beta: np.ndarray, k: int, tol: float) -> tuple[np.ndarray, np.ndarray, int]:
-    """Largest ``k`` Ritz values (descending), their vectors in the Lanczos basis (steps, k), and how many converged."""
-    theta, vectors = la.eigh_tridiagonal(alpha, beta[:-1], check_finite=False)
+    """Largest ``k`` Ritz values (descending), their vectors in the Lanczos basis (steps, k), and how many converged.
+
+    numpy's dense ``eigh`` of the (steps, steps) tridiagonal matrix rather than scipy's
+    tridiagonal solver: numpy's LAPACK shares the thread pool of the basis products, while
+    scipy's, run between them, waits for that pool's spinning threads (13 ms against 6.6 ms
+    for 310 steps on a 2-core machine).
+    """
+    off_diagonal = beta[:-1]
+    tridiagonal = np.diag(alpha) + np.diag(off_diagonal, 1) + np.diag(off_diagonal, -1)
+    theta, vectors = np.linalg.eigh(tridiagonal)
     top = np.argsort(theta)[::-1][:k]
     residuals = beta[-1] * np.abs(vectors[-1, top])
     converged = int(np.count_nonzero(residuals <= tol * np.abs(theta[top])))
@@ -175,7 +182,7 @@ def _ritz_pairs(alpha: np.ndarray, beta: np.ndarray, k: int, tol: float) -> tupl
 
 
 def _orthonormalise(vectors: np.ndarray) -> np.ndarray:
-    """Nearly orthonormal columns (shape (n, k)) made orthonormal: ``X R^-1`` with ``X^T X = R^T R`` (Cholesky).
+    """Nearly orthonormal columns (shape (n, k)) made orthonormal: ``X L^-T`` with ``X^T X = L L^T`` (Cholesky).
 
     Raises `SpectralError` when they are further from orthonormal than `RITZ_ORTHOGONALITY`: the
     rounding of the operator was larger than the orthogonality estimate assumes (an
@@ -185,5 +192,5 @@ def _orthonormalise(vectors: np.ndarray) -> np.ndarray:
     loss = float(np.abs(gram - np.eye(len(gram))).max())
     if not loss <= RITZ_ORTHOGONALITY:
         raise SpectralError(f"Lanczos lost orthogonality: the eigenvectors found are orthonormal only to {loss:.1e}.")
-    upper = la.cholesky(gram, lower=False, check_finite=False)
-    return vectors @ la.solve_triangular(upper, np.eye(len(gram)), check_finite=False)
+    lower = np.linalg.cholesky(gram)  # numpy's LAPACK, for the reason given in `_ritz_pairs`
+    return vectors @ np.linalg.inv(lower).T

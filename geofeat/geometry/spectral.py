@@ -44,10 +44,10 @@ SPARSE_SOLVES_PER_VECTOR = 5
 #: A sparse solve that runs longer than this shows a progress bar (linear solves done).
 PROGRESS_AFTER_SECONDS = 5.0
 #: Meshes from this many vertices try Lanczos with partial reorthogonalisation before ARPACK.
-#: Medians of 5 solves (k=128; 40 on the smallest), same process, AMD EPYC 2 cores: ARPACK
-#: was faster on 642 vertices (12 against 20-26 ms); Lanczos on 2,562 (132-160 against
-#: 183-192 ms), 5,000 (185 against 226 ms, robust), 9,237 (279 against 511 ms) and 20,001
-#: vertices (0.61-0.64 against 1.07-1.27 s).
+#: Medians of 5 solves (k=128; 40 on the smallest), same process, AMD EPYC 2 cores: on 642
+#: vertices 22 ms against ARPACK's 15-90 ms; Lanczos faster on 2,562 (124-126 against
+#: 142-146 ms), 5,000 (153-156 against 214-332 ms), 9,237 (218-226 against 477-506 ms) and
+#: 20,001 vertices (545-605 against 1,222-1,393 ms).
 LANCZOS_FROM_VERTICES = 2_000
 #: Bound on the steps of the Lanczos attempt (partial reorthogonalisation,
 #: `lanczos_steps`): ``LANCZOS_STEPS_PER_EIGENPAIR * k + 64``. It converges in about ``2.4 k``
