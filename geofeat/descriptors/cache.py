@@ -36,7 +36,6 @@ import time
 from collections.abc import Mapping
 from pathlib import Path
 
-import h5py
 import numpy as np
 
 from geofeat.errors import CacheError
@@ -45,6 +44,13 @@ from geofeat.storage.entry_folder import EntryFolder, StoreInfo, array_crc32
 from geofeat.storage.files import atomic_write, probe_writable
 
 log = logging.getLogger(__name__)
+
+
+def _h5py():
+    """The h5py module, imported on first use: ``import geofeat`` then skips its 45 ms."""
+    import h5py
+
+    return h5py
 
 
 #: What `FeatureCache.info` returns (the summary every store folder gives).
@@ -132,7 +138,7 @@ class FeatureCache(EntryFolder):
             return None
         problem = None
         try:
-            with h5py.File(path, "r", locking=False) as fh:
+            with _h5py().File(path, "r", locking=False) as fh:
                 features = fh["features"][()]
                 expected = fh.attrs.get("checksum")
                 if fh.attrs.get("key") != key:
@@ -167,7 +173,7 @@ class FeatureCache(EntryFolder):
             raise CacheError(f"cannot create cache directory {path.parent}: {err}. {_NOT_WRITABLE_HINT}") from err
 
         def write(tmp: Path) -> None:
-            with h5py.File(tmp, "w", locking=False) as fh:
+            with _h5py().File(tmp, "w", locking=False) as fh:
                 fh.create_dataset("features", data=features)
                 fh.attrs["key"] = key
                 fh.attrs["checksum"] = _checksum(features)
@@ -232,7 +238,7 @@ class FeatureCache(EntryFolder):
 
     def _is_sound(self, path: Path) -> bool:
         try:
-            with h5py.File(path, "r", locking=False) as fh:
+            with _h5py().File(path, "r", locking=False) as fh:
                 return fh.attrs.get("checksum") == _checksum(fh["features"][()]) and fh.attrs.get("key") == path.stem
         except (OSError, KeyError, ValueError):
             return False

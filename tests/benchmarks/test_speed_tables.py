@@ -23,7 +23,7 @@ def _operator_row(dataset, shape, vertices, reference, ours, before, rows_apart=
         "vertices": vertices,
         "reference": reference,
         "defaults": ours,
-        "SuperLU, 2k+1 vectors": before,
+        "ARPACK, SuperLU, 2k+1 vectors": before,
         "agreement": agreement,
     }
 
