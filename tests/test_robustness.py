@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import csv
 import errno
-import importlib
 import json
 import logging
 import multiprocessing as mp
@@ -149,7 +148,7 @@ def read_only(ctx: Ctx, root: Path) -> None:
             refuse(name)
         return real_file(name, mode, *args, **kwargs)
 
-    patch.setattr(importlib.import_module("geofeat.descriptors.cache").h5py, "File", h5_file)
+    patch.setattr(h5py, "File", h5_file)  # the cache imports h5py on first use: patch the module itself
 
 
 def store_with_entries(ctx: Ctx, n: int = 2) -> FeatureCache:
@@ -1552,9 +1551,7 @@ def cache_cleared_while_writing(ctx: Ctx) -> tuple[bool, bool]:
     """The store's folder removed while an entry is written (a cache clear): (the entry is kept, a warning says so)."""
     import shutil
 
-    from geofeat.descriptors import cache as cache_module
-
-    store, real = FeatureCache(ctx.tmp / "store"), cache_module.h5py.File
+    store, real = FeatureCache(ctx.tmp / "store"), h5py.File
     calls = []
 
     def clear_first(path, *args, **kwargs):
@@ -1563,7 +1560,7 @@ def cache_cleared_while_writing(ctx: Ctx) -> tuple[bool, bool]:
             shutil.rmtree(ctx.tmp / "store")
         return real(path, *args, **kwargs)
 
-    ctx.monkeypatch.setattr(cache_module.h5py, "File", clear_first)
+    ctx.monkeypatch.setattr(h5py, "File", clear_first)
     with ctx.caplog.at_level(logging.WARNING, logger="geofeat"):
         store.put("a" * 64, np.ones((3, 2), np.float32))
     ctx.monkeypatch.undo()
