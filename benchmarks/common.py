@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import os
 import subprocess
+from collections.abc import Callable
 from pathlib import Path
 
 import geofeat
@@ -78,6 +79,16 @@ def write_results(out: str | os.PathLike, result: dict, table: str) -> None:
     out.with_suffix(".json").write_text(json.dumps(result, indent=2) + "\n")
     out.with_suffix(".md").write_text(table + "\n")
     print(table)
+
+
+def read_results(out: str | os.PathLike) -> dict:
+    """The result record ``OUT.json`` that `write_results` wrote."""
+    return json.loads(Path(out).with_suffix(".json").read_text())
+
+
+def rewrite_table(out: str | os.PathLike, table: Callable[[dict], str]) -> None:
+    """Rewrite ``OUT.md`` from ``OUT.json`` with ``table`` (record -> Markdown), running nothing."""
+    Path(out).with_suffix(".md").write_text(table(read_results(out)) + "\n")
 
 
 #: CUDA runtime calls that make the host wait for the device, and those that launch a kernel.

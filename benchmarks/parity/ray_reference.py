@@ -35,7 +35,7 @@ from pathlib import Path
 import numpy as np
 
 import geofeat
-from benchmarks.common import DATA_EXT_ENV, DEFAULT_DATA, DEFAULT_DATA_EXT, data_folder, machine, write_results
+from benchmarks.common import DATA_EXT_ENV, DEFAULT_DATA, DEFAULT_DATA_EXT, data_folder, machine, rewrite_table, write_results
 from geofeat.geometry.partial import ray_partial
 from geofeat.geometry.visibility import visible_faces
 from geofeat.render.rasterizer import RasterSettings
@@ -363,8 +363,7 @@ def main(argv=None) -> int:
     parser.add_argument("--render-only", action="store_true", help="rewrite OUT.md from OUT.json without running anything")
     args = parser.parse_args(argv)
     if args.render_only:
-        out = Path(args.out)
-        out.with_suffix(".md").write_text(table(json.loads(out.with_suffix(".json").read_text())) + "\n")
+        rewrite_table(args.out, table)
         return 0
     if not (args.official_python and args.harness):
         parser.error("--official-python and --harness are required (or --render-only)")

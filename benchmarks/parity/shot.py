@@ -41,7 +41,7 @@ from pathlib import Path
 import numpy as np
 
 import geofeat
-from benchmarks.common import DEFAULT_DATA, DEFAULT_DATA_EXT, RESULTS, data_folder, machine, write_results
+from benchmarks.common import DEFAULT_DATA, DEFAULT_DATA_EXT, RESULTS, data_folder, machine, rewrite_table, write_results
 from geofeat.descriptors.shot import SHOT, SHOT_RECIPES, shot_descriptors
 from geofeat.geometry.partial import make_partial
 
@@ -206,8 +206,7 @@ def main() -> None:
     parser.add_argument("--render-only", action="store_true", help="rewrite OUT.md from OUT.json without running anything")
     args = parser.parse_args()
     if args.render_only:
-        out = Path(args.out)
-        out.with_suffix(".md").write_text(table(json.loads(out.with_suffix(".json").read_text())) + "\n")
+        rewrite_table(args.out, table)
         return
     if not args.reference_python:
         parser.error("--reference-python is required (or --render-only)")

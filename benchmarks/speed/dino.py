@@ -33,7 +33,6 @@ from __future__ import annotations
 import argparse
 import contextlib
 import datetime
-import json
 import sys
 import time
 from pathlib import Path
@@ -48,6 +47,7 @@ from benchmarks.common import (
     machine,
     profile_markdown,
     profile_tables,
+    read_results,
     stored_profile_tables,
     write_results,
 )
@@ -248,7 +248,7 @@ def write_profile(out: Path, result: dict) -> None:
 
 def render_only(out: Path) -> None:
     """Rewrite ``OUT.md`` (and ``OUT_profile.md`` where the run was profiled) from ``OUT.json``."""
-    result = json.loads(out.with_name(f"{out.name}.json").read_text())
+    result = read_results(out)
     out.with_name(f"{out.name}.md").write_text(table(result) + "\n")
     if "profile" in result:
         write_profile(out, result)

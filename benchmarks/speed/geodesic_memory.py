@@ -46,7 +46,7 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks.common import REPO, RESULTS, machine, write_results
+from benchmarks.common import REPO, RESULTS, machine, read_results, write_results
 
 #: Grid spacing of the synthetic template for a target of about this many vertices (5,000 at 0.022).
 SPACING = {5000: 0.022, 40000: 0.0078, 80000: 0.0055}
@@ -209,7 +209,7 @@ def main() -> None:
         return
     if args.render_only:
         out = Path(args.out)
-        result = json.loads(out.with_suffix(".json").read_text())
+        result = read_results(out)
         if "memory_gb" not in result:
             result["memory_gb"] = stored_memory_gb(out)
         out.with_suffix(".md").write_text(table(result["records"], header(result)) + "\n")

@@ -34,6 +34,7 @@ from benchmarks.common import (
     machine,
     profile_markdown,
     profile_tables,
+    read_results,
     stored_profile_tables,
 )
 from geofeat.backbones import DinoBackbone
@@ -180,7 +181,7 @@ def main(argv=None) -> int:
         if not args.out:
             parser.error("--render-only needs --out, the OUT of an earlier run")
         out = Path(args.out)
-        write_markdown(out, json.loads(out.with_name(f"{out.name}.json").read_text()))
+        write_markdown(out, read_results(out))
         return 0
     data_root = str(data_folder(args.data_root, "--data-root"))
 

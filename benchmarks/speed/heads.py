@@ -18,14 +18,12 @@ from __future__ import annotations
 
 import argparse
 import datetime
-import json
 import sys
 import time
-from pathlib import Path
 
 import torch
 
-from benchmarks.common import DEFAULT_DATA, RESULTS, data_folder, machine, write_results
+from benchmarks.common import DEFAULT_DATA, RESULTS, data_folder, machine, rewrite_table, write_results
 from geofeat.adapters.heads import make_head
 from geofeat.datasets import load_dataset
 from geofeat.runtime.devices import resolve_device
@@ -100,8 +98,7 @@ def main(argv=None) -> int:
     parser.add_argument("--render-only", action="store_true", help="rewrite OUT.md from OUT.json without running anything")
     args = parser.parse_args(argv)
     if args.render_only:
-        out = Path(args.out)
-        out.with_suffix(".md").write_text(table(json.loads(out.with_suffix(".json").read_text())) + "\n")
+        rewrite_table(args.out, table)
         return 0
 
     device = resolve_device(args.device)

@@ -41,7 +41,7 @@ from pathlib import Path
 import numpy as np
 
 import geofeat
-from benchmarks.common import DEFAULT_DATA, RESULTS, data_folder, machine, write_results
+from benchmarks.common import DEFAULT_DATA, RESULTS, data_folder, machine, rewrite_table, write_results
 
 _RUN = """
 import json, sys
@@ -223,8 +223,7 @@ def main(argv=None) -> None:
     parser.add_argument("--render-only", action="store_true", help="rewrite OUT.md from OUT.json without running anything")
     args = parser.parse_args(argv)
     if args.render_only:
-        out = Path(args.out)
-        out.with_suffix(".md").write_text(table(json.loads(out.with_suffix(".json").read_text())) + "\n")
+        rewrite_table(args.out, table)
         return
     mesh = geofeat.load_mesh(data_folder(args.data) / "FAUST_r" / "off" / "tr_reg_000.off")
     load_before = os.getloadavg()[0]
