@@ -358,17 +358,8 @@ def _factorize(shifted: sp.csc_matrix):
     20,000 vertices); SuperLU in symmetric mode otherwise, or where CHOLMOD finds the matrix
     not positive definite in floating point. Both solve to rounding.
     """
-    if FACTORIZATION == "auto" and cholmod_available():
-        from sksparse.cholmod import CholmodError, cholesky
-
-        try:
-            factor = cholesky(shifted, mode="simplicial", ordering_method="amd")
-        except CholmodError as err:
-            log.debug("CHOLMOD could not factorise the shifted Laplacian (%s); using SuperLU", err)
-        else:
-            return factor.solve_A
-    lu = sla.splu(shifted, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
-    return lu.solve
+    factor = _cholmod_ldl(shifted)
+    return factor.solve_A if factor is not None else _superlu_ldu(shifted).solve
 
 
 def _count_below(shifted: sp.csc_matrix) -> int:
@@ -377,17 +368,31 @@ def _count_below(shifted: sp.csc_matrix) -> int:
     CHOLMOD's simplicial LDL' where scikit-sparse is installed, SuperLU without pivoting
     (whose ``U`` has the pivots on its diagonal) otherwise.
     """
-    if FACTORIZATION == "auto" and cholmod_available():
-        from sksparse.cholmod import CholmodError, cholesky
+    factor = _cholmod_ldl(shifted)
+    pivots = factor.D() if factor is not None else _superlu_ldu(shifted).U.diagonal()
+    return int(np.count_nonzero(pivots < 0))
 
-        try:
-            pivots = cholesky(shifted, mode="simplicial", ordering_method="amd").D()
-        except CholmodError as err:
-            log.debug("CHOLMOD could not factorise the shifted Laplacian (%s); using SuperLU", err)
-        else:
-            return int(np.count_nonzero(pivots < 0))
-    lu = sla.splu(shifted, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
-    return int(np.count_nonzero(lu.U.diagonal() < 0))
+
+def _cholmod_ldl(shifted: sp.csc_matrix):
+    """CHOLMOD's simplicial LDL' (AMD ordering) of symmetric ``shifted``, or None.
+
+    None where `FACTORIZATION` is "superlu", scikit-sparse is not installed, or CHOLMOD
+    cannot factorise the matrix.
+    """
+    if FACTORIZATION != "auto" or not cholmod_available():
+        return None
+    from sksparse.cholmod import CholmodError, cholesky
+
+    try:
+        return cholesky(shifted, mode="simplicial", ordering_method="amd")
+    except CholmodError as err:
+        log.debug("CHOLMOD could not factorise the shifted Laplacian (%s); using SuperLU", err)
+        return None
+
+
+def _superlu_ldu(shifted: sp.csc_matrix) -> sla.SuperLU:
+    """SuperLU of symmetric ``shifted`` in symmetric mode without pivoting: ``U``'s diagonal holds the LDL' pivots."""
+    return sla.splu(shifted, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
 
 
 def _sparse_with_fallbacks(
