@@ -219,7 +219,7 @@ def main() -> None:
     out = Path(args.out)
     records = []
     if args.merge and out.with_suffix(".json").exists():
-        records = json.loads(out.with_suffix(".json").read_text())["records"]
+        records = read_results(out)["records"]
     for size in args.sizes:
         target = make_target(size, work)
         for run in args.runs:
